@@ -1,0 +1,54 @@
+SHELL := bash
+.SHELLFLAGS := -eu -o pipefail -c
+.DELETE_ON_ERROR:
+MAKEFLAGS += --warn-undefined-variables --no-builtin-rules
+
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+PROTOS := $(wildcard proto/fractoscope/v1/*.proto)
+GEN_DIR := src/fractoscope/v1
+GEN := $(patsubst proto/fractoscope/v1/%.proto,$(GEN_DIR)/%_pb2.py,$(PROTOS))
+STAMP := $(VENV)/.installed
+DATA ?= ./data
+
+.PHONY: install proto run test bench lint clean
+
+## install: create .venv with every dependency and generate the gRPC stubs
+install: $(STAMP)
+
+$(BIN)/python:
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install --quiet --upgrade pip
+
+# Stubs are generated, never committed; grpcio-tools is pinned with grpcio in pyproject.toml.
+$(GEN): $(PROTOS) | $(BIN)/python
+	$(BIN)/pip install --quiet 'grpcio-tools==1.85.*'
+	mkdir -p $(GEN_DIR)
+	$(BIN)/python -m grpc_tools.protoc -Iproto --python_out=src --pyi_out=src \
+	  --grpc_python_out=src $(PROTOS)
+	touch $(GEN_DIR)/__init__.py $(GEN)
+
+proto: $(GEN)
+
+$(STAMP): pyproject.toml $(GEN) | $(BIN)/python
+	$(BIN)/pip install --quiet -e '.[dev]'
+	touch $@
+
+## run: the main job on embedded defaults (local data directory, services in-process)
+run: install
+	$(BIN)/fracto demo --data $(DATA)
+
+## test: the whole test suite
+test: install
+	$(BIN)/python -m pytest -q
+
+## bench: speed, memory and accuracy figures, written to bench-results/
+bench: install
+	$(BIN)/python -m benchmarks.matching --out bench-results
+
+lint: install
+	$(BIN)/python -m compileall -q src services clients tests
+
+clean:
+	rm -rf $(VENV) $(GEN_DIR) build *.egg-info

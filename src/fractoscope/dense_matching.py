@@ -1,0 +1,225 @@
+"""Dense zero-mean normalized cross-correlation (ZNCC) matching of a rectified stereo pair.
+
+The paper's γ(u, v): a pattern window of the left image is compared with windows of the right
+image along the same row. Each window statistic is a box filter, so one candidate shift costs a
+few passes over the image whatever the window size. A coarse-to-fine pyramid finds large
+disparities without a manual search range; at each finer level the right image is warped by the
+current disparity field and only a few residual shifts are tried, which also matches slanted
+surfaces well. Sub-pixel disparities come from iterated parabola fits on the warped image.
+
+Convention: disparity d at left pixel (row, col) means it matches right pixel (row, col + d).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+ProgressCallback = Callable[[float, str], None]
+
+
+@dataclass(frozen=True)
+class DisparityResult:
+    """Dense disparity of a rectified pair.
+
+    disparity_px: (rows, cols) float32, NaN where masked.
+    confidence: (rows, cols) float32, peak ZNCC clipped to [0, 1].
+    sigma_px: (rows, cols) float32, one-sigma disparity uncertainty, NaN where masked.
+    """
+
+    disparity_px: np.ndarray
+    confidence: np.ndarray
+    sigma_px: np.ndarray
+
+
+def match_disparity(
+    left: np.ndarray,
+    right: np.ndarray,
+    *,
+    window_px: int = 11,
+    max_disparity_px: int | None = None,
+    min_confidence: float = 0.5,
+    max_lr_difference_px: float = 1.0,
+    progress: ProgressCallback | None = None,
+) -> DisparityResult:
+    """Matches `left` to `right`, both (rows, cols) grey images of one size, rectified so that
+    parallax runs along rows. Masks (NaN) pixels whose peak correlation is below `min_confidence`,
+    whose left-to-right and right-to-left disparities differ by more than
+    `max_lr_difference_px`, or whose window lies on a flat (textureless) patch."""
+    if left.shape != right.shape or left.ndim != 2:
+        raise ValueError(f"left and right must be 2D of one shape, got {left.shape} and {right.shape}")
+    if window_px < 3 or window_px % 2 == 0:
+        raise ValueError(f"window_px must be odd and >= 3, got {window_px}")
+    report = progress or (lambda fraction, message: None)
+    left_f, right_f = _normalized(left), _normalized(right)
+    if max_disparity_px is None:
+        max_disparity_px = max(left.shape[1] // 4, 8)
+    levels = _level_count(left.shape, max_disparity_px, window_px)
+    left_pyramid, right_pyramid = _pyramid(left_f, levels), _pyramid(right_f, levels)
+
+    coarse_radius = int(np.ceil(max_disparity_px / 2 ** (levels - 1))) + 1
+    forward = _coarse_to_fine(left_pyramid, right_pyramid, window_px, coarse_radius)
+    report(0.45, "matched left to right")
+    backward = _coarse_to_fine(right_pyramid, left_pyramid, window_px, coarse_radius)
+    report(0.8, "matched right to left")
+    backward_at_match = _sample_along_rows(backward, forward)
+    lr_difference = np.abs(forward + backward_at_match)
+    # The two directions err independently: their mean is the better estimate.
+    disparity = 0.5 * (forward - backward_at_match)
+    curvature, score = _peak_curvature(left_f, right_f, disparity, window_px)
+    texture = _local_std(left_f, window_px)
+    in_bounds = _in_bounds(disparity)
+    valid = (
+        (score >= min_confidence)
+        & (lr_difference <= max_lr_difference_px)
+        & (texture > 1e-3)
+        & in_bounds
+        & np.isfinite(disparity)
+    )
+    sigma_px = _disparity_sigma_px(score, curvature, window_px)
+    confidence = np.clip(score, 0.0, 1.0).astype(np.float32)
+    disparity = np.where(valid, disparity, np.nan).astype(np.float32)
+    sigma_px = np.where(valid, sigma_px, np.nan).astype(np.float32)
+    return DisparityResult(disparity, confidence, sigma_px)
+
+
+def _coarse_to_fine(left_pyramid, right_pyramid, window_px, coarse_radius):
+    """Full search at the coarsest level, then ±2 px residual searches on warped images at each
+    finer level, then sub-pixel iterations at full resolution."""
+    levels = len(left_pyramid)
+    disparity = np.zeros(left_pyramid[-1].shape, np.float32)
+    for level in range(levels - 1, -1, -1):
+        left_level, right_level = left_pyramid[level], right_pyramid[level]
+        if level < levels - 1:
+            disparity = 2.0 * cv2.resize(disparity, left_level.shape[::-1], interpolation=cv2.INTER_LINEAR)
+        radius = coarse_radius if level == levels - 1 else 2
+        disparity, score = _refine(left_level, right_level, disparity, window_px, radius)
+        if level > 0:
+            disparity = _clean_for_upsampling(disparity, score)
+    for _ in range(2):
+        disparity, _ = _refine(left_pyramid[0], right_pyramid[0], disparity, window_px, 1)
+    return disparity
+
+
+def _normalized(image: np.ndarray) -> np.ndarray:
+    values = image.astype(np.float32)
+    values -= values.mean()
+    values /= max(float(values.std()), 1e-6)
+    return values
+
+
+def _level_count(shape: tuple[int, int], max_disparity_px: int, window_px: int) -> int:
+    """Halve until the remaining search radius is small, keeping the coarsest image matchable."""
+    levels = 1
+    while max_disparity_px / 2 ** (levels - 1) > 6 and min(shape) / 2**levels >= 4 * window_px:
+        levels += 1
+    return levels
+
+
+def _pyramid(image: np.ndarray, levels: int) -> list[np.ndarray]:
+    pyramid = [image]
+    for _ in range(levels - 1):
+        pyramid.append(cv2.pyrDown(pyramid[-1]))
+    return pyramid
+
+
+def _box(values: np.ndarray, window_px: int) -> np.ndarray:
+    return cv2.boxFilter(values, cv2.CV_32F, (window_px, window_px), borderType=cv2.BORDER_REFLECT)
+
+
+def _local_std(image: np.ndarray, window_px: int) -> np.ndarray:
+    mean = _box(image, window_px)
+    return np.sqrt(np.maximum(_box(image * image, window_px) - mean * mean, 0.0))
+
+
+def _warp_along_rows(image: np.ndarray, disparity: np.ndarray) -> np.ndarray:
+    """image sampled at (row, col + disparity), bilinear, edges replicated."""
+    rows, cols = disparity.shape
+    map_cols = np.arange(cols, dtype=np.float32)[None, :] + disparity
+    map_rows = np.broadcast_to(np.arange(rows, dtype=np.float32)[:, None], disparity.shape)
+    return cv2.remap(image, map_cols, np.ascontiguousarray(map_rows), cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+
+def _sample_along_rows(field: np.ndarray, disparity: np.ndarray) -> np.ndarray:
+    return _warp_along_rows(field, np.nan_to_num(disparity))
+
+
+def _shift_cols(values: np.ndarray, offset: int) -> np.ndarray:
+    """values[row, col + offset], edges replicated."""
+    if offset == 0:
+        return values
+    padded = cv2.copyMakeBorder(values, 0, 0, abs(offset), abs(offset), cv2.BORDER_REPLICATE)
+    start = abs(offset) + offset
+    return padded[:, start : start + values.shape[1]]
+
+
+def _zncc_scores(left: np.ndarray, warped: np.ndarray, window_px: int, offsets: range):
+    """Yields (offset, ZNCC of left windows with warped windows shifted by offset columns)."""
+    mean_left = _box(left, window_px)
+    std_left = np.sqrt(np.maximum(_box(left * left, window_px) - mean_left**2, 1e-8))
+    mean_warped = _box(warped, window_px)
+    std_warped = np.sqrt(np.maximum(_box(warped * warped, window_px) - mean_warped**2, 1e-8))
+    for offset in offsets:
+        shifted = _shift_cols(warped, offset)
+        cross = _box(left * shifted, window_px) - mean_left * _shift_cols(mean_warped, offset)
+        yield offset, cross / (std_left * _shift_cols(std_warped, offset))
+
+
+def _refine(left, right, disparity, window_px, radius):
+    """Best integer residual shift within ±radius on the warped right image, then a parabola
+    through the neighbouring scores. Returns (new disparity, peak score).
+
+    The warp uses the disparity smoothed over about a window: each window then sees one
+    consistent deformation, and per-pixel noise is not fed back into the next iteration."""
+    disparity = cv2.GaussianBlur(disparity, (0, 0), window_px / 4.0)
+    warped = _warp_along_rows(right, disparity)
+    best = np.full(left.shape, -np.inf, np.float32)
+    best_offset = np.zeros(left.shape, np.int32)
+    before = np.full(left.shape, np.nan, np.float32)
+    after = np.full(left.shape, np.nan, np.float32)
+    previous = np.full(left.shape, np.nan, np.float32)
+    for offset, score in _zncc_scores(left, warped, window_px, range(-radius, radius + 1)):
+        just_best = best_offset == offset - 1
+        after[just_best] = score[just_best]
+        better = score > best
+        best[better] = score[better]
+        best_offset[better] = offset
+        before[better] = previous[better]
+        after[better] = np.nan
+        previous = score
+    curvature = before - 2.0 * best + after
+    with np.errstate(invalid="ignore", divide="ignore"):
+        fraction = np.where(curvature < 0, 0.5 * (before - after) / curvature, 0.0)
+    fraction = np.clip(np.nan_to_num(fraction), -0.5, 0.5)
+    return (disparity + best_offset + fraction).astype(np.float32), best
+
+
+def _peak_curvature(left, right, disparity, window_px):
+    """Second difference of the score around the final disparity and the peak score there."""
+    warped = _warp_along_rows(right, disparity)
+    scores = dict(_zncc_scores(left, warped, window_px, range(-1, 2)))
+    return scores[-1] - 2.0 * scores[0] + scores[1], scores[0]
+
+
+def _disparity_sigma_px(score, curvature, window_px):
+    """Location error of a correlation peak: sqrt((1 - γ) / (N |γ''| / 2)) for N window pixels,
+    with a floor of 0.02 px for interpolation bias."""
+    half_curvature = np.maximum(-0.5 * curvature, 1e-4)
+    noise = np.maximum(1.0 - score, 0.0)
+    return np.sqrt(noise / (window_px**2 * half_curvature) + 0.02**2)
+
+
+def _clean_for_upsampling(disparity, score):
+    """Replace poorly matched disparities by a robust local estimate before they seed finer levels."""
+    smooth = cv2.medianBlur(disparity, 5)
+    poor = (score < 0.3) | (np.abs(disparity - smooth) > 1.5)
+    return np.where(poor, smooth, disparity).astype(np.float32)
+
+
+def _in_bounds(disparity):
+    cols = disparity.shape[1]
+    target = np.arange(cols, dtype=np.float32)[None, :] + disparity
+    return (target >= 0) & (target <= cols - 1)

@@ -1,0 +1,22 @@
+"""The one exception hierarchy of Fractoscope; services map it to gRPC status codes in one place."""
+
+
+class FractoscopeError(Exception):
+    """Root of every error Fractoscope raises on purpose."""
+
+
+class InvalidInputError(FractoscopeError, ValueError):
+    """A request or file is unusable; `field` names the offending input (e.g. ``images[1].tilt_deg``)."""
+
+    def __init__(self, field: str, message: str):
+        super().__init__(f"{field}: {message}")
+        self.field = field
+        self.message = message
+
+
+class NotFoundError(FractoscopeError, LookupError):
+    """A named resource (specimen, ROI, tile) does not exist."""
+
+
+class CancelledError(FractoscopeError):
+    """The caller went away; long computations stop at their next progress report."""

@@ -1,0 +1,172 @@
+"""Reading SEM images and their calibration (stage tilt, pixel size) from TIFF and PNG files.
+
+Supported metadata: Zeiss SmartSEM (TIFF tag 34118) and FEI / Thermo Fisher (tags 34680, 34682),
+both decoded by tifffile. Pixels are returned as stored (rows, cols); an instrument data bar at
+the bottom is detected and reported, not silently kept as image content.
+"""
+
+from __future__ import annotations
+
+import io
+from dataclasses import dataclass
+
+import numpy as np
+import tifffile
+from PIL import Image
+
+from fractoscope.errors import InvalidInputError
+
+_LENGTH_TO_UM = {"pm": 1e-6, "nm": 1e-3, "µm": 1.0, "um": 1.0, "μm": 1.0, "mm": 1e3, "m": 1e6}
+
+
+@dataclass(frozen=True)
+class SemImage:
+    """One grey SEM image with what its file says about it.
+
+    pixels: (rows, cols) uint8 or uint16, as stored, including any data bar.
+    tilt_deg: stage tilt in degrees, None when the file does not say.
+    pixel_size_um: lateral pixel size in micrometres, None when the file does not say.
+    data_bar_rows: number of bottom rows that are an instrument data bar, not image.
+    """
+
+    pixels: np.ndarray
+    tilt_deg: float | None
+    pixel_size_um: float | None
+    data_bar_rows: int
+
+    @property
+    def image(self) -> np.ndarray:
+        """The pixels without the data bar, (rows - data_bar_rows, cols)."""
+        return self.pixels[: self.pixels.shape[0] - self.data_bar_rows]
+
+
+def read_sem_image(content: bytes, *, field: str = "image") -> SemImage:
+    """Decodes a TIFF or PNG file's bytes; `field` names the input in error messages."""
+    if not content:
+        raise InvalidInputError(field, "the image file is empty")
+    if content[:4] in (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+"):
+        pixels, tilt_deg, pixel_size_um, bar_rows = _read_tiff(content, field)
+    elif content[:8] == b"\x89PNG\r\n\x1a\n":
+        pixels, tilt_deg, pixel_size_um, bar_rows = _read_png(content, field), None, None, None
+    else:
+        raise InvalidInputError(field, "not a TIFF or PNG file")
+    if pixels.ndim != 2 or min(pixels.shape) < 32:
+        raise InvalidInputError(field, f"expected a grey image of at least 32x32 pixels, got shape {pixels.shape}")
+    if bar_rows is None:
+        bar_rows = detect_data_bar_rows(pixels)
+    return SemImage(pixels, tilt_deg, pixel_size_um, bar_rows)
+
+
+def _read_png(content: bytes, field: str) -> np.ndarray:
+    try:
+        with Image.open(io.BytesIO(content)) as picture:
+            if picture.mode in ("RGB", "RGBA", "P", "LA"):
+                picture = picture.convert("L")
+            pixels = np.asarray(picture)
+    except Exception as exc:  # Pillow raises many types for corrupt files
+        raise InvalidInputError(field, f"unreadable PNG ({exc})") from None
+    return _as_grey_integer(pixels, field)
+
+
+def _read_tiff(content: bytes, field: str):
+    try:
+        with tifffile.TiffFile(io.BytesIO(content)) as tiff:
+            page = tiff.pages.first
+            pixels = page.asarray()
+            if page.photometric == tifffile.PHOTOMETRIC.PALETTE and page.colormap is not None:
+                pixels = _palette_to_grey(pixels, page.colormap)
+            zeiss = tiff.sem_metadata if tiff.is_sem else None
+            fei = tiff.fei_metadata if tiff.is_fei else None
+    except InvalidInputError:
+        raise
+    except Exception as exc:  # tifffile and imagecodecs raise many types for corrupt files
+        raise InvalidInputError(field, f"unreadable TIFF ({exc})") from None
+    if pixels.ndim == 3 and pixels.shape[-1] in (3, 4):
+        pixels = pixels[..., :3].mean(axis=-1).astype(pixels.dtype)
+    pixels = _as_grey_integer(pixels, field)
+    if zeiss:
+        tilt_deg, pixel_size_um = _zeiss_calibration(zeiss, pixels.shape)
+        return pixels, tilt_deg, pixel_size_um, None
+    if fei:
+        tilt_deg, pixel_size_um, image_rows = _fei_calibration(fei)
+        bar_rows = pixels.shape[0] - image_rows if image_rows and 0 < image_rows < pixels.shape[0] else None
+        return pixels, tilt_deg, pixel_size_um, bar_rows
+    return pixels, None, None, None
+
+
+def _palette_to_grey(indices: np.ndarray, colormap: np.ndarray) -> np.ndarray:
+    """Palette images from SEM software are grey ramps; map indices through the red channel."""
+    ramp = np.asarray(colormap[0], dtype=np.float64)
+    scale = 255.0 / 65535.0 if ramp.max() > 255 else 1.0
+    return np.round(ramp * scale).astype(np.uint8)[indices]
+
+
+def _as_grey_integer(pixels: np.ndarray, field: str) -> np.ndarray:
+    if pixels.ndim == 3 and pixels.shape[-1] in (3, 4):
+        pixels = pixels[..., :3].mean(axis=-1)
+    if pixels.dtype in (np.uint8, np.uint16):
+        return pixels
+    if np.issubdtype(pixels.dtype, np.floating) or np.issubdtype(pixels.dtype, np.integer):
+        values = pixels.astype(np.float64)
+        if not np.all(np.isfinite(values)):
+            raise InvalidInputError(field, "the image contains NaN or infinite values")
+        low, high = float(values.min()), float(values.max())
+        span = high - low if high > low else 1.0
+        return np.round((values - low) / span * 65535.0).astype(np.uint16)
+    raise InvalidInputError(field, f"unsupported pixel type {pixels.dtype}")
+
+
+def _length_um(entry) -> float | None:
+    """A Zeiss (name, value, unit) entry as micrometres."""
+    if not isinstance(entry, tuple) or len(entry) < 3:
+        return None
+    value, unit = entry[1], str(entry[2])
+    if not isinstance(value, (int, float)) or unit not in _LENGTH_TO_UM or value <= 0:
+        return None
+    return float(value) * _LENGTH_TO_UM[unit]
+
+
+def _zeiss_calibration(metadata: dict, shape: tuple[int, int]) -> tuple[float | None, float | None]:
+    """Stage tilt from ``Stage at T`` and pixel size from ``Image Pixel Size`` (or Width / scan line).
+
+    ``Tilt Angle`` is the tilt-correction setting and ``Pixel Size`` refers to the screen store
+    resolution, so neither is used.
+    """
+    tilt = metadata.get("ap_stage_at_t")
+    tilt_deg = float(tilt[1]) if isinstance(tilt, tuple) and isinstance(tilt[1], (int, float)) else None
+    pixel_size_um = _length_um(metadata.get("ap_image_pixel_size"))
+    if pixel_size_um is None:
+        width_um = _length_um(metadata.get("ap_width"))
+        if width_um is not None:
+            pixel_size_um = width_um / max(shape)
+    return tilt_deg, pixel_size_um
+
+
+def _fei_calibration(metadata: dict) -> tuple[float | None, float | None, int | None]:
+    """Stage tilt (``[Stage] StageT``, radians), pixel size (``[Scan] PixelWidth``, metres) and the
+    image height without data bar (``[Image] ResolutionY``)."""
+    stage, scan, image = (metadata.get(name) or {} for name in ("Stage", "Scan", "Image"))
+    tilt_rad = stage.get("StageT")
+    tilt_deg = float(np.degrees(tilt_rad)) if isinstance(tilt_rad, (int, float)) else None
+    pixel_m = scan.get("PixelWidth")
+    pixel_size_um = float(pixel_m) * 1e6 if isinstance(pixel_m, (int, float)) and pixel_m > 0 else None
+    rows = image.get("ResolutionY")
+    return tilt_deg, pixel_size_um, int(rows) if isinstance(rows, int) else None
+
+
+def detect_data_bar_rows(pixels: np.ndarray, *, max_fraction: float = 0.2) -> int:
+    """Rows at the bottom that form an instrument data bar, 0 when there is none.
+
+    A data bar is drawn in the image's extreme values (black background, white text and frames),
+    so its rows are almost entirely at the minimum or maximum grey level; image rows are not.
+    """
+    values = pixels.astype(np.float32)
+    low, high = float(values.min()), float(values.max())
+    tolerance = 0.02 * max(high - low, 1.0)
+    at_extreme = (values - low < tolerance) | (high - values < tolerance)
+    flat_rows = at_extreme.mean(axis=1) > 0.9
+    limit = int(pixels.shape[0] * max_fraction)
+    count = 0
+    while count < limit and flat_rows[-1 - count]:
+        count += 1
+    return count

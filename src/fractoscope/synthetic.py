@@ -1,0 +1,156 @@
+"""Synthetic fracture surfaces and the SEM images they give: the known truth for tests and demos.
+
+Surfaces are (rows, cols) float64 height fields in micrometres on a square grid of
+`pixel_size_um`. Images are rendered by parallel projection at a stage tilt about the vertical
+(column) axis through the image centre: a surface point at column offset x (pixels from the centre
+column) and height z appears at column offset ``x cos t + (z / pixel_size) sin t``. Contrast follows
+the secondary-electron secant law of the beam incidence angle, lit by a side detector, plus a weak
+material contrast and Gaussian noise.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+_SUPERSAMPLING = 2
+
+
+def self_affine_surface(
+    shape: tuple[int, int], *, hurst: float, rms_um: float, seed: int, min_wavelength_px: float = 4.0
+) -> np.ndarray:
+    """Gaussian self-affine roughness by spectral synthesis: PSD ~ q^-(2 + 2 hurst), rolled off
+    below `min_wavelength_px` as a finite SEM probe would. Returns heights with the given RMS, µm."""
+    rng = np.random.default_rng(seed)
+    rows, cols = shape
+    q_rows = np.fft.fftfreq(rows)[:, None]
+    q_cols = np.fft.rfftfreq(cols)[None, :]
+    q = np.hypot(q_rows, q_cols)
+    q[0, 0] = 1.0
+    amplitude = q ** -(1.0 + hurst) * np.exp(-((q * min_wavelength_px) ** 2))
+    amplitude[0, 0] = 0.0
+    phases = rng.standard_normal(q.shape) + 1j * rng.standard_normal(q.shape)
+    heights = np.fft.irfft2(amplitude * phases, s=shape)
+    return heights * (rms_um / heights.std())
+
+
+def dimple_surface(
+    shape: tuple[int, int], *, dimple_radius_px: float, depth_um: float, seed: int
+) -> np.ndarray:
+    """Ductile fracture: the lower envelope of paraboloid bowls around random centres, so dimples
+    meet in sharp continuous rims, with fine self-affine roughness on top. Heights in µm."""
+    rng = np.random.default_rng(seed)
+    rows, cols = shape
+    count = max(int(rows * cols / (np.pi * dimple_radius_px**2)), 8)
+    centres = rng.uniform((0, 0), (rows, cols), size=(count, 2))
+    radii = dimple_radius_px * rng.uniform(0.7, 1.3, size=count)
+    depths = depth_um * rng.uniform(0.7, 1.3, size=count)
+    grid = np.stack(np.mgrid[0:rows, 0:cols], axis=-1).reshape(-1, 2)
+    distance, nearest = cKDTree(centres).query(grid, k=min(6, count))
+    bowls = -depths[nearest] * (1.0 - (distance / radii[nearest]) ** 2)
+    heights = bowls.min(axis=1).reshape(shape)
+    roughness = self_affine_surface(shape, hurst=0.8, rms_um=0.04 * depth_um, seed=seed + 1)
+    return heights + roughness
+
+
+def cleavage_surface(
+    shape: tuple[int, int], *, facet_size_px: float, step_um: float, slope_um_per_px: float, seed: int
+) -> np.ndarray:
+    """Brittle cleavage: flat facets (Voronoi grains) at random slopes up to `slope_um_per_px`, each crossed by
+    parallel river steps of height `step_um`, with fine roughness. Heights in µm."""
+    rng = np.random.default_rng(seed)
+    rows, cols = shape
+    count = max(int(rows * cols / facet_size_px**2), 2)
+    centres = rng.uniform((0, 0), (rows, cols), size=(count, 2))
+    grid = np.mgrid[0:rows, 0:cols].astype(np.float64)
+    _, facet = cKDTree(centres).query(grid.reshape(2, -1).T)
+    facet = facet.reshape(shape)
+    slopes = rng.uniform(-slope_um_per_px, slope_um_per_px, size=(count, 2))
+    offsets = rng.uniform(-3 * step_um, 3 * step_um, size=count)
+    step_angle = rng.uniform(0, np.pi, size=count)
+    step_spacing_px = facet_size_px * rng.uniform(0.25, 0.5, size=count)
+    row_px, col_px = grid
+    along = row_px * np.cos(step_angle[facet]) + col_px * np.sin(step_angle[facet])
+    steps = step_um * np.floor(along / step_spacing_px[facet])
+    heights = offsets[facet] + (slopes[facet, 0] * row_px + slopes[facet, 1] * col_px) + steps
+    heights -= heights.mean()
+    return heights + self_affine_surface(shape, hurst=0.8, rms_um=0.1 * step_um, seed=seed + 1)
+
+
+@dataclass(frozen=True)
+class RenderedView:
+    """One rendered SEM view.
+
+    image: (rows, cols) uint8 or uint16 grey image.
+    z_seen_um: (rows, cols) float64, height of the surface point seen at each pixel, µm.
+    """
+
+    image: np.ndarray
+    z_seen_um: np.ndarray
+
+
+def render_sem_view(
+    z_um: np.ndarray,
+    *,
+    pixel_size_um: float,
+    tilt_deg: float,
+    noise_fraction: float = 0.02,
+    seed: int = 0,
+    material_seed: int = 0,
+    bits: int = 8,
+) -> RenderedView:
+    """Renders `z_um` (rows, cols, µm) seen at stage tilt `tilt_deg` about the vertical axis.
+
+    Gaussian noise (drawn from `seed`, so different per view) has a standard deviation of
+    `noise_fraction` of the image's grey range; the material contrast belongs to the surface and
+    comes from `material_seed`, which all views of one surface must share.
+    """
+    # Render on a finer grid and average down: the finite probe blurs detail below one pixel.
+    fine_um = cv2.resize(z_um, None, fx=_SUPERSAMPLING, fy=_SUPERSAMPLING, interpolation=cv2.INTER_CUBIC)
+    fine_pixel_um = pixel_size_um / _SUPERSAMPLING
+    rows, cols = fine_um.shape
+    tilt_rad = np.radians(tilt_deg)
+    shading = _secondary_electron_yield(fine_um, fine_pixel_um, tilt_rad, material_seed)
+    x_px = np.arange(cols) - (cols - 1) / 2.0
+    projected = x_px[None, :] * np.cos(tilt_rad) + fine_um / fine_pixel_um * np.sin(tilt_rad)
+    # Hidden points fold back under the visible ones; the running maximum keeps the visible sheet.
+    projected = np.maximum.accumulate(projected, axis=1)
+    image = np.empty((rows, cols))
+    z_seen_um = np.empty((rows, cols))
+    for row in range(rows):
+        source_x = np.interp(x_px, projected[row], x_px)
+        image[row] = np.interp(source_x, x_px, shading[row])
+        z_seen_um[row] = np.interp(source_x, x_px, fine_um[row])
+    image = cv2.resize(image, z_um.shape[::-1], interpolation=cv2.INTER_AREA)
+    z_seen_um = cv2.resize(z_seen_um, z_um.shape[::-1], interpolation=cv2.INTER_AREA)
+    rng = np.random.default_rng(seed)
+    low, high = np.percentile(image, [0.5, 99.5])
+    image = (image - low) / (high - low)
+    image += rng.normal(0.0, noise_fraction, image.shape)
+    full_scale = 2**bits - 1
+    grey = np.clip(0.1 + 0.8 * image, 0.0, 1.0) * full_scale
+    return RenderedView(np.round(grey).astype(np.uint8 if bits == 8 else np.uint16), z_seen_um)
+
+
+def _secondary_electron_yield(z_um: np.ndarray, pixel_size_um: float, tilt_rad: float, material_seed: int) -> np.ndarray:
+    """SE1 electrons follow the secant law of the incidence angle; SE2 electrons (excited by
+    backscattered electrons, about half the signal) hardly depend on it. Both are modulated by
+    the side detector's view of the facet and by material contrast."""
+    slope_rows, slope_cols = np.gradient(z_um, pixel_size_um)
+    normal = np.stack([-slope_cols, -slope_rows, np.ones_like(z_um)])
+    normal /= np.linalg.norm(normal, axis=0)
+    beam = np.array([-np.sin(tilt_rad), 0.0, np.cos(tilt_rad)])
+    cos_incidence = np.clip(np.tensordot(beam, normal, axes=1), 0.15, 1.0)
+    detector = np.array([0.0, -0.6, 0.8])  # side detector towards the top of the image
+    facing = np.clip(np.tensordot(detector, normal, axes=1), 0.0, 1.0)
+    material = self_affine_surface(z_um.shape, hurst=0.5, rms_um=0.15, seed=material_seed, min_wavelength_px=4.0)
+    return (0.5 / cos_incidence + 0.5) * (0.55 + 0.45 * facing) * (1.0 + material)
+
+
+def heights_as_disparity_px(z_um: np.ndarray, *, pixel_size_um: float, tilt_deg: tuple[float, float]) -> np.ndarray:
+    """Column shift between the two views of points at height `z_um` (at the centre column), px."""
+    t1, t2 = np.radians(tilt_deg)
+    return z_um / pixel_size_um * (np.sin(t2) - np.sin(t1))
