@@ -150,7 +150,53 @@ def _secondary_electron_yield(z_um: np.ndarray, pixel_size_um: float, tilt_rad: 
     return (0.5 / cos_incidence + 0.5) * (0.55 + 0.45 * facing) * (1.0 + material)
 
 
-def heights_as_disparity_px(z_um: np.ndarray, *, pixel_size_um: float, tilt_deg: tuple[float, float]) -> np.ndarray:
-    """Column shift between the two views of points at height `z_um` (at the centre column), px."""
-    t1, t2 = np.radians(tilt_deg)
-    return z_um / pixel_size_um * (np.sin(t2) - np.sin(t1))
+
+
+@dataclass(frozen=True)
+class StereoPair:
+    """A rendered pair: both images (rows, cols) and the truth on the first image's grid, µm."""
+
+    first: np.ndarray
+    second: np.ndarray
+    z_seen_um: np.ndarray
+
+
+def render_stereo_pair(
+    z_um: np.ndarray,
+    *,
+    pixel_size_um: float,
+    tilt_deg: tuple[float, float],
+    output_shape: tuple[int, int],
+    tilt_axis_deg: float = 90.0,
+    second_shift_px: tuple[float, float] = (0.0, 0.0),
+    second_rotation_deg: float = 0.0,
+    noise_fraction: float = 0.02,
+    seed: int = 0,
+    bits: int = 8,
+) -> StereoPair:
+    """Renders `z_um` at both tilts about an axis at `tilt_axis_deg` in the image (counter-clockwise
+    from the column axis as displayed), then misplaces the second image by a rotation about its
+    centre and a (column, row) shift, as an imperfect stage does. `z_um` must be larger than
+    `output_shape` to leave room for the rotation; the centre of the canvas is kept."""
+    views = [
+        render_sem_view(z_um, pixel_size_um=pixel_size_um, tilt_deg=t, noise_fraction=noise_fraction, seed=seed + i, bits=bits)
+        for i, t in enumerate(tilt_deg)
+    ]
+    rows, cols = z_um.shape
+    centre = ((cols - 1) / 2.0, (rows - 1) / 2.0)
+    to_image = cv2.getRotationMatrix2D(centre, tilt_axis_deg - 90.0, 1.0)
+    misplace = cv2.getRotationMatrix2D(centre, second_rotation_deg, 1.0)
+    misplace[:, 2] += second_shift_px
+    out_rows, out_cols = output_shape
+    top, left = (rows - out_rows) // 2, (cols - out_cols) // 2
+
+    def place(values: np.ndarray, extra: np.ndarray | None = None) -> np.ndarray:
+        placed = cv2.warpAffine(values.astype(np.float32), to_image, (cols, rows), flags=cv2.INTER_LINEAR)
+        if extra is not None:
+            placed = cv2.warpAffine(placed, extra, (cols, rows), flags=cv2.INTER_LINEAR)
+        return placed[top : top + out_rows, left : left + out_cols]
+
+    dtype = views[0].image.dtype
+    first = np.round(place(views[0].image)).astype(dtype)
+    second = np.round(place(views[1].image, misplace)).astype(dtype)
+    return StereoPair(first, second, place(views[0].z_seen_um).astype(np.float64))

@@ -1,0 +1,120 @@
+"""Rectification of SEM stereo pairs: tilt axis to vertical, then global shift and rotation removed.
+
+Coordinates are pixels, x along columns and y along rows. After `rectify_for_tilt_axis` the tilt
+axis is vertical and parallax runs along x. `estimate_alignment` then measures how the second
+image sits against the first from matched SIFT features: rows must agree (up to a rotation and an
+across shift), while x differences are parallax plus a global shift.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Alignment:
+    """How the second image is placed against the first, pixels and degrees.
+
+    A point at (x, y) of the first image (relative to the image centre) lies at
+    ``rotate(rotation_deg) @ (x, y) + (shift_parallel_px + parallax, shift_across_px)``
+    in the second one.
+    """
+
+    shift_parallel_px: float
+    shift_across_px: float
+    rotation_deg: float
+    residual_vertical_parallax_px: float
+    parallax_spread_px: float
+    matched_features: int
+
+
+_NO_ALIGNMENT = Alignment(0.0, 0.0, 0.0, float("nan"), float("nan"), 0)
+
+
+def rotation_to_vertical_axis(shape: tuple[int, int], tilt_axis_deg: float) -> tuple[np.ndarray, tuple[int, int]]:
+    """Affine map (2x3) from an image of `shape` (rows, cols) to a canvas in which the tilt axis
+    (at `tilt_axis_deg` from the column axis, counter-clockwise as displayed) is vertical, and the
+    canvas shape (rows, cols) holding the whole rotated image."""
+    rows, cols = shape
+    angle = 90.0 - tilt_axis_deg
+    matrix = cv2.getRotationMatrix2D(((cols - 1) / 2.0, (rows - 1) / 2.0), angle, 1.0)
+    cos, sin = abs(matrix[0, 0]), abs(matrix[0, 1])
+    out_cols = int(np.ceil(rows * sin + cols * cos - 1e-6))
+    out_rows = int(np.ceil(rows * cos + cols * sin - 1e-6))
+    matrix[0, 2] += (out_cols - cols) / 2.0
+    matrix[1, 2] += (out_rows - rows) / 2.0
+    return matrix, (out_rows, out_cols)
+
+
+def apply_affine(image: np.ndarray, matrix: np.ndarray, shape: tuple[int, int], *, inverse: bool = False, fill=0.0):
+    """Warps `image` by `matrix` (source to destination, or destination to source with
+    `inverse`) onto a canvas of `shape` (rows, cols), bilinear, `fill` outside."""
+    flags = cv2.INTER_LINEAR | (cv2.WARP_INVERSE_MAP if inverse else 0)
+    return cv2.warpAffine(image, matrix, (shape[1], shape[0]), flags=flags, borderMode=cv2.BORDER_CONSTANT, borderValue=fill)
+
+
+def estimate_alignment(
+    first: np.ndarray, second: np.ndarray, *, max_features: int = 4000, max_side_px: int = 1024
+) -> Alignment:
+    """Global placement of `second` against `first` (both (rows, cols), parallax along x), from
+    SIFT features found on copies at most `max_side_px` wide; returns zeros when fewer than 12
+    features match."""
+    scale = min(1.0, max_side_px / max(first.shape))
+    first8, second8 = (_to_uint8(cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)) for image in (first, second))
+    sift = cv2.SIFT_create(nfeatures=max_features)
+    keys1, desc1 = sift.detectAndCompute(first8, None)
+    keys2, desc2 = sift.detectAndCompute(second8, None)
+    if desc1 is None or desc2 is None or len(keys1) < 12 or len(keys2) < 12:
+        return _NO_ALIGNMENT
+    matches = cv2.BFMatcher(cv2.NORM_L2, crossCheck=True).match(desc1, desc2)
+    if len(matches) < 12:
+        return _NO_ALIGNMENT
+    centre = np.array([(first.shape[1] - 1) / 2.0, (first.shape[0] - 1) / 2.0])
+    # Keypoints of the scaled copy, back in full-resolution pixel coordinates.
+    points1 = (np.array([keys1[m.queryIdx].pt for m in matches]) + 0.5) / scale - 0.5 - centre
+    points2 = (np.array([keys2[m.trainIdx].pt for m in matches]) + 0.5) / scale - 0.5 - centre
+
+    # Rows: y2 - y1 = sin(θ) x1 + shift_across (small rotation), fitted with outlier trimming.
+    design = np.column_stack([points1[:, 0], np.ones(len(points1))])
+    across = points2[:, 1] - points1[:, 1]
+    inliers = np.abs(across - np.median(across)) < 3.0
+    for _ in range(5):
+        if inliers.sum() < 8:
+            return _NO_ALIGNMENT
+        coef, *_ = np.linalg.lstsq(design[inliers], across[inliers], rcond=None)
+        residual = across - design @ coef
+        scale = max(1.4826 * np.median(np.abs(residual[inliers])), 0.3)
+        inliers = np.abs(residual) < 3.0 * scale
+    sin_rotation, shift_across = coef
+    rotation = np.arcsin(np.clip(sin_rotation, -1.0, 1.0))
+    rotated_x = np.cos(rotation) * points1[:, 0] - np.sin(rotation) * points1[:, 1]
+    parallax = (points2[:, 0] - rotated_x)[inliers]
+    low, median, high = np.percentile(parallax, [1, 50, 99])
+    return Alignment(
+        shift_parallel_px=float(median),
+        shift_across_px=float(shift_across),
+        rotation_deg=float(np.degrees(rotation)),
+        residual_vertical_parallax_px=float(np.sqrt(np.mean(residual[inliers] ** 2))),
+        parallax_spread_px=float(max(median - low, high - median)),
+        matched_features=int(inliers.sum()),
+    )
+
+
+def second_to_first_matrix(alignment: Alignment, shape: tuple[int, int]) -> np.ndarray:
+    """Affine map (2x3) from the first image's pixel grid to the second's, without parallax: used
+    with `apply_affine(..., inverse=True)` to resample the second image onto the first's grid."""
+    rows, cols = shape
+    centre = np.array([(cols - 1) / 2.0, (rows - 1) / 2.0])
+    theta = np.radians(alignment.rotation_deg)
+    rotation = np.array([[np.cos(theta), -np.sin(theta)], [np.sin(theta), np.cos(theta)]])
+    offset = centre - rotation @ centre + np.array([alignment.shift_parallel_px, alignment.shift_across_px])
+    return np.column_stack([rotation, offset])
+
+
+def _to_uint8(image: np.ndarray) -> np.ndarray:
+    low, high = np.percentile(image, [0.5, 99.5])
+    scaled = (image.astype(np.float32) - low) * (255.0 / max(high - low, 1e-6))
+    return np.clip(scaled, 0, 255).astype(np.uint8)
