@@ -1,0 +1,153 @@
+"""`fracto`: the command line of Fractoscope.
+
+Exit codes: 0 success, 1 unexpected failure, 2 bad input, 3 server unavailable, 4 not found.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import grpc
+import numpy as np
+from rich.console import Console
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+from fractoscope.client import ClientError, FractoscopeClient, HeightMap, embedded_server, server_address
+
+EXIT_FAILURE, EXIT_BAD_INPUT, EXIT_UNAVAILABLE, EXIT_NOT_FOUND = 1, 2, 3, 4
+_EXIT_CODES = {
+    grpc.StatusCode.INVALID_ARGUMENT: EXIT_BAD_INPUT,
+    grpc.StatusCode.FAILED_PRECONDITION: EXIT_BAD_INPUT,
+    grpc.StatusCode.UNAVAILABLE: EXIT_UNAVAILABLE,
+    grpc.StatusCode.DEADLINE_EXCEEDED: EXIT_UNAVAILABLE,
+    grpc.StatusCode.NOT_FOUND: EXIT_NOT_FOUND,
+}
+_err = Console(stderr=True)
+
+
+class UsageError(Exception):
+    """A problem with the command line itself (missing file, bad value)."""
+
+
+@contextlib.contextmanager
+def connected(server: str | None) -> Iterator[FractoscopeClient]:
+    """A client to `server`, FRACTO_SERVER, or services started in-process for this command."""
+    address = server_address(server)
+    if address:
+        with FractoscopeClient(address) as client:
+            yield client
+        return
+    with embedded_server() as local, FractoscopeClient(local) as client:
+        yield client
+
+
+@contextlib.contextmanager
+def progress_bar(description: str, enabled: bool):
+    """A progress bar on stderr; yields the callback that advances it."""
+    if not enabled:
+        yield lambda fraction, message: None
+        return
+    columns = (TextColumn("{task.description}"), BarColumn(), TextColumn("{task.percentage:>3.0f}%"), TimeElapsedColumn())
+    with Progress(*columns, console=_err, transient=True) as bar:
+        task = bar.add_task(description, total=1.0)
+        yield lambda fraction, message: bar.update(task, completed=fraction, description=f"{description}: {message}")
+
+
+def _existing_file(text: str) -> Path:
+    path = Path(text)
+    if not path.is_file():
+        raise UsageError(f"cannot read {text}: no such file")
+    return path
+
+
+def compute_height(client: FractoscopeClient, args, quiet: bool) -> HeightMap:
+    paths = [_existing_file(args.left), _existing_file(args.right)]
+    with progress_bar("matching", enabled=not quiet and _err.is_terminal) as advance:
+        return client.compute_height_map(
+            paths,
+            tilt_deg=args.tilt,
+            pixel_size_um=args.pixel_size_um,
+            tilt_axis_deg=args.tilt_axis_deg,
+            on_progress=advance,
+        )
+
+
+def command_height(args) -> int:
+    with connected(args.server) as client:
+        result = compute_height(client, args, quiet=args.json)
+    out = Path(args.output)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(out, z_um=result.z_um, sigma_um=result.sigma_um, confidence=result.confidence)
+    summary = {"output": str(out), **height_summary(result)}
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        print(
+            f"wrote {out}: {result.z_um.shape[1]}x{result.z_um.shape[0]} px, "
+            f"heights {summary['z_min_um']:.3f} to {summary['z_max_um']:.3f} µm, "
+            f"{100 * summary['valid_fraction']:.1f} % valid, median sigma {summary['median_sigma_um']:.3f} µm"
+        )
+    return 0
+
+
+def height_summary(result: HeightMap) -> dict:
+    """Figures worth printing about a height map (µm where dimensional)."""
+    valid = np.isfinite(result.z_um)
+    z = result.z_um[valid]
+    return {
+        "z_min_um": float(z.min()) if z.size else float("nan"),
+        "z_max_um": float(z.max()) if z.size else float("nan"),
+        "valid_fraction": float(valid.mean()),
+        "median_sigma_um": float(np.median(result.sigma_um[valid])) if z.size else float("nan"),
+        "report": result.report,
+    }
+
+
+def command_demo(args) -> int:
+    from fractoscope.client.demo import run_demo
+
+    with connected(args.server) as client:
+        return run_demo(client, Path(args.data), shared_data=Path(args.shared_data), console=Console())
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="fracto", description="Calibrated 3D fracture surfaces from SEM stereo pairs.")
+    commands = parser.add_subparsers(dest="command", required=True)
+
+    height = commands.add_parser("height", help="height map of a stereo pair")
+    height.add_argument("left", help="reference image (TIFF or PNG); heights use its pixel grid")
+    height.add_argument("right", help="second image of the pair")
+    height.add_argument("--tilt", nargs=2, type=float, metavar=("T1", "T2"), help="stage tilts in degrees (default: metadata)")
+    height.add_argument("--pixel-size-um", type=float, help="pixel size in µm (default: metadata)")
+    height.add_argument("--tilt-axis-deg", type=float, help="tilt axis direction in the image, degrees (default 90: vertical)")
+    height.add_argument("-o", "--output", required=True, help="output .npz with z_um, sigma_um, confidence")
+    height.add_argument("--server", help="HOST:PORT of a Fractoscope server (default: FRACTO_SERVER, else in-process)")
+    height.add_argument("--json", action="store_true", help="print a JSON summary instead of text")
+    height.set_defaults(run=command_height)
+
+    demo = commands.add_parser("demo", help="reconstruct the bundled demo specimen and report its accuracy")
+    demo.add_argument("--data", default="./data", help="data directory (default ./data)")
+    demo.add_argument("--shared-data", default="../shared/data", help="shared test data, used when present")
+    demo.add_argument("--server", help="HOST:PORT of a Fractoscope server (default: in-process)")
+    demo.set_defaults(run=command_demo)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = build_parser().parse_args(argv)
+    try:
+        code = args.run(args)
+    except UsageError as error:
+        _err.print(f"error: {error}", markup=False, highlight=False)
+        code = EXIT_BAD_INPUT
+    except ClientError as error:
+        _err.print(f"error: {error}", markup=False, highlight=False)
+        code = _EXIT_CODES.get(error.code, EXIT_FAILURE)
+    except KeyboardInterrupt:
+        code = 130
+    sys.exit(code)

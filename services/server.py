@@ -1,0 +1,115 @@
+"""The gRPC server: Fractoscope services plus health checking and reflection.
+
+Configuration comes from flags, each with an environment variable as its default:
+FRACTO_ADDRESS (listen address), FRACTO_MAX_MESSAGE_MB (largest message either way),
+FRACTO_WORKERS (concurrent calls), FRACTO_LOG_LEVEL.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import signal
+import sys
+import threading
+import time
+from concurrent import futures
+
+import grpc
+from grpc_health.v1 import health, health_pb2, health_pb2_grpc
+from grpc_reflection.v1alpha import reflection
+
+from fractoscope.services.matching import MatchingServicer
+from fractoscope.v1 import matching_pb2, matching_pb2_grpc
+
+DEFAULT_MAX_MESSAGE_MB = 512
+_SERVICES = {
+    "matching": (matching_pb2.DESCRIPTOR.services_by_name["MatchingService"], matching_pb2_grpc.add_MatchingServiceServicer_to_server, MatchingServicer),
+}
+
+
+def message_size_options(max_message_mb: int) -> list[tuple[str, int]]:
+    """Channel and server options that lift gRPC's 4 MiB default for images and height maps."""
+    limit = max_message_mb * 1024 * 1024
+    return [("grpc.max_receive_message_length", limit), ("grpc.max_send_message_length", limit)]
+
+
+def create_server(
+    address: str = "[::]:0",
+    *,
+    services: tuple[str, ...] = tuple(_SERVICES),
+    max_message_mb: int = DEFAULT_MAX_MESSAGE_MB,
+    workers: int = 8,
+) -> tuple[grpc.Server, int]:
+    """A server with the named services, health and reflection, bound to `address`; returns it
+    (not started) with the bound port."""
+    server = grpc.server(futures.ThreadPoolExecutor(max_workers=workers), options=message_size_options(max_message_mb))
+    health_servicer = health.HealthServicer()
+    health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
+    names = [reflection.SERVICE_NAME, health.SERVICE_NAME]
+    for name in services:
+        if name not in _SERVICES:
+            raise ValueError(f"unknown service {name!r}; known: {', '.join(_SERVICES)}")
+        descriptor, add, servicer = _SERVICES[name]
+        add(servicer(), server)
+        names.append(descriptor.full_name)
+        health_servicer.set(descriptor.full_name, health_pb2.HealthCheckResponse.SERVING)
+    health_servicer.set("", health_pb2.HealthCheckResponse.SERVING)
+    reflection.enable_server_reflection(names, server)
+    port = server.add_insecure_port(address)
+    if port == 0:
+        raise RuntimeError(f"cannot bind {address}")
+    return server, port
+
+
+class JsonFormatter(logging.Formatter):
+    """One JSON object per line with a `severity` field, for log collectors."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        entry = {
+            "time": time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(record.created)) + f".{int(record.msecs):03d}Z",
+            "severity": record.levelname,
+            "logger": record.name,
+            "message": record.getMessage(),
+        }
+        for key in ("request_id", "report"):
+            if hasattr(record, key):
+                entry[key] = getattr(record, key)
+        if record.exc_info:
+            entry["exception"] = self.formatException(record.exc_info)
+        return json.dumps(entry, default=str)
+
+
+def configure_logging(level: str) -> None:
+    handler = logging.StreamHandler(sys.stdout)
+    handler.setFormatter(JsonFormatter())
+    logging.basicConfig(level=level.upper(), handlers=[handler], force=True)
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(prog="fracto-server", description="Serve Fractoscope's gRPC services.")
+    parser.add_argument("--address", default=os.environ.get("FRACTO_ADDRESS", "[::]:50051"))
+    parser.add_argument("--services", default=os.environ.get("FRACTO_SERVICES", ",".join(_SERVICES)),
+                        help="comma-separated services to serve")
+    parser.add_argument("--max-message-mb", type=int, default=int(os.environ.get("FRACTO_MAX_MESSAGE_MB", DEFAULT_MAX_MESSAGE_MB)))
+    parser.add_argument("--workers", type=int, default=int(os.environ.get("FRACTO_WORKERS", "8")))
+    parser.add_argument("--log-level", default=os.environ.get("FRACTO_LOG_LEVEL", "INFO"))
+    parser.add_argument("--grace-s", type=float, default=30.0, help="seconds in-flight calls get on SIGTERM")
+    args = parser.parse_args(argv)
+    configure_logging(args.log_level)
+    services = tuple(name.strip() for name in args.services.split(",") if name.strip())
+    server, port = create_server(args.address, services=services, max_message_mb=args.max_message_mb, workers=args.workers)
+    server.start()
+    logging.getLogger("fractoscope.server").info(f"serving {', '.join(services)} on port {port}")
+    stopped = threading.Event()
+
+    def stop(signum, frame):
+        logging.getLogger("fractoscope.server").info("stopping")
+        server.stop(args.grace_s).wait()
+        stopped.set()
+
+    signal.signal(signal.SIGTERM, stop)
+    signal.signal(signal.SIGINT, stop)
+    stopped.wait()
