@@ -1,0 +1,61 @@
+"""Shared fixtures: synthetic stereo pairs with known truth, the shared real data, a loopback server."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fractoscope import synthetic
+from fractoscope.client import FractoscopeClient
+from fractoscope.services.server import create_server
+
+SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+POLLEN_SERIES = SHARED_DATA / "real" / "potamogeton-tilt-series"
+
+
+def fracture_pair(
+    *, tilt_deg=(-5.0, 5.0), size_px=640, seed=1, tilt_axis_deg=90.0, shift_px=(0.0, 0.0), rotation_deg=0.0, bits=8
+) -> synthetic.StereoPair:
+    """A self-affine fracture surface (H = 0.8, 2.5 µm RMS at 0.1 µm/px) seen at two tilts, 2 % noise."""
+    margin = size_px // 2 if (tilt_axis_deg != 90.0 or rotation_deg) else 64
+    surface = synthetic.self_affine_surface((size_px + margin,) * 2, hurst=0.8, rms_um=2.5, seed=seed)
+    return synthetic.render_stereo_pair(
+        surface,
+        pixel_size_um=0.1,
+        tilt_deg=tilt_deg,
+        output_shape=(size_px, size_px),
+        tilt_axis_deg=tilt_axis_deg,
+        second_shift_px=shift_px,
+        second_rotation_deg=rotation_deg,
+        seed=seed,
+        bits=bits,
+    )
+
+
+def inner_mask(shape, border_px=16) -> np.ndarray:
+    mask = np.zeros(shape, bool)
+    mask[border_px:-border_px, border_px:-border_px] = True
+    return mask
+
+
+@pytest.fixture(scope="session")
+def pollen_series() -> Path:
+    if not (POLLEN_SERIES / "pot_00.tif").is_file():
+        pytest.skip(f"shared real data not found at {POLLEN_SERIES}")
+    return POLLEN_SERIES
+
+
+@pytest.fixture()
+def server_address():
+    server, port = create_server("127.0.0.1:0")
+    server.start()
+    yield f"127.0.0.1:{port}"
+    server.stop(grace=None)
+
+
+@pytest.fixture()
+def client(server_address):
+    with FractoscopeClient(server_address, timeout_s=120) as connected:
+        yield connected

@@ -1,0 +1,69 @@
+import io
+
+import numpy as np
+import pytest
+import tifffile
+from PIL import Image
+
+from fractoscope.errors import InvalidInputError
+from fractoscope.sem_image import detect_data_bar_rows, read_sem_image
+
+
+def _textured(rows=256, cols=300, dtype=np.uint8, seed=0):
+    rng = np.random.default_rng(seed)
+    top = np.iinfo(dtype).max
+    return rng.integers(top // 5, 4 * top // 5, size=(rows, cols)).astype(dtype)
+
+
+def _with_data_bar(image, bar_rows):
+    top = np.iinfo(image.dtype).max
+    bar = np.zeros((bar_rows, image.shape[1]), image.dtype)
+    bar[bar_rows // 3 : bar_rows // 3 + 4, 20:120:3] = top  # "text"
+    return np.vstack([image, bar])
+
+
+@pytest.mark.real_data
+def test_zeiss_metadata_of_the_real_series(pollen_series):
+    expected_tilts = [-9.0, -6.0, -3.0, 0.0, 3.0, 6.0, 9.0]
+    for index, tilt in enumerate(expected_tilts):
+        image = read_sem_image((pollen_series / f"pot_0{index}.tif").read_bytes())
+        assert image.tilt_deg == pytest.approx(tilt)  # 'Stage at T', not 'Tilt Angle' (30°)
+        assert image.pixel_size_um == pytest.approx(0.05582, rel=1e-4)  # not 'Pixel Size' (111.6 nm)
+        assert image.pixels.shape == (2048, 1536)  # stored rotated: 1536 wide, 2048 tall
+        assert image.pixels.dtype == np.uint8
+        assert image.data_bar_rows <= 2
+        assert 40 < image.pixels.mean() < 200  # palette mapped to grey, not raw indices
+
+
+def test_fei_metadata_gives_tilt_pixel_size_and_data_bar():
+    image = _with_data_bar(_textured(dtype=np.uint16), 40)
+    ini = "[Stage]\nStageT=0.0872665\n[Scan]\nPixelWidth=2.5e-08\n[Image]\nResolutionX=300\nResolutionY=256\n"
+    buffer = io.BytesIO()
+    tifffile.imwrite(buffer, image, extratags=[(34682, "s", 0, ini, True)])
+    read = read_sem_image(buffer.getvalue())
+    assert read.tilt_deg == pytest.approx(5.0, abs=1e-4)
+    assert read.pixel_size_um == pytest.approx(0.025)
+    assert read.data_bar_rows == 40
+    assert read.image.shape == (256, 300)
+
+
+def test_png_16_bit_without_metadata():
+    image = _textured(dtype=np.uint16)
+    buffer = io.BytesIO()
+    Image.fromarray(image).save(buffer, format="PNG")
+    read = read_sem_image(buffer.getvalue())
+    np.testing.assert_array_equal(read.pixels, image)
+    assert read.tilt_deg is None and read.pixel_size_um is None and read.data_bar_rows == 0
+
+
+def test_data_bar_is_detected_and_textured_bottom_is_not():
+    image = _textured()
+    assert detect_data_bar_rows(image) == 0
+    assert detect_data_bar_rows(_with_data_bar(image, 30)) == 30
+
+
+@pytest.mark.parametrize("content", [b"", b"not an image at all", b"II*\x00" + b"\x00" * 20, b"\x89PNG\r\n\x1a\n" + b"\x01" * 30])
+def test_unreadable_files_raise_a_named_error(content):
+    with pytest.raises(InvalidInputError) as error:
+        read_sem_image(content, field="images[0].image")
+    assert error.value.field == "images[0].image"
