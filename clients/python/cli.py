@@ -143,10 +143,10 @@ def main(argv: list[str] | None = None) -> None:
     try:
         code = args.run(args)
     except UsageError as error:
-        _err.print(f"error: {error}", markup=False, highlight=False)
+        print(f"error: {error}", file=sys.stderr)
         code = EXIT_BAD_INPUT
     except ClientError as error:
-        _err.print(f"error: {error}", markup=False, highlight=False)
+        print(f"error: {error}", file=sys.stderr)
         code = _EXIT_CODES.get(error.code, EXIT_FAILURE)
     except KeyboardInterrupt:
         code = 130

@@ -1,0 +1,78 @@
+"""`fracto height` as a user runs it: a subprocess, embedded or against a running server."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import tifffile
+
+from conftest import fracture_pair
+
+FRACTO = str(Path(sys.executable).with_name("fracto"))
+
+
+@pytest.fixture(scope="module")
+def pair_files(tmp_path_factory):
+    directory = tmp_path_factory.mktemp("pair")
+    pair = fracture_pair(size_px=256, seed=11)
+    paths = directory / "left.tif", directory / "right.png"
+    tifffile.imwrite(paths[0], pair.first)
+    from PIL import Image
+
+    Image.fromarray(pair.second).save(paths[1])
+    return paths, pair
+
+
+def _run(*args, env_extra=None):
+    env = {k: v for k, v in os.environ.items() if k != "FRACTO_SERVER"}
+    env.update(env_extra or {})
+    return subprocess.run([FRACTO, *map(str, args)], capture_output=True, text=True, env=env, timeout=300)
+
+
+def test_height_writes_the_npz_contract(pair_files, tmp_path):
+    (left, right), pair = pair_files
+    out = tmp_path / "out.npz"
+    done = _run("height", left, right, "--tilt", "-5", "5", "--pixel-size-um", "0.1", "-o", out, "--json")
+    assert done.returncode == 0, done.stderr
+    summary = json.loads(done.stdout)
+    assert summary["valid_fraction"] > 0.6  # contract check; accuracy is tested on 640² pairs
+    with np.load(out) as arrays:
+        assert arrays["z_um"].shape == pair.first.shape and arrays["z_um"].dtype == np.float32
+        assert arrays["sigma_um"].shape == pair.first.shape
+        error = arrays["z_um"] - pair.z_seen_um
+        assert np.nanstd(error[16:-16, 16:-16]) < 0.03 * np.ptp(pair.z_seen_um)
+
+
+def test_height_against_a_running_server(pair_files, tmp_path, server_address):
+    (left, right), _ = pair_files
+    out = tmp_path / "out.npz"
+    done = _run("height", left, right, "--tilt", "-5", "5", "--pixel-size-um", "0.1", "-o", out, env_extra={"FRACTO_SERVER": server_address})
+    assert done.returncode == 0, done.stderr
+    assert "valid" in done.stdout and out.is_file()
+
+
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        (["--tilt", "3", "3"], "tilt"),
+        ([], "tilt_deg"),
+    ],
+)
+def test_bad_input_gives_one_line_and_exit_code_2(pair_files, tmp_path, extra, message):
+    (left, right), _ = pair_files
+    done = _run("height", left, right, "--pixel-size-um", "0.1", *extra, "-o", tmp_path / "x.npz")
+    assert done.returncode == 2
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error:") and message in lines[0]
+
+
+def test_missing_file_and_unreachable_server(pair_files, tmp_path):
+    (left, _), _ = pair_files
+    done = _run("height", left, tmp_path / "absent.tif", "--tilt", "-5", "5", "-o", tmp_path / "x.npz")
+    assert done.returncode == 2 and "absent.tif" in done.stderr
+    done = _run("height", left, left, "--tilt", "-5", "5", "--pixel-size-um", "0.1", "-o", tmp_path / "x.npz", "--server", "127.0.0.1:1")
+    assert done.returncode == 3 and done.stderr.startswith("error:")

@@ -1,0 +1,81 @@
+"""The matching service over a real gRPC server on loopback."""
+
+import io
+
+import grpc
+import numpy as np
+import pytest
+import tifffile
+from grpc_health.v1 import health_pb2, health_pb2_grpc
+from grpc_reflection.v1alpha import reflection_pb2, reflection_pb2_grpc
+
+from conftest import fracture_pair, inner_mask
+from fractoscope.client import ClientError
+
+
+def _tiff(image, **metadata) -> bytes:
+    buffer = io.BytesIO()
+    tifffile.imwrite(buffer, image)
+    return buffer.getvalue()
+
+
+def test_health_and_reflection(server_address):
+    with grpc.insecure_channel(server_address) as channel:
+        health = health_pb2_grpc.HealthStub(channel).Check(health_pb2.HealthCheckRequest(service="fractoscope.v1.MatchingService"))
+        assert health.status == health_pb2.HealthCheckResponse.SERVING
+        request = reflection_pb2.ServerReflectionRequest(list_services="")
+        responses = reflection_pb2_grpc.ServerReflectionStub(channel).ServerReflectionInfo(iter([request]))
+        names = {service.name for service in next(responses).list_services_response.service}
+        assert "fractoscope.v1.MatchingService" in names and "grpc.health.v1.Health" in names
+
+
+def test_height_map_of_images_larger_than_four_mib_with_progress(client):
+    pair = fracture_pair(size_px=1536, bits=16, seed=3)
+    files = [_tiff(image) for image in (pair.first, pair.second)]
+    assert min(len(content) for content in files) > 4 * 1024 * 1024
+    fractions = []
+    result = client.compute_height_map(files, tilt_deg=(-5, 5), pixel_size_um=0.1, on_progress=lambda f, m: fractions.append(f))
+    assert result.z_um.shape == (1536, 1536) and result.z_um.dtype == np.float32
+    assert fractions == sorted(fractions) and len(fractions) >= 5
+    inner = inner_mask(result.z_um.shape)
+    valid = np.isfinite(result.z_um) & inner
+    assert valid[inner].mean() > 0.97
+    error = result.z_um[valid] - pair.z_seen_um[valid]
+    span = np.ptp(pair.z_seen_um[inner])
+    assert np.std(error) / span < 0.02
+    assert result.report["tilt_deg"] == [-5.0, 5.0] and result.report["pixel_size_um"] == pytest.approx(0.1)
+
+
+@pytest.mark.parametrize(
+    "case, field",
+    [
+        ("mismatched sizes", "images[1]"),
+        ("equal tilts", "images[].tilt_deg"),
+        ("missing tilt", "images[0].tilt_deg"),
+        ("unreadable image", "images[0].image"),
+        ("one image", "images"),
+        ("bad pixel size", "pixel_size_um"),
+    ],
+)
+def test_bad_requests_get_invalid_argument_naming_the_field(client, case, field):
+    pair = fracture_pair(size_px=128)
+    first, second = _tiff(pair.first), _tiff(pair.second)
+    arguments = {"tilt_deg": (-5, 5), "pixel_size_um": 0.1}
+    images = [first, second]
+    if case == "mismatched sizes":
+        images = [first, _tiff(pair.second[:100])]
+    elif case == "equal tilts":
+        arguments["tilt_deg"] = (5, 5)
+    elif case == "missing tilt":
+        arguments.pop("tilt_deg")
+    elif case == "unreadable image":
+        images = [b"garbage", second]
+    elif case == "one image":
+        images = [first]
+    elif case == "bad pixel size":
+        arguments["pixel_size_um"] = -1.0
+    with pytest.raises(ClientError) as error:
+        client.compute_height_map(images, **arguments)
+    assert error.value.code == grpc.StatusCode.INVALID_ARGUMENT
+    assert error.value.field == field
+    assert "Traceback" not in str(error.value)

@@ -1,0 +1,47 @@
+"""The real pollen tilt series: no ground truth, but two facts hold (see shared/data/README.md)."""
+
+import numpy as np
+import pytest
+
+from fractoscope.height_map import compute_height_map
+from fractoscope.sem_image import read_sem_image
+
+pytestmark = pytest.mark.real_data
+
+# In the stored orientation the grain's centre is near row 1070, column 730, radius about 500 px.
+GRAIN_CENTRE_PX, GRAIN_TOP_RADIUS_PX, SUBSTRATE_FROM_PX = (1070, 730), 300, 700
+
+
+def _grain_and_substrate(series, first, second):
+    result = compute_height_map(*(read_sem_image((series / f"pot_0{i}.tif").read_bytes()) for i in (first, second)))
+    z = result.z_um
+    rows, cols = np.indices(z.shape)
+    distance = np.hypot(rows - GRAIN_CENTRE_PX[0], cols - GRAIN_CENTRE_PX[1])
+    substrate = (distance > SUBSTRATE_FROM_PX) & np.isfinite(z)
+    design = np.column_stack([rows[substrate], cols[substrate], np.ones(substrate.sum())])
+    plane, *_ = np.linalg.lstsq(design, z[substrate], rcond=None)
+    substrate_residual = z[substrate] - design @ plane
+    top = np.nanpercentile(np.where(distance < GRAIN_TOP_RADIUS_PX, z, np.nan), 99)
+    return top - np.median(z[substrate]), substrate_residual, result.report
+
+
+@pytest.fixture(scope="module")
+def pairs(pollen_series):
+    return {pair: _grain_and_substrate(pollen_series, *pair) for pair in [(2, 4), (1, 5)]}
+
+
+def test_tilts_and_pixel_size_come_from_metadata(pairs):
+    assert pairs[(2, 4)][2]["tilt_deg"] == [-3.0, 3.0]
+    assert pairs[(1, 5)][2]["tilt_deg"] == [-6.0, 6.0]
+    assert pairs[(2, 4)][2]["pixel_size_um"] == pytest.approx(0.05582)
+
+
+def test_grain_stands_above_the_substrate_and_pairs_agree_within_five_percent(pairs):
+    height_3, height_6 = pairs[(2, 4)][0], pairs[(1, 5)][0]
+    assert 25.0 < height_3 < 60.0  # a grain about 40 µm across, seen as a bump, not a pit
+    assert abs(height_3 - height_6) / height_6 < 0.05
+
+
+def test_substrate_is_flat(pairs):
+    for height, residual, _ in pairs.values():
+        assert np.median(np.abs(residual)) < 0.02 * height
