@@ -177,25 +177,17 @@ def _refine(left, right, disparity, window_px, radius):
     consistent deformation, and per-pixel noise is not fed back into the next iteration."""
     disparity = cv2.GaussianBlur(disparity, (0, 0), window_px / 4.0)
     warped = _warp_along_rows(right, disparity)
-    best = np.full(left.shape, -np.inf, np.float32)
-    best_offset = np.zeros(left.shape, np.int32)
-    before = np.full(left.shape, np.nan, np.float32)
-    after = np.full(left.shape, np.nan, np.float32)
-    previous = np.full(left.shape, np.nan, np.float32)
-    for offset, score in _zncc_scores(left, warped, window_px, range(-radius, radius + 1)):
-        just_best = best_offset == offset - 1
-        after[just_best] = score[just_best]
-        better = score > best
-        best[better] = score[better]
-        best_offset[better] = offset
-        before[better] = previous[better]
-        after[better] = np.nan
-        previous = score
+    scores = np.stack([score for _, score in _zncc_scores(left, warped, window_px, range(-radius, radius + 1))])
+    best_index = scores.argmax(axis=0)[None]
+    best = np.take_along_axis(scores, best_index, axis=0)[0]
+    before = np.take_along_axis(scores, np.maximum(best_index - 1, 0), axis=0)[0]
+    after = np.take_along_axis(scores, np.minimum(best_index + 1, 2 * radius), axis=0)[0]
     curvature = before - 2.0 * best + after
+    interior = (best_index[0] > 0) & (best_index[0] < 2 * radius) & (curvature < 0)
     with np.errstate(invalid="ignore", divide="ignore"):
-        fraction = np.where(curvature < 0, 0.5 * (before - after) / curvature, 0.0)
-    fraction = np.clip(np.nan_to_num(fraction), -0.5, 0.5)
-    return (disparity + best_offset + fraction).astype(np.float32), best
+        fraction = np.where(interior, 0.5 * (before - after) / curvature, 0.0)
+    fraction = np.clip(fraction, -0.5, 0.5)
+    return (disparity + (best_index[0] - radius) + fraction).astype(np.float32), best
 
 
 def _peak_curvature(left, right, disparity, window_px):

@@ -1,0 +1,153 @@
+"""`make bench`: our matcher against OpenCV StereoSGBM and per-pixel matchTemplate (the paper's
+method), side by side on one synthetic 1024² pair with a ±32 px disparity range, and a 4096²
+pair for peak memory. Each method runs in its own process so peak RSS is its own.
+
+Writes bench-results/matching.json and prints a table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from fractoscope import synthetic
+from fractoscope.height_map import compute_height_map
+from fractoscope.sem_image import SemImage
+
+PIXEL_SIZE_UM = 0.1
+TILTS_DEG = (-5.0, 5.0)
+DISPARITY_RANGE_PX = 32
+WINDOW_PX = 15
+BORDER_PX = 48
+
+
+def make_pair(size_px: int, path: Path) -> None:
+    """A self-affine pair whose disparities span about ±DISPARITY_RANGE_PX, saved as .npz."""
+    surface = synthetic.self_affine_surface((size_px + 64,) * 2, hurst=0.8, rms_um=1.0, seed=42)
+    per_px_um = PIXEL_SIZE_UM / (2 * np.sin(np.radians(5.0)))
+    surface *= 2 * DISPARITY_RANGE_PX * per_px_um / np.ptp(surface)
+    pair = synthetic.render_stereo_pair(surface, pixel_size_um=PIXEL_SIZE_UM, tilt_deg=TILTS_DEG, output_shape=(size_px, size_px), seed=1)
+    np.savez(path, first=pair.first, second=pair.second, truth_um=pair.z_seen_um.astype(np.float32))
+
+
+def _heights_from_our_matcher(first, second):
+    result = compute_height_map(SemImage(first, None, None, 0), SemImage(second, None, None, 0), tilt_deg=TILTS_DEG, pixel_size_um=PIXEL_SIZE_UM)
+    return result.z_um
+
+
+def _heights_from_sgbm(first, second):
+    """OpenCV's semi-global block matching; its disparity is x_left - x_right in 1/16 px."""
+    half_range = 16 * int(np.ceil((DISPARITY_RANGE_PX + 8) / 16))
+    matcher = cv2.StereoSGBM_create(
+        minDisparity=-half_range, numDisparities=2 * half_range, blockSize=5,
+        P1=8 * 25, P2=32 * 25, uniquenessRatio=5, disp12MaxDiff=1, mode=cv2.STEREO_SGBM_MODE_SGBM,
+    )
+    raw = matcher.compute(first, second).astype(np.float32) / 16.0
+    disparity = np.where(raw > -half_range, -raw, np.nan)
+    return disparity * PIXEL_SIZE_UM / (2 * np.sin(np.radians(5.0)))
+
+
+def _per_pixel_template_seconds(first, second, samples=400):
+    """Time of the paper's per-pixel search (matchTemplate of a pattern window in a search
+    window, parabola sub-pixel) on a sample of pixels, extrapolated to every pixel."""
+    rng = np.random.default_rng(0)
+    half, reach = WINDOW_PX // 2, DISPARITY_RANGE_PX + 8
+    rows = rng.integers(half + 1, first.shape[0] - half - 1, samples)
+    cols = rng.integers(half + reach + 1, first.shape[1] - half - reach - 1, samples)
+    first_f, second_f = first.astype(np.float32), second.astype(np.float32)
+    started = time.perf_counter()
+    for row, col in zip(rows, cols):
+        pattern = first_f[row - half : row + half + 1, col - half : col + half + 1]
+        search = second_f[row - half : row + half + 1, col - half - reach : col + half + reach + 1]
+        scores = cv2.matchTemplate(search, pattern, cv2.TM_CCOEFF_NORMED)[0]
+        best = int(np.argmax(scores))
+        if 0 < best < len(scores) - 1:
+            left, centre, right = scores[best - 1 : best + 2]
+            _ = best + 0.5 * (left - right) / (left - 2 * centre + right)
+    per_pixel_s = (time.perf_counter() - started) / samples
+    return per_pixel_s * first.size
+
+
+def _accuracy(z_um, truth_um):
+    inner = np.zeros(truth_um.shape, bool)
+    inner[BORDER_PX:-BORDER_PX, BORDER_PX:-BORDER_PX] = True
+    valid = np.isfinite(z_um) & inner
+    error = z_um[valid] - truth_um[valid]
+    error -= np.median(error)
+    return {
+        "valid_fraction": float(valid[inner].mean()),
+        "rms_error_um": float(np.sqrt(np.mean(error**2))),
+        "rms_error_percent_of_range": float(100 * np.sqrt(np.mean(error**2)) / np.ptp(truth_um[inner])),
+    }
+
+
+def run_one(method: str, pair_path: Path) -> dict:
+    """Runs one method in this process; returns its figures including peak RSS."""
+    with np.load(pair_path) as arrays:
+        first, second, truth = arrays["first"], arrays["second"], arrays["truth_um"]
+    baseline_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    started = time.perf_counter()
+    if method == "template":
+        return {"method": method, "seconds": _per_pixel_template_seconds(first, second), "extrapolated": True}
+    z_um = _heights_from_our_matcher(first, second) if method == "fractoscope" else _heights_from_sgbm(first, second)
+    seconds = time.perf_counter() - started
+    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    return {"method": method, "size_px": first.shape[0], "seconds": seconds, "peak_rss_mb": peak_mb,
+            "peak_rss_above_inputs_mb": peak_mb - baseline_mb, **_accuracy(z_um, truth)}
+
+
+def _in_subprocess(method: str, pair_path: Path) -> dict:
+    output = subprocess.run([sys.executable, "-m", "benchmarks.matching", "--one", method, "--pair", str(pair_path)],
+                            check=True, capture_output=True, text=True).stdout
+    return json.loads(output.strip().splitlines()[-1])
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--out", default="bench-results")
+    parser.add_argument("--one")
+    parser.add_argument("--pair")
+    parser.add_argument("--large-px", type=int, default=4096)
+    args = parser.parse_args()
+    if args.one:
+        print(json.dumps(run_one(args.one, Path(args.pair))))
+        return
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory() as scratch:
+        pair_1024 = Path(scratch) / "pair_1024.npz"
+        make_pair(1024, pair_1024)
+        results = {method: _in_subprocess(method, pair_1024) for method in ("fractoscope", "sgbm", "template")}
+        pair_large = Path(scratch) / "pair_large.npz"
+        make_pair(args.large_px, pair_large)
+        results["fractoscope_large"] = _in_subprocess("fractoscope", pair_large)
+    ours, sgbm, template = results["fractoscope"], results["sgbm"], results["template"]
+    results["summary"] = {
+        "speed_vs_sgbm": sgbm["seconds"] / ours["seconds"],
+        "rms_error_vs_sgbm": ours["rms_error_um"] / sgbm["rms_error_um"],
+        "speed_vs_per_pixel_template": template["seconds"] / ours["seconds"],
+        "large_peak_rss_gb": results["fractoscope_large"]["peak_rss_mb"] / 1024,
+    }
+    (out / "matching.json").write_text(json.dumps(results, indent=2))
+    print(f"{'method':<22}{'seconds':>10}{'RMS µm':>10}{'RMS % range':>13}{'valid %':>9}{'peak MB':>9}")
+    for name, row in results.items():
+        if name == "summary":
+            continue
+        print(f"{name:<22}{row['seconds']:>10.2f}{row.get('rms_error_um', float('nan')):>10.3f}"
+              f"{row.get('rms_error_percent_of_range', float('nan')):>13.2f}{100 * row.get('valid_fraction', float('nan')):>9.1f}"
+              f"{row.get('peak_rss_mb', float('nan')):>9.0f}")
+    print(json.dumps(results["summary"], indent=2))
+    print(f"written to {out / 'matching.json'}")
+
+
+if __name__ == "__main__":
+    main()
