@@ -13,7 +13,7 @@ from conftest import fracture_pair, inner_mask
 from fractoscope.client import ClientError
 
 
-def _tiff(image, **metadata) -> bytes:
+def _tiff(image) -> bytes:
     buffer = io.BytesIO()
     tifffile.imwrite(buffer, image)
     return buffer.getvalue()

@@ -81,8 +81,6 @@ def _read_tiff(content: bytes, field: str):
         raise
     except Exception as exc:  # tifffile and imagecodecs raise many types for corrupt files
         raise InvalidInputError(field, f"unreadable TIFF ({exc})") from None
-    if pixels.ndim == 3 and pixels.shape[-1] in (3, 4):
-        pixels = pixels[..., :3].mean(axis=-1).astype(pixels.dtype)
     pixels = _as_grey_integer(pixels, field)
     if zeiss:
         tilt_deg, pixel_size_um = _zeiss_calibration(zeiss, pixels.shape)
