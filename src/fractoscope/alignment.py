@@ -57,7 +57,7 @@ def apply_affine(image: np.ndarray, matrix: np.ndarray, shape: tuple[int, int], 
 
 
 def estimate_alignment(
-    first: np.ndarray, second: np.ndarray, *, max_features: int = 4000, max_side_px: int = 1024
+    first: np.ndarray, second: np.ndarray, *, max_features: int = 1000, max_side_px: int = 512
 ) -> Alignment:
     """Global placement of `second` against `first` (both (rows, cols), parallax along x), from
     SIFT features found on copies at most `max_side_px` wide; returns zeros when fewer than 12
@@ -69,7 +69,9 @@ def estimate_alignment(
     keys2, desc2 = sift.detectAndCompute(second8, None)
     if desc1 is None or desc2 is None or len(keys1) < 12 or len(keys2) < 12:
         return _NO_ALIGNMENT
-    matches = cv2.BFMatcher(cv2.NORM_L2, crossCheck=True).match(desc1, desc2)
+    # Lowe's ratio test: keep matches clearly better than the second-best candidate.
+    candidates = cv2.BFMatcher(cv2.NORM_L2).knnMatch(desc1, desc2, k=2)
+    matches = [pair[0] for pair in candidates if len(pair) == 2 and pair[0].distance < 0.8 * pair[1].distance]
     if len(matches) < 12:
         return _NO_ALIGNMENT
     centre = np.array([(first.shape[1] - 1) / 2.0, (first.shape[0] - 1) / 2.0])
@@ -92,7 +94,7 @@ def estimate_alignment(
     rotation = np.arcsin(np.clip(sin_rotation, -1.0, 1.0))
     rotated_x = np.cos(rotation) * points1[:, 0] - np.sin(rotation) * points1[:, 1]
     parallax = (points2[:, 0] - rotated_x)[inliers]
-    low, median, high = np.percentile(parallax, [1, 50, 99])
+    low, median, high = np.percentile(parallax, [2, 50, 98])
     return Alignment(
         shift_parallel_px=float(median),
         shift_across_px=float(shift_across),

@@ -13,6 +13,7 @@ Convention: disparity d at left pixel (row, col) means it matches right pixel (r
 from __future__ import annotations
 
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
@@ -20,6 +21,7 @@ import numpy as np
 
 ProgressCallback = Callable[[float, str], None]
 _SIGMA_CALIBRATION = 3.5
+_SUBPIXEL_ITERATIONS = 1
 
 
 @dataclass(frozen=True)
@@ -44,65 +46,97 @@ def match_disparity(
     max_disparity_px: int | None = None,
     min_confidence: float = 0.5,
     max_lr_difference_px: float = 1.0,
+    strip_pixels: int = 2_000_000,
     progress: ProgressCallback | None = None,
 ) -> DisparityResult:
     """Matches `left` to `right`, both (rows, cols) grey images of one size, rectified so that
     parallax runs along rows. Masks (NaN) pixels whose peak correlation is below `min_confidence`,
     whose left-to-right and right-to-left disparities differ by more than
-    `max_lr_difference_px`, or whose window lies on a flat (textureless) patch."""
+    `max_lr_difference_px`, or whose window lies on a flat (textureless) patch.
+
+    Large images are matched in overlapping strips of rows of about `strip_pixels` pixels each,
+    which bounds memory; parallax runs along rows, so a strip is a complete stereo problem."""
     if left.shape != right.shape or left.ndim != 2:
         raise ValueError(f"left and right must be 2D of one shape, got {left.shape} and {right.shape}")
     if window_px < 3 or window_px % 2 == 0:
         raise ValueError(f"window_px must be odd and >= 3, got {window_px}")
     report = progress or (lambda fraction, message: None)
-    left_f, right_f = _normalized(left), _normalized(right)
     if max_disparity_px is None:
         max_disparity_px = max(left.shape[1] // 4, 8)
+    rows, cols = left.shape
+    levels = _level_count((min(rows, max(strip_pixels // cols, 1)), cols), max_disparity_px, window_px)
+    overlap = window_px * 2 ** (levels - 1)
+    core_rows = max(strip_pixels // cols - 2 * overlap, 4 * overlap)
+    starts = list(range(0, rows, core_rows))
+    disparity = np.empty(left.shape, np.float32)
+    confidence = np.empty(left.shape, np.float32)
+    sigma_px = np.empty(left.shape, np.float32)
+    for index, start in enumerate(starts):
+        stop = min(start + core_rows, rows)
+        if rows - stop < overlap:  # a thin remainder joins this strip
+            stop = rows
+        top, bottom = max(start - overlap, 0), min(stop + overlap, rows)
+
+        def strip_progress(fraction: float, message: str) -> None:
+            report((index + fraction) / len(starts), message)
+
+        strip = _match_strip(
+            left[top:bottom], right[top:bottom], window_px, max_disparity_px, min_confidence, max_lr_difference_px, strip_progress
+        )
+        for out, values in zip((disparity, confidence, sigma_px), strip):
+            out[start:stop] = values[start - top : stop - top]
+        if stop == rows:
+            break
+    return DisparityResult(disparity, confidence, sigma_px)
+
+
+def _match_strip(left, right, window_px, max_disparity_px, min_confidence, max_lr_difference_px, report):
+    left_f, right_f = _normalized(left), _normalized(right)
     levels = _level_count(left.shape, max_disparity_px, window_px)
     left_pyramid, right_pyramid = _pyramid(left_f, levels), _pyramid(right_f, levels)
-
     coarse_radius = int(np.ceil(max_disparity_px / 2 ** (levels - 1))) + 1
-    forward = _coarse_to_fine(left_pyramid, right_pyramid, window_px, coarse_radius)
-    report(0.45, "matched left to right")
-    backward = _coarse_to_fine(right_pyramid, left_pyramid, window_px, coarse_radius)
-    report(0.8, "matched right to left")
-    backward_at_match = _sample_along_rows(backward, forward)
-    lr_difference = np.abs(forward + backward_at_match)
+    # The two directions are independent; OpenCV and numpy release the GIL, so they overlap.
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        forward_job = pool.submit(_coarse_to_fine, left_pyramid, right_pyramid, window_px, coarse_radius)
+        backward_job = pool.submit(_coarse_to_fine, right_pyramid, left_pyramid, window_px, coarse_radius)
+        forward, backward = forward_job.result(), backward_job.result().disparity
+    report(0.8, "matched both ways")
+    del left_pyramid, right_pyramid
+    backward_at_match = _sample_along_rows(backward, forward.disparity)
+    lr_difference = np.abs(forward.disparity + backward_at_match)
     # The two directions err independently: their mean is the better estimate.
-    disparity = 0.5 * (forward - backward_at_match)
-    curvature, score = _peak_curvature(left_f, right_f, disparity, window_px)
-    texture = _local_std(left_f, window_px)
-    in_bounds = _in_bounds(disparity)
+    disparity = 0.5 * (forward.disparity - backward_at_match)
+    del backward, backward_at_match
+    score, curvature = forward.score, forward.curvature
     valid = (
         (score >= min_confidence)
         & (lr_difference <= max_lr_difference_px)
-        & (texture > 1e-3)
-        & in_bounds
+        & (_local_std(left_f, window_px) > 1e-3)
+        & _in_bounds(disparity)
         & np.isfinite(disparity)
     )
     sigma_px = _disparity_sigma_px(score, curvature, window_px)
     confidence = np.clip(score, 0.0, 1.0).astype(np.float32)
     disparity = np.where(valid, disparity, np.nan).astype(np.float32)
     sigma_px = np.where(valid, sigma_px, np.nan).astype(np.float32)
-    return DisparityResult(disparity, confidence, sigma_px)
+    return disparity, confidence, sigma_px
 
 
-def _coarse_to_fine(left_pyramid, right_pyramid, window_px, coarse_radius):
-    """Full search at the coarsest level, then ±2 px residual searches on warped images at each
-    finer level, then sub-pixel iterations at full resolution."""
+def _coarse_to_fine(left_pyramid, right_pyramid, window_px, coarse_radius) -> _Refinement:
+    """Full search at the coarsest level, ±2 px residual searches on warped images at the
+    intermediate levels, ±1 px at full resolution, then sub-pixel iterations."""
     levels = len(left_pyramid)
     disparity = np.zeros(left_pyramid[-1].shape, np.float32)
     for level in range(levels - 1, -1, -1):
         left_level, right_level = left_pyramid[level], right_pyramid[level]
         if level < levels - 1:
             disparity = 2.0 * cv2.resize(disparity, left_level.shape[::-1], interpolation=cv2.INTER_LINEAR)
-        radius = coarse_radius if level == levels - 1 else 2
-        disparity, score = _refine(left_level, right_level, disparity, window_px, radius)
-        if level > 0:
-            disparity = _clean_for_upsampling(disparity, score)
-    for _ in range(2):
-        disparity, _ = _refine(left_pyramid[0], right_pyramid[0], disparity, window_px, 1)
-    return disparity
+        radius = coarse_radius if level == levels - 1 else (2 if level > 0 else 1)
+        refined = _refine(left_level, right_level, disparity, window_px, radius)
+        disparity = _clean_for_upsampling(refined.disparity, refined.score) if level > 0 else refined.disparity
+    for _ in range(_SUBPIXEL_ITERATIONS):
+        refined = _refine(left_pyramid[0], right_pyramid[0], refined.disparity, window_px, 1)
+    return refined
 
 
 def _normalized(image: np.ndarray) -> np.ndarray:
@@ -169,32 +203,45 @@ def _zncc_scores(left: np.ndarray, warped: np.ndarray, window_px: int, offsets: 
         yield offset, cross / (std_left * _shift_cols(std_warped, offset))
 
 
-def _refine(left, right, disparity, window_px, radius):
+@dataclass(frozen=True)
+class _Refinement:
+    """Disparity after one residual search, with the peak ZNCC and its second difference."""
+
+    disparity: np.ndarray
+    score: np.ndarray
+    curvature: np.ndarray
+
+
+def _refine(left, right, disparity, window_px, radius) -> _Refinement:
     """Best integer residual shift within ±radius on the warped right image, then a parabola
-    through the neighbouring scores. Returns (new disparity, peak score).
+    through the neighbouring scores.
 
     The warp uses the disparity smoothed over about a window: each window then sees one
     consistent deformation, and per-pixel noise is not fed back into the next iteration."""
     disparity = cv2.GaussianBlur(disparity, (0, 0), window_px / 4.0)
     warped = _warp_along_rows(right, disparity)
-    scores = np.stack([score for _, score in _zncc_scores(left, warped, window_px, range(-radius, radius + 1))])
-    best_index = scores.argmax(axis=0)[None]
-    best = np.take_along_axis(scores, best_index, axis=0)[0]
-    before = np.take_along_axis(scores, np.maximum(best_index - 1, 0), axis=0)[0]
-    after = np.take_along_axis(scores, np.minimum(best_index + 1, 2 * radius), axis=0)[0]
-    curvature = before - 2.0 * best + after
-    interior = (best_index[0] > 0) & (best_index[0] < 2 * radius) & (curvature < 0)
+    scores = [score for _, score in _zncc_scores(left, warped, window_px, range(-radius, radius + 1))]
+    if radius == 1:
+        before, centre, after = scores
+        step = (after > centre) & (after >= before)
+        back = (before > centre) & ~step
+        offset = step.astype(np.float32) - back
+        best = np.maximum(np.maximum(before, centre), after)
+        curvature = before - 2.0 * centre + after
+        at_centre = ~(step | back) & (curvature < 0)
+    else:
+        stacked = np.stack(scores)
+        best_index = stacked.argmax(axis=0)[None]
+        best = np.take_along_axis(stacked, best_index, axis=0)[0]
+        before = np.take_along_axis(stacked, np.maximum(best_index - 1, 0), axis=0)[0]
+        after = np.take_along_axis(stacked, np.minimum(best_index + 1, 2 * radius), axis=0)[0]
+        curvature = before - 2.0 * best + after
+        at_centre = (best_index[0] > 0) & (best_index[0] < 2 * radius) & (curvature < 0)
+        offset = (best_index[0] - radius).astype(np.float32)
     with np.errstate(invalid="ignore", divide="ignore"):
-        fraction = np.where(interior, 0.5 * (before - after) / curvature, 0.0)
+        fraction = np.where(at_centre, 0.5 * (before - after) / curvature, 0.0)
     fraction = np.clip(fraction, -0.5, 0.5)
-    return (disparity + (best_index[0] - radius) + fraction).astype(np.float32), best
-
-
-def _peak_curvature(left, right, disparity, window_px):
-    """Second difference of the score around the final disparity and the peak score there."""
-    warped = _warp_along_rows(right, disparity)
-    scores = dict(_zncc_scores(left, warped, window_px, range(-1, 2)))
-    return scores[-1] - 2.0 * scores[0] + scores[1], scores[0]
+    return _Refinement((disparity + offset + fraction).astype(np.float32), best, curvature)
 
 
 def _disparity_sigma_px(score, curvature, window_px):
