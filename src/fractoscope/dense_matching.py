@@ -129,13 +129,14 @@ def _coarse_to_fine(left_pyramid, right_pyramid, window_px, coarse_radius) -> _R
     disparity = np.zeros(left_pyramid[-1].shape, np.float32)
     for level in range(levels - 1, -1, -1):
         left_level, right_level = left_pyramid[level], right_pyramid[level]
+        left_stats = _window_stats(left_level, window_px)
         if level < levels - 1:
             disparity = 2.0 * cv2.resize(disparity, left_level.shape[::-1], interpolation=cv2.INTER_LINEAR)
         radius = coarse_radius if level == levels - 1 else (2 if level > 0 else 1)
-        refined = _refine(left_level, right_level, disparity, window_px, radius)
+        refined = _refine(left_level, left_stats, right_level, disparity, window_px, radius)
         disparity = _clean_for_upsampling(refined.disparity, refined.score) if level > 0 else refined.disparity
     for _ in range(_SUBPIXEL_ITERATIONS):
-        refined = _refine(left_pyramid[0], right_pyramid[0], refined.disparity, window_px, 1)
+        refined = _refine(left_pyramid[0], left_stats, right_pyramid[0], refined.disparity, window_px, 1)
     return refined
 
 
@@ -182,25 +183,40 @@ def _sample_along_rows(field: np.ndarray, disparity: np.ndarray) -> np.ndarray:
     return _warp_along_rows(field, np.nan_to_num(disparity))
 
 
-def _shift_cols(values: np.ndarray, offset: int) -> np.ndarray:
-    """values[row, col + offset], edges replicated."""
-    if offset == 0:
-        return values
-    padded = cv2.copyMakeBorder(values, 0, 0, abs(offset), abs(offset), cv2.BORDER_REPLICATE)
-    start = abs(offset) + offset
-    return padded[:, start : start + values.shape[1]]
+@dataclass(frozen=True)
+class _WindowStats:
+    """Mean and inverse standard deviation of every window of one image, (rows, cols) float32."""
+
+    mean: np.ndarray
+    inverse_std: np.ndarray
 
 
-def _zncc_scores(left: np.ndarray, warped: np.ndarray, window_px: int, offsets: range):
-    """Yields (offset, ZNCC of left windows with warped windows shifted by offset columns)."""
-    mean_left = _box(left, window_px)
-    std_left = np.sqrt(np.maximum(_box(left * left, window_px) - mean_left**2, 1e-8))
-    mean_warped = _box(warped, window_px)
-    std_warped = np.sqrt(np.maximum(_box(warped * warped, window_px) - mean_warped**2, 1e-8))
-    for offset in offsets:
-        shifted = _shift_cols(warped, offset)
-        cross = _box(left * shifted, window_px) - mean_left * _shift_cols(mean_warped, offset)
-        yield offset, cross / (std_left * _shift_cols(std_warped, offset))
+def _window_stats(image: np.ndarray, window_px: int) -> _WindowStats:
+    mean = _box(image, window_px)
+    variance = _box(image * image, window_px)
+    variance -= mean * mean
+    return _WindowStats(mean, 1.0 / np.sqrt(np.maximum(variance, 1e-8)))
+
+
+def _zncc_scores(left: np.ndarray, left_stats: _WindowStats, warped: np.ndarray, window_px: int, radius: int):
+    """ZNCC of the left windows with the warped windows shifted by -radius..radius columns,
+    in that order. Shifted copies are views into arrays padded once (edges replicated)."""
+    warped_stats = _window_stats(warped, window_px)
+    cols = left.shape[1]
+
+    def padded(values):
+        return cv2.copyMakeBorder(values, 0, 0, radius, radius, cv2.BORDER_REPLICATE)
+
+    warped_p, mean_p, inverse_std_p = padded(warped), padded(warped_stats.mean), padded(warped_stats.inverse_std)
+    scores = []
+    for start in range(2 * radius + 1):
+        columns = slice(start, start + cols)
+        score = _box(left * warped_p[:, columns], window_px)
+        score -= left_stats.mean * mean_p[:, columns]
+        score *= left_stats.inverse_std
+        score *= inverse_std_p[:, columns]
+        scores.append(score)
+    return scores
 
 
 @dataclass(frozen=True)
@@ -212,7 +228,7 @@ class _Refinement:
     curvature: np.ndarray
 
 
-def _refine(left, right, disparity, window_px, radius) -> _Refinement:
+def _refine(left, left_stats, right, disparity, window_px, radius) -> _Refinement:
     """Best integer residual shift within ±radius on the warped right image, then a parabola
     through the neighbouring scores.
 
@@ -220,7 +236,7 @@ def _refine(left, right, disparity, window_px, radius) -> _Refinement:
     consistent deformation, and per-pixel noise is not fed back into the next iteration."""
     disparity = cv2.GaussianBlur(disparity, (0, 0), window_px / 4.0)
     warped = _warp_along_rows(right, disparity)
-    scores = [score for _, score in _zncc_scores(left, warped, window_px, range(-radius, radius + 1))]
+    scores = _zncc_scores(left, left_stats, warped, window_px, radius)
     if radius == 1:
         before, centre, after = scores
         step = (after > centre) & (after >= before)
