@@ -40,18 +40,19 @@ def self_affine_surface(
 def dimple_surface(
     shape: tuple[int, int], *, dimple_radius_px: float, depth_um: float, seed: int
 ) -> np.ndarray:
-    """Ductile fracture: the lower envelope of paraboloid bowls around random centres, so dimples
-    meet in sharp continuous rims, with fine self-affine roughness on top. Heights in µm."""
+    """Ductile fracture: paraboloid dimples (pits of radius ~`dimple_radius_px`, depth ~`depth_um`)
+    around random centres; where dimples overlap the deeper one wins, so neighbours meet in sharp
+    rims. Fine self-affine roughness on top. Heights in µm."""
     rng = np.random.default_rng(seed)
     rows, cols = shape
-    count = max(int(rows * cols / (np.pi * dimple_radius_px**2)), 8)
+    count = max(int(1.5 * rows * cols / (np.pi * dimple_radius_px**2)), 8)
     centres = rng.uniform((0, 0), (rows, cols), size=(count, 2))
     radii = dimple_radius_px * rng.uniform(0.7, 1.3, size=count)
     depths = depth_um * rng.uniform(0.7, 1.3, size=count)
     grid = np.stack(np.mgrid[0:rows, 0:cols], axis=-1).reshape(-1, 2)
     distance, nearest = cKDTree(centres).query(grid, k=min(6, count))
-    bowls = -depths[nearest] * (1.0 - (distance / radii[nearest]) ** 2)
-    heights = bowls.min(axis=1).reshape(shape)
+    pits = -depths[nearest] * np.maximum(1.0 - (distance / radii[nearest]) ** 2, 0.0)
+    heights = pits.min(axis=1).reshape(shape)
     roughness = self_affine_surface(shape, hurst=0.8, rms_um=0.04 * depth_um, seed=seed + 1)
     return heights + roughness
 
@@ -146,7 +147,7 @@ def _secondary_electron_yield(z_um: np.ndarray, pixel_size_um: float, tilt_rad: 
     cos_incidence = np.clip(np.tensordot(beam, normal, axes=1), 0.15, 1.0)
     detector = np.array([0.0, -0.6, 0.8])  # side detector towards the top of the image
     facing = np.clip(np.tensordot(detector, normal, axes=1), 0.0, 1.0)
-    material = self_affine_surface(z_um.shape, hurst=0.5, rms_um=0.15, seed=material_seed, min_wavelength_px=4.0)
+    material = self_affine_surface(z_um.shape, hurst=0.3, rms_um=0.15, seed=material_seed, min_wavelength_px=4.0)
     return (0.5 / cos_incidence + 0.5) * (0.55 + 0.45 * facing) * (1.0 + material)
 
 
