@@ -70,6 +70,19 @@ def test_bad_input_gives_one_line_and_exit_code_2(pair_files, tmp_path, extra, m
     assert len(lines) == 1 and lines[0].startswith("error:") and message in lines[0]
 
 
+def test_unreadable_and_mismatched_images_give_one_line_and_exit_code_2(pair_files, tmp_path):
+    (left, right), pair = pair_files
+    garbage = tmp_path / "garbage.tif"
+    garbage.write_bytes(b"II*\x00 this is not really a TIFF")
+    small = tmp_path / "small.tif"
+    tifffile.imwrite(small, pair.second[:200])
+    for second, message in ((garbage, "images[1].image"), (small, "images[1]")):
+        done = _run("height", left, second, "--tilt", "-5", "5", "--pixel-size-um", "0.1", "-o", tmp_path / "x.npz")
+        assert done.returncode == 2
+        lines = done.stderr.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith(f"error: {message}")
+
+
 def test_missing_file_and_unreachable_server(pair_files, tmp_path):
     (left, _), _ = pair_files
     done = _run("height", left, tmp_path / "absent.tif", "--tilt", "-5", "5", "-o", tmp_path / "x.npz")

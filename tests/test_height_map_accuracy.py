@@ -77,3 +77,12 @@ def test_data_bar_rows_come_back_as_nan_on_the_stored_grid():
     assert np.isnan(result.z_um[-24:]).all()
     assert np.isfinite(result.z_um[100:200, 100:200]).mean() > 0.95
     assert result.report["data_bar_rows"] == 24
+
+
+def test_explicit_tilts_and_pixel_size_override_metadata():
+    pair = fracture_pair(size_px=256)
+    wrong = (SemImage(pair.first, 30.0, 5.0, 0), SemImage(pair.second, 30.0, 5.0, 0))  # equal, wrong tilts
+    result = compute_height_map(*wrong, tilt_deg=(-5.0, 5.0), pixel_size_um=0.1)
+    assert result.report["tilt_deg"] == [-5.0, 5.0] and result.report["pixel_size_um"] == 0.1
+    from_metadata = compute_height_map(SemImage(pair.first, -5.0, 0.1, 0), SemImage(pair.second, 5.0, 0.1, 0))
+    np.testing.assert_allclose(from_metadata.z_um, result.z_um, equal_nan=True)

@@ -13,6 +13,10 @@ from __future__ import annotations
 
 import contextlib
 import os
+
+# gRPC core logs connection teardown (GOAWAY) at INFO on stderr, which would break the CLI's
+# one-line errors; users can still ask for more with GRPC_VERBOSITY.
+os.environ.setdefault("GRPC_VERBOSITY", "ERROR")
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path

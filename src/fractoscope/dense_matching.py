@@ -97,8 +97,8 @@ def _match_strip(left, right, window_px, max_disparity_px, min_confidence, max_l
     coarse_radius = int(np.ceil(max_disparity_px / 2 ** (levels - 1))) + 1
     # The two directions are independent; OpenCV and numpy release the GIL, so they overlap.
     with ThreadPoolExecutor(max_workers=2) as pool:
-        forward_job = pool.submit(_coarse_to_fine, left_pyramid, right_pyramid, window_px, coarse_radius)
-        backward_job = pool.submit(_coarse_to_fine, right_pyramid, left_pyramid, window_px, coarse_radius)
+        forward_job = pool.submit(_coarse_to_fine, left_pyramid, right_pyramid, window_px, coarse_radius, _SUBPIXEL_ITERATIONS)
+        backward_job = pool.submit(_coarse_to_fine, right_pyramid, left_pyramid, window_px, coarse_radius, _SUBPIXEL_ITERATIONS)
         forward, backward = forward_job.result(), backward_job.result().disparity
     report(0.8, "matched both ways")
     del left_pyramid, right_pyramid
@@ -122,7 +122,7 @@ def _match_strip(left, right, window_px, max_disparity_px, min_confidence, max_l
     return disparity, confidence, sigma_px
 
 
-def _coarse_to_fine(left_pyramid, right_pyramid, window_px, coarse_radius) -> _Refinement:
+def _coarse_to_fine(left_pyramid, right_pyramid, window_px, coarse_radius, subpixel_iterations) -> _Refinement:
     """Full search at the coarsest level, ±2 px residual searches on warped images at the
     intermediate levels, ±1 px at full resolution, then sub-pixel iterations."""
     levels = len(left_pyramid)
@@ -135,7 +135,7 @@ def _coarse_to_fine(left_pyramid, right_pyramid, window_px, coarse_radius) -> _R
         radius = coarse_radius if level == levels - 1 else (2 if level > 0 else 1)
         refined = _refine(left_level, left_stats, right_level, disparity, window_px, radius)
         disparity = _clean_for_upsampling(refined.disparity, refined.score) if level > 0 else refined.disparity
-    for _ in range(_SUBPIXEL_ITERATIONS):
+    for _ in range(subpixel_iterations):
         refined = _refine(left_pyramid[0], left_stats, right_pyramid[0], refined.disparity, window_px, 1)
     return refined
 
@@ -237,23 +237,19 @@ def _refine(left, left_stats, right, disparity, window_px, radius) -> _Refinemen
     disparity = cv2.GaussianBlur(disparity, (0, 0), window_px / 4.0)
     warped = _warp_along_rows(right, disparity)
     scores = _zncc_scores(left, left_stats, warped, window_px, radius)
-    if radius == 1:
-        before, centre, after = scores
-        step = (after > centre) & (after >= before)
-        back = (before > centre) & ~step
-        offset = step.astype(np.float32) - back
-        best = np.maximum(np.maximum(before, centre), after)
-        curvature = before - 2.0 * centre + after
-        at_centre = ~(step | back) & (curvature < 0)
-    else:
-        stacked = np.stack(scores)
-        best_index = stacked.argmax(axis=0)[None]
-        best = np.take_along_axis(stacked, best_index, axis=0)[0]
-        before = np.take_along_axis(stacked, np.maximum(best_index - 1, 0), axis=0)[0]
-        after = np.take_along_axis(stacked, np.minimum(best_index + 1, 2 * radius), axis=0)[0]
-        curvature = before - 2.0 * best + after
-        at_centre = (best_index[0] > 0) & (best_index[0] < 2 * radius) & (curvature < 0)
-        offset = (best_index[0] - radius).astype(np.float32)
+    best, best_index = scores[0].copy(), np.zeros(left.shape, np.int8)
+    for index, score in enumerate(scores[1:], start=1):
+        better = score > best
+        np.copyto(best, score, where=better)
+        np.copyto(best_index, index, where=better)
+    before, after = np.zeros_like(best), np.zeros_like(best)
+    for index in range(1, 2 * radius):
+        at_index = best_index == index
+        np.copyto(before, scores[index - 1], where=at_index)
+        np.copyto(after, scores[index + 1], where=at_index)
+    curvature = before - 2.0 * best + after
+    at_centre = (best_index > 0) & (best_index < 2 * radius) & (curvature < 0)
+    offset = best_index.astype(np.float32) - radius
     with np.errstate(invalid="ignore", divide="ignore"):
         fraction = np.where(at_centre, 0.5 * (before - after) / curvature, 0.0)
     fraction = np.clip(fraction, -0.5, 0.5)

@@ -8,6 +8,7 @@ the bottom is detected and reported, not silently kept as image content.
 from __future__ import annotations
 
 import io
+import logging
 from dataclasses import dataclass
 
 import numpy as np
@@ -15,6 +16,10 @@ import tifffile
 from PIL import Image
 
 from fractoscope.errors import InvalidInputError
+
+# Corrupt files are reported to the caller as InvalidInputError; tifffile's own log lines about
+# them would only repeat that on the server's stderr.
+logging.getLogger("tifffile").setLevel(logging.CRITICAL)
 
 _LENGTH_TO_UM = {"pm": 1e-6, "nm": 1e-3, "µm": 1.0, "um": 1.0, "μm": 1.0, "mm": 1e3, "m": 1e6}
 
@@ -64,7 +69,7 @@ def _read_png(content: bytes, field: str) -> np.ndarray:
                 picture = picture.convert("L")
             pixels = np.asarray(picture)
     except Exception as exc:  # Pillow raises many types for corrupt files
-        raise InvalidInputError(field, f"unreadable PNG ({exc})") from None
+        raise InvalidInputError(field, f"unreadable PNG, corrupt or truncated ({type(exc).__name__}: {exc})") from None
     return _as_grey_integer(pixels, field)
 
 
@@ -80,7 +85,7 @@ def _read_tiff(content: bytes, field: str):
     except InvalidInputError:
         raise
     except Exception as exc:  # tifffile and imagecodecs raise many types for corrupt files
-        raise InvalidInputError(field, f"unreadable TIFF ({exc})") from None
+        raise InvalidInputError(field, f"unreadable TIFF, corrupt or truncated ({type(exc).__name__}: {exc})") from None
     pixels = _as_grey_integer(pixels, field)
     if zeiss:
         tilt_deg, pixel_size_um = _zeiss_calibration(zeiss, pixels.shape)
