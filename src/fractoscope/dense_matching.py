@@ -97,8 +97,8 @@ def _match_strip(left, right, window_px, max_disparity_px, min_confidence, max_l
     coarse_radius = int(np.ceil(max_disparity_px / 2 ** (levels - 1))) + 1
     # The two directions are independent; OpenCV and numpy release the GIL, so they overlap.
     with ThreadPoolExecutor(max_workers=2) as pool:
-        forward_job = pool.submit(_coarse_to_fine, left_pyramid, right_pyramid, window_px, coarse_radius, _SUBPIXEL_ITERATIONS)
-        backward_job = pool.submit(_coarse_to_fine, right_pyramid, left_pyramid, window_px, coarse_radius, _SUBPIXEL_ITERATIONS)
+        forward_job = pool.submit(_coarse_to_fine, left_pyramid, right_pyramid, window_px, coarse_radius)
+        backward_job = pool.submit(_coarse_to_fine, right_pyramid, left_pyramid, window_px, coarse_radius)
         forward, backward = forward_job.result(), backward_job.result().disparity
     report(0.8, "matched both ways")
     del left_pyramid, right_pyramid
@@ -111,7 +111,7 @@ def _match_strip(left, right, window_px, max_disparity_px, min_confidence, max_l
     valid = (
         (score >= min_confidence)
         & (lr_difference <= max_lr_difference_px)
-        & (_local_std(left_f, window_px) > 1e-3)
+        & (_window_stats(left_f, window_px).inverse_std < 1e3)  # not a flat, textureless patch
         & _in_bounds(disparity)
         & np.isfinite(disparity)
     )
@@ -122,7 +122,7 @@ def _match_strip(left, right, window_px, max_disparity_px, min_confidence, max_l
     return disparity, confidence, sigma_px
 
 
-def _coarse_to_fine(left_pyramid, right_pyramid, window_px, coarse_radius, subpixel_iterations) -> _Refinement:
+def _coarse_to_fine(left_pyramid, right_pyramid, window_px, coarse_radius) -> _Refinement:
     """Full search at the coarsest level, ±2 px residual searches on warped images at the
     intermediate levels, ±1 px at full resolution, then sub-pixel iterations."""
     levels = len(left_pyramid)
@@ -135,7 +135,7 @@ def _coarse_to_fine(left_pyramid, right_pyramid, window_px, coarse_radius, subpi
         radius = coarse_radius if level == levels - 1 else (2 if level > 0 else 1)
         refined = _refine(left_level, left_stats, right_level, disparity, window_px, radius)
         disparity = _clean_for_upsampling(refined.disparity, refined.score) if level > 0 else refined.disparity
-    for _ in range(subpixel_iterations):
+    for _ in range(_SUBPIXEL_ITERATIONS):
         refined = _refine(left_pyramid[0], left_stats, right_pyramid[0], refined.disparity, window_px, 1)
     return refined
 
@@ -164,11 +164,6 @@ def _pyramid(image: np.ndarray, levels: int) -> list[np.ndarray]:
 
 def _box(values: np.ndarray, window_px: int) -> np.ndarray:
     return cv2.boxFilter(values, cv2.CV_32F, (window_px, window_px), borderType=cv2.BORDER_REFLECT)
-
-
-def _local_std(image: np.ndarray, window_px: int) -> np.ndarray:
-    mean = _box(image, window_px)
-    return np.sqrt(np.maximum(_box(image * image, window_px) - mean * mean, 0.0))
 
 
 def _warp_along_rows(image: np.ndarray, disparity: np.ndarray) -> np.ndarray:
