@@ -22,6 +22,7 @@ import numpy as np
 ProgressCallback = Callable[[float, str], None]
 _SIGMA_CALIBRATION = 3.5
 _SUBPIXEL_ITERATIONS = 1
+_MAX_SPECKLE_PIXELS = 400
 
 
 @dataclass(frozen=True)
@@ -52,7 +53,8 @@ def match_disparity(
     """Matches `left` to `right`, both (rows, cols) grey images of one size, rectified so that
     parallax runs along rows. Masks (NaN) pixels whose peak correlation is below `min_confidence`,
     whose left-to-right and right-to-left disparities differ by more than
-    `max_lr_difference_px`, or whose window lies on a flat (textureless) patch.
+    `max_lr_difference_px`, whose window lies on a flat (textureless) patch, or that form small
+    isolated islands among masked pixels.
 
     Large images are matched in overlapping strips of rows of about `strip_pixels` pixels each,
     which bounds memory; parallax runs along rows, so a strip is a complete stereo problem."""
@@ -115,6 +117,7 @@ def _match_strip(left, right, window_px, max_disparity_px, min_confidence, max_l
         & _in_bounds(disparity)
         & np.isfinite(disparity)
     )
+    valid &= ~_speckles(np.where(valid, disparity, np.nan), max_pixels=_MAX_SPECKLE_PIXELS)
     sigma_px = _disparity_sigma_px(score, curvature, window_px)
     confidence = np.clip(score, 0.0, 1.0).astype(np.float32)
     disparity = np.where(valid, disparity, np.nan).astype(np.float32)
@@ -266,6 +269,17 @@ def _clean_for_upsampling(disparity, score):
     smooth = cv2.medianBlur(disparity, 5)
     poor = (score < 0.3) | (np.abs(disparity - smooth) > 1.5)
     return np.where(poor, smooth, disparity).astype(np.float32)
+
+
+def _speckles(disparity, *, max_pixels, max_step_px=1.0):
+    """Small islands of valid disparities: regions (joined where neighbours differ by at most
+    `max_step_px`) of fewer than `max_pixels` pixels, typically wrong matches surrounded by
+    masked ones. Uses OpenCV's speckle filter in its 1/16 px fixed point."""
+    marker = np.int16(-32768)
+    fixed = np.where(np.isfinite(disparity), np.clip(np.nan_to_num(disparity) * 16.0, -32000, 32000), marker).astype(np.int16)
+    filtered = fixed.copy()
+    cv2.filterSpeckles(filtered, int(marker), max_pixels, int(16 * max_step_px))
+    return (filtered == marker) & (fixed != marker)
 
 
 def _in_bounds(disparity):
