@@ -94,6 +94,9 @@ def estimate_alignment(
     rotation = np.arcsin(np.clip(sin_rotation, -1.0, 1.0))
     rotated_x = np.cos(rotation) * points1[:, 0] - np.sin(rotation) * points1[:, 1]
     parallax = (points2[:, 0] - rotated_x)[inliers]
+    # Mismatched features can claim absurd parallaxes; far outliers would inflate the search range.
+    spread = max(1.4826 * np.median(np.abs(parallax - np.median(parallax))), 1.0)
+    parallax = parallax[np.abs(parallax - np.median(parallax)) < 8.0 * spread]
     low, median, high = np.percentile(parallax, [2, 50, 98])
     return Alignment(
         shift_parallel_px=float(median),
