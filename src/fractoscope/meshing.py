@@ -1,0 +1,81 @@
+"""From a height map to filtered, tiled, textured GLB levels of detail (the meshing service's work)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from fractoscope import gltf_tile, height_filter, surface_mesh
+
+
+@dataclass(frozen=True)
+class EncodedTile:
+    """One tile of one level as GLB; level 0 is full resolution, larger is coarser."""
+
+    level: int
+    tile_row: int
+    tile_col: int
+    glb: bytes
+    geometric_error_m: float
+    vertex_count: int
+    triangle_count: int
+
+
+@dataclass(frozen=True)
+class MeshingOptions:
+    """Filtering and simplification settings (see height_filter and surface_mesh)."""
+
+    outlier_threshold_sigma: float = 8.0
+    max_fill_distance_px: int = 8
+    smoothing_um: float = 0.0
+    method: surface_mesh.Simplification = surface_mesh.Simplification.VERTEX_CLUSTERING
+    level_count: int | None = None
+
+
+def mesh_height_map(
+    z_um: np.ndarray,
+    texture: np.ndarray,
+    *,
+    pixel_size_um: float,
+    options: MeshingOptions = MeshingOptions(),
+    progress: Callable[[float, str], None] | None = None,
+) -> tuple[list[EncodedTile], height_filter.FilterReport]:
+    """Filters `z_um` ((rows, cols) µm, NaN unknown), builds the levels with `texture` (grey, same
+    shape) and encodes every tile; tiles come finest level first."""
+    report = progress or (lambda fraction, message: None)
+    filtered = height_filter.filter_heights(
+        z_um,
+        outlier_threshold_sigma=options.outlier_threshold_sigma,
+        max_fill_distance_px=options.max_fill_distance_px,
+        smoothing_um=options.smoothing_um,
+    )
+    report(0.1, "filtered")
+
+    def level_progress(fraction: float, message: str) -> None:
+        report(0.1 + 0.6 * fraction, message)
+
+    levels = surface_mesh.build_levels(
+        filtered.z_um, texture, pixel_size_um=pixel_size_um, method=options.method,
+        level_count=options.level_count, progress=level_progress,
+    )
+    tiles = [tile for level_tiles in levels for tile in level_tiles]
+
+    def encode(tile: surface_mesh.MeshTile) -> EncodedTile:
+        extras = {"level": tile.level, "tile_row": tile.tile_row, "tile_col": tile.tile_col}
+        return EncodedTile(
+            level=tile.level,
+            tile_row=tile.tile_row,
+            tile_col=tile.tile_col,
+            glb=gltf_tile.tile_glb(tile, pixel_size_um=pixel_size_um, extras=extras),
+            geometric_error_m=tile.geometric_error_um * gltf_tile.METRES_PER_UM,
+            vertex_count=len(tile.positions),
+            triangle_count=len(tile.triangles),
+        )
+
+    encoded = []
+    for tile in tiles:
+        encoded.append(encode(tile))
+        report(0.7 + 0.3 * len(encoded) / len(tiles), f"encoded {len(encoded)} of {len(tiles)} tiles")
+    return encoded, filtered.report
