@@ -10,12 +10,13 @@ PROTOS := $(wildcard proto/fractoscope/v1/*.proto)
 GEN_DIR := src/fractoscope/v1
 GEN := $(patsubst proto/fractoscope/v1/%.proto,$(GEN_DIR)/%_pb2.py,$(PROTOS))
 STAMP := $(VENV)/.installed
+NODE_STAMP := node_modules/.installed
 DATA ?= ./data
 
 .PHONY: install proto run test bench lint clean
 
-## install: create .venv with every dependency and generate the gRPC stubs
-install: $(STAMP)
+## install: create .venv with every dependency, generate the gRPC stubs, install the JS tools
+install: $(STAMP) $(NODE_STAMP)
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -30,6 +31,11 @@ $(GEN): $(PROTOS) | $(BIN)/python
 	touch $(GEN_DIR)/__init__.py $(GEN)
 
 proto: $(GEN)
+
+# The Khronos glTF validator, which the tests run on every GLB they write.
+$(NODE_STAMP): package.json package-lock.json
+	npm ci --no-audit --no-fund --loglevel=error
+	touch $@
 
 $(STAMP): pyproject.toml $(GEN) | $(BIN)/python
 	$(BIN)/pip install --quiet -e '.[dev]'
@@ -46,9 +52,10 @@ test: install
 ## bench: speed, memory and accuracy figures, written to bench-results/
 bench: install
 	$(BIN)/python -m benchmarks.matching --out bench-results
+	$(BIN)/python -m benchmarks.meshing --out bench-results
 
 lint: install
 	$(BIN)/python -m compileall -q src services clients tests
 
 clean:
-	rm -rf $(VENV) $(GEN_DIR) build *.egg-info
+	rm -rf $(VENV) $(GEN_DIR) build *.egg-info node_modules

@@ -22,11 +22,13 @@ from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
 
 from fractoscope.services.matching import MatchingServicer
-from fractoscope.v1 import matching_pb2, matching_pb2_grpc
+from fractoscope.services.meshing import MeshingServicer
+from fractoscope.v1 import matching_pb2, matching_pb2_grpc, meshing_pb2, meshing_pb2_grpc
 
 DEFAULT_MAX_MESSAGE_MB = 512
 _SERVICES = {
     "matching": (matching_pb2.DESCRIPTOR.services_by_name["MatchingService"], matching_pb2_grpc.add_MatchingServiceServicer_to_server, MatchingServicer),
+    "meshing": (meshing_pb2.DESCRIPTOR.services_by_name["MeshingService"], meshing_pb2_grpc.add_MeshingServiceServicer_to_server, MeshingServicer),
 }
 
 

@@ -59,3 +59,29 @@ def server_address():
 def client(server_address):
     with FractoscopeClient(server_address, timeout_s=120) as connected:
         yield connected
+
+
+VALIDATOR = Path(__file__).resolve().parent / "js" / "validate_gltf.mjs"
+
+
+def validate_glbs(glbs: list[bytes], directory: Path) -> list[dict]:
+    """Runs the Khronos glTF Validator (npm gltf-validator, installed by `make install`) on GLBs;
+    one report per GLB with its error and warning counts and messages."""
+    import json
+    import shutil
+    import subprocess
+
+    if shutil.which("node") is None:
+        pytest.fail("node is needed to run the glTF validator (installed with the project's toolchain)")
+    paths = []
+    for index, glb in enumerate(glbs):
+        path = directory / f"tile_{index}.glb"
+        path.write_bytes(glb)
+        paths.append(str(path))
+    reports = []
+    for start in range(0, len(paths), 200):
+        done = subprocess.run(["node", str(VALIDATOR), *paths[start : start + 200]], capture_output=True, text=True,
+                              check=True, cwd=VALIDATOR.parents[2], timeout=300)
+        reports += [json.loads(line) for line in done.stdout.splitlines()]
+    assert len(reports) == len(glbs)
+    return reports

@@ -27,8 +27,9 @@ from google.rpc import error_details_pb2
 from grpc_status import rpc_status
 
 from fractoscope import wire
+from fractoscope.meshing import EncodedTile
 from fractoscope.services.server import DEFAULT_MAX_MESSAGE_MB, create_server, message_size_options
-from fractoscope.v1 import common_pb2, matching_pb2, matching_pb2_grpc
+from fractoscope.v1 import common_pb2, matching_pb2, matching_pb2_grpc, meshing_pb2, meshing_pb2_grpc
 
 ProgressCallback = Callable[[float, str], None]
 
@@ -60,6 +61,7 @@ class FractoscopeClient:
     def __init__(self, address: str, *, max_message_mb: int = DEFAULT_MAX_MESSAGE_MB, timeout_s: float | None = 3600.0):
         self._channel = grpc.insecure_channel(address, options=message_size_options(max_message_mb))
         self._matching = matching_pb2_grpc.MatchingServiceStub(self._channel)
+        self._meshing = meshing_pb2_grpc.MeshingServiceStub(self._channel)
         self._timeout_s = timeout_s
 
     def __enter__(self) -> FractoscopeClient:
@@ -114,6 +116,41 @@ class FractoscopeClient:
             pixel_size_um=height_map.pixel_size_um,
             report=wire.message_to_report(final.report),
         )
+
+
+    def build_mesh(
+        self,
+        z_um: np.ndarray,
+        texture: np.ndarray | None,
+        *,
+        pixel_size_um: float,
+        method: int = meshing_pb2.SIMPLIFICATION_METHOD_VERTEX_CLUSTERING,
+        level_count: int = 0,
+        filter_parameters: meshing_pb2.FilterParameters | None = None,
+        on_progress: ProgressCallback | None = None,
+        request_id: str = "",
+    ) -> tuple[list[EncodedTile], dict]:
+        """GLB levels of detail of a height map ((rows, cols) µm, NaN unknown) textured with a grey
+        image of the same shape; returns the tiles (finest level first) and the filter report."""
+        height_map = common_pb2.HeightMap(z_um=wire.array_to_raster(np.asarray(z_um, np.float32)), pixel_size_um=pixel_size_um)
+        if texture is not None:
+            height_map.texture.CopyFrom(wire.array_to_raster(texture))
+        request = meshing_pb2.BuildMeshRequest(
+            height_map=height_map, filter=filter_parameters, method=method, level_count=level_count, request_id=request_id
+        )
+        tiles, report = [], {}
+        with _translated_errors():
+            for response in self._meshing.BuildMesh(request, timeout=self._timeout_s):
+                event = response.WhichOneof("event")
+                if event == "progress" and on_progress:
+                    on_progress(response.progress.fraction, response.progress.message)
+                elif event == "tile":
+                    tile = response.tile
+                    tiles.append(EncodedTile(tile.level, tile.tile_row, tile.tile_col, tile.glb, tile.geometric_error_m, tile.vertex_count, tile.triangle_count))
+                elif event == "filter_report":
+                    counts = response.filter_report
+                    report = {name: getattr(counts, name) for name in ("outliers_removed", "holes_filled", "points_smoothed")}
+        return tiles, report
 
 
 @contextlib.contextmanager

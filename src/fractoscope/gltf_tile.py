@@ -53,7 +53,8 @@ def mesh_glb(
     (N, 2) with (0, 0) at the image's top-left, triangles (M, 3) counter-clockwise seen from +Y,
     and the JPEG texture. `extras` lands on the mesh node (glTF extras)."""
     positions = np.ascontiguousarray(positions_m, np.float32)
-    index_type, index_component = (np.uint16, pygltflib.UNSIGNED_SHORT) if len(positions) <= 65536 else (np.uint32, pygltflib.UNSIGNED_INT)
+    # 16-bit indices when they stay below 65535, which glTF reserves for primitive restart.
+    index_type, index_component = (np.uint16, pygltflib.UNSIGNED_SHORT) if len(positions) <= 65535 else (np.uint32, pygltflib.UNSIGNED_INT)
     arrays = [
         (np.ascontiguousarray(triangles, index_type).ravel(), pygltflib.ELEMENT_ARRAY_BUFFER),
         (positions, pygltflib.ARRAY_BUFFER),

@@ -35,21 +35,29 @@ def filter_heights(
     max_fill_distance_px: int = 8,
     smoothing_um: float = 0.0,
 ) -> FilteredHeights:
-    """Removes isolated peaks (points further than `outlier_threshold_sigma` robust standard
-    deviations from their 5x5 median), fills unknown points within `max_fill_distance_px` of
-    measured ones by neighbour averaging, and, when `smoothing_um` > 0, applies a bilateral filter
+    """Removes isolated peaks (points outside the range of their eight neighbours by more than twice
+    that range and by more than `outlier_threshold_sigma` robust standard deviations), fills unknown
+    points within `max_fill_distance_px` of measured ones by neighbour averaging, and, when `smoothing_um` > 0, applies a bilateral filter
     whose height scale is `smoothing_um`, so steps much higher than that stay sharp."""
     if z_um.ndim != 2:
         raise ValueError(f"z_um must be 2D, got shape {z_um.shape}")
     heights = z_um.astype(np.float32)
     measured = np.isfinite(heights)
 
-    # The median needs every neighbour of a measured point; two rings of provisional fill suffice.
-    provisional, known = _grow(heights, measured, 2)
-    median = cv2.medianBlur(np.where(known, provisional, 0.0).astype(np.float32), 5)
-    residual = np.where(measured, heights - median, 0.0)
-    scale = 1.4826 * float(np.median(np.abs(residual[measured]))) if measured.any() else 0.0
-    outliers = measured & (np.abs(residual) > outlier_threshold_sigma * max(scale, 1e-12))
+    # An isolated peak lies outside the range of its eight neighbours by more than twice that
+    # range and by more than `outlier_threshold_sigma` robust standard deviations. Smooth surfaces
+    # and steps keep their points within (or just beyond) their neighbours' range.
+    provisional, known = _grow(heights, measured, 1)
+    provisional = np.where(known, provisional, np.nan).astype(np.float32)
+    ring = np.ones((3, 3), np.uint8)
+    ring[1, 1] = 0
+    highest = cv2.dilate(np.nan_to_num(provisional, nan=-np.inf), ring, borderType=cv2.BORDER_REPLICATE)
+    lowest = cv2.erode(np.nan_to_num(provisional, nan=np.inf), ring, borderType=cv2.BORDER_REPLICATE)
+    with np.errstate(invalid="ignore"):  # points without measured neighbours give NaN: never peaks
+        excess = np.maximum(heights - highest, lowest - heights)
+        spread = highest - lowest
+        scale = _robust_scale(heights - 0.5 * (highest + lowest), measured & np.isfinite(spread))
+    outliers = measured & (excess > 2.0 * spread) & (excess > outlier_threshold_sigma * scale)
     kept = measured & ~outliers
 
     grown, known = _grow(heights, kept, max_fill_distance_px)
@@ -64,6 +72,12 @@ def filter_heights(
         smoothed_count = int(changed.sum())
     report = FilterReport(int(outliers.sum()), int((filled & ~outliers).sum()), smoothed_count)
     return FilteredHeights(result, filled, report)
+
+
+def _robust_scale(values: np.ndarray, mask: np.ndarray) -> float:
+    """1.4826 x median absolute value: the standard deviation of Gaussian values, robustly."""
+    selected = np.abs(values[mask])
+    return 1.4826 * float(np.median(selected)) if selected.size else 0.0
 
 
 def _grow(heights: np.ndarray, known: np.ndarray, rings: int) -> tuple[np.ndarray, np.ndarray]:

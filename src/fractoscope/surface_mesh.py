@@ -26,7 +26,7 @@ import trimesh
 
 from fractoscope import gltf_tile
 
-TILE_CELLS = 255  # 256 x 256 vertices: indices fit 16 bits
+TILE_CELLS = 254  # 255 x 255 vertices: indices fit 16 bits below the restart value 65535
 COARSEST_TRIANGLES = 5_000
 
 
@@ -245,7 +245,8 @@ def _decimated_mesh(cluster: ClusterLevel, row_cells, col_cells):
     simplified, faces = fast_simplification.simplify(
         positions * scale, np.array(triangles, np.int64), target_reduction=0.5, preserve_border=True
     )
-    return simplified / scale, faces
+    used, faces = np.unique(faces, return_inverse=True)  # drop vertices no triangle uses
+    return simplified[used] / scale, faces.reshape(-1, 3)
 
 
 def _grid_deviation(cluster: ClusterLevel, z_full: np.ndarray) -> np.ndarray:
@@ -383,7 +384,10 @@ def _grid_normals(cluster: ClusterLevel, row_cells, col_cells, pixel_size_um: fl
     if min(z.shape) < 2:
         slope_rows = slope_cols = np.zeros_like(z)
     else:
-        slope_rows, slope_cols = np.gradient(z, np.float32(cluster.cell_px * pixel_size_um))
+        # Differences over the actual centroid spacing (cells at the map's edge are partial).
+        with np.errstate(invalid="ignore", divide="ignore"):
+            slope_rows = np.gradient(z, axis=0) / (np.gradient(cluster.row_px[block], axis=0) * pixel_size_um)
+            slope_cols = np.gradient(z, axis=1) / (np.gradient(cluster.col_px[block], axis=1) * pixel_size_um)
     slope_rows, slope_cols = np.nan_to_num(slope_rows[measured]), np.nan_to_num(slope_cols[measured])
     inverse_norm = 1.0 / np.sqrt(1.0 + slope_rows**2 + slope_cols**2)
     return np.column_stack([-slope_cols * inverse_norm, inverse_norm, -slope_rows * inverse_norm])
@@ -391,7 +395,9 @@ def _grid_normals(cluster: ClusterLevel, row_cells, col_cells, pixel_size_um: fl
 
 def _mesh_normals(positions: np.ndarray, triangles: np.ndarray, pixel_size_um: float) -> np.ndarray:
     """Area-weighted unit vertex normals (trimesh) in glTF axes; (0, 1, 0) for lone vertices."""
-    mesh = trimesh.Trimesh(vertices=gltf_tile.to_gltf_positions_m(positions, pixel_size_um=pixel_size_um), faces=triangles, process=False)
+    # In micrometres: trimesh's degeneracy tolerances would discard metre-scale micro-triangles.
+    gltf_um = gltf_tile.to_gltf_positions_m(positions, pixel_size_um=pixel_size_um) / gltf_tile.METRES_PER_UM
+    mesh = trimesh.Trimesh(vertices=gltf_um, faces=triangles, process=False)
     normals = np.array(mesh.vertex_normals, dtype=np.float64)
     normals[np.linalg.norm(normals, axis=1) < 0.5] = (0.0, 1.0, 0.0)
     return normals

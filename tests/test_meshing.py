@@ -1,0 +1,160 @@
+"""Filtering, levels of detail and GLB tiles on surfaces whose shape is known exactly."""
+
+import io
+
+import grpc
+import numpy as np
+import pytest
+import trimesh
+from matplotlib import tri
+
+from conftest import validate_glbs
+from fractoscope import height_filter, meshing, surface_mesh
+from fractoscope.client import ClientError
+from fractoscope.gltf_tile import METRES_PER_UM
+from fractoscope.synthetic import self_affine_surface
+from fractoscope.v1 import meshing_pb2
+
+PIXEL_SIZE_UM = 0.1
+
+
+def _decode(glb: bytes) -> trimesh.Trimesh:
+    """A GLB back to a mesh in the height map's frame: (col_px, row_px, z_um)."""
+    mesh = trimesh.load(io.BytesIO(glb), file_type="glb", force="mesh", process=False)
+    x_m, y_m, z_m = np.asarray(mesh.vertices).T
+    positions = np.column_stack([x_m / METRES_PER_UM / PIXEL_SIZE_UM, z_m / METRES_PER_UM / PIXEL_SIZE_UM, y_m / METRES_PER_UM])
+    return trimesh.Trimesh(vertices=positions, faces=mesh.faces, process=False)
+
+
+def _rough_with_hole(size=600):
+    z = self_affine_surface((size, size), hurst=0.8, rms_um=2.0, seed=4).astype(np.float32)
+    z[200:260, 300:380] = np.nan
+    texture = np.clip((z - np.nanmin(z)) / (np.nanmax(z) - np.nanmin(z)) * 255, 0, 255)
+    return z, np.nan_to_num(texture).astype(np.uint8)
+
+
+def test_isolated_spike_is_removed_and_a_step_is_kept():
+    rng = np.random.default_rng(0)
+    z = np.where(np.arange(100)[None, :] < 50, 0.0, 2.0) + rng.normal(0, 0.01, (100, 100))
+    z = z.astype(np.float32)
+    z[20, 20] += 30.0
+    result = height_filter.filter_heights(z, smoothing_um=0.05)
+    assert result.report.outliers_removed == 1
+    assert abs(result.z_um[20, 20]) < 0.1 and result.filled[20, 20]
+    step = np.median(result.z_um[:, 52:60]) - np.median(result.z_um[:, 40:48])
+    assert step == pytest.approx(2.0, abs=0.02)
+    assert np.abs(result.z_um[:, 51] - 2.0).max() < 0.1 and np.abs(result.z_um[:, 48] - 0.0).max() < 0.1
+    assert result.report.points_smoothed > 5000
+    assert np.std(result.z_um[:, 5:45]) < np.std(z[:, 5:45][np.abs(z[:, 5:45]) < 1])
+
+
+def test_holes_are_filled_only_near_measured_points():
+    z = np.zeros((120, 120), np.float32)
+    z[10:14, 10:14] = np.nan  # small hole: filled
+    z[50:100, 50:100] = np.nan  # large hole: only its rim is filled
+    result = height_filter.filter_heights(z, max_fill_distance_px=8)
+    assert np.isfinite(result.z_um[10:14, 10:14]).all()
+    assert np.isnan(result.z_um[60:90, 60:90]).all()
+    assert np.isfinite(result.z_um[50:58, 50:100]).all()
+    assert result.report.holes_filled == int(result.filled.sum())
+    assert result.report.outliers_removed == 0
+
+
+@pytest.mark.parametrize("method", list(surface_mesh.Simplification))
+def test_a_plane_stays_a_plane_at_every_level(method):
+    rows, cols = np.mgrid[0:530, 0:610].astype(np.float32)
+    plane = 0.02 * rows - 0.01 * cols + 3.0
+    levels = surface_mesh.build_levels(plane, np.zeros(plane.shape, np.uint8), pixel_size_um=PIXEL_SIZE_UM, method=method)
+    assert len(levels) >= 4
+    for tiles in levels:
+        for tile in tiles:
+            col_px, row_px, z_um = tile.positions.T
+            np.testing.assert_allclose(z_um, 0.02 * row_px - 0.01 * col_px + 3.0, atol=1e-4)
+            assert tile.geometric_error_um < 1e-4
+            np.testing.assert_allclose(tile.normals, np.tile(tile.normals[0], (len(tile.normals), 1)), atol=1e-4)
+
+
+def test_sphere_cap_geometric_error_is_the_true_deviation(tmp_path):
+    radius_um, size = 30.0, 400
+    rows, cols = np.mgrid[0:size, 0:size]
+    r2 = ((rows - 199.5) ** 2 + (cols - 199.5) ** 2) * PIXEL_SIZE_UM**2
+    sphere = np.sqrt(radius_um**2 - r2).astype(np.float32)
+    tiles, _ = meshing.mesh_height_map(sphere, np.zeros(sphere.shape, np.uint8), pixel_size_um=PIXEL_SIZE_UM)
+    errors = {}
+    for tile in tiles:
+        if tile.level == 0:
+            continue
+        mesh = _decode(tile.glb)
+        # Independent evaluation: matplotlib's triangle interpolation against the analytic sphere.
+        x, y, z = mesh.vertices.T
+        surface = tri.LinearTriInterpolator(tri.Triangulation(x, y, mesh.faces), z)(cols, rows)
+        deviation = np.abs(np.ma.filled(surface, np.nan) - sphere)
+        true_error_um = np.nanmax(deviation)
+        assert tile.geometric_error_m / METRES_PER_UM == pytest.approx(true_error_um, rel=1e-3, abs=1e-5)
+        errors[tile.level] = max(errors.get(tile.level, 0.0), tile.geometric_error_m)
+    levels = sorted(errors)
+    assert all(errors[a] < errors[b] for a, b in zip(levels, levels[1:]))  # coarser, larger error
+
+
+@pytest.mark.parametrize("method", list(surface_mesh.Simplification))
+def test_tiles_share_borders_and_every_glb_is_valid(method, tmp_path):
+    z, texture = _rough_with_hole()
+    options = meshing.MeshingOptions(method=method)
+    tiles, report = meshing.mesh_height_map(z, texture, pixel_size_um=PIXEL_SIZE_UM, options=options)
+    assert report.holes_filled > 0
+    reports = validate_glbs([tile.glb for tile in tiles], tmp_path)
+    assert [r["errors"] for r in reports] == [0] * len(tiles), [r["messages"] for r in reports if r["errors"]][:3]
+    by_key = {(t.level, t.tile_row, t.tile_col): _decode(t.glb).vertices for t in tiles}
+    shared = 0
+    for (level, row, col), vertices in by_key.items():
+        right = by_key.get((level, row, col + 1))
+        if right is None:
+            continue
+        border_x = right[:, 0].min()
+        mine = {tuple(v) for v in vertices[np.isclose(vertices[:, 0], border_x, atol=1e-6)]}
+        theirs = {tuple(v) for v in right[np.isclose(right[:, 0], border_x, atol=1e-6)]}
+        assert mine == theirs and len(mine) > 10
+        shared += 1
+    assert shared >= 2
+
+
+def test_coarsest_level_is_one_small_tile_and_errors_grow():
+    z, texture = _rough_with_hole(1100)
+    tiles, _ = meshing.mesh_height_map(z, texture, pixel_size_um=PIXEL_SIZE_UM)
+    levels = sorted({t.level for t in tiles})
+    coarsest = [t for t in tiles if t.level == levels[-1]]
+    assert len(coarsest) == 1 and coarsest[0].triangle_count <= surface_mesh.COARSEST_TRIANGLES
+    errors = [max(t.geometric_error_m for t in tiles if t.level == level) for level in levels]
+    assert errors[0] == 0.0 and all(a < b for a, b in zip(errors, errors[1:]))
+    finest = [t for t in tiles if t.level == 0]
+    assert sum(t.vertex_count for t in finest) >= np.isfinite(z).sum()  # shared borders count twice
+
+
+def test_glb_is_y_up_in_metres():
+    rows, cols = np.mgrid[0:64, 0:80]
+    z = (5.0 * np.exp(-((rows - 10) ** 2 + (cols - 70) ** 2) / 8.0)).astype(np.float32)  # top at row 10, column 70
+    tiles, _ = meshing.mesh_height_map(z, np.zeros(z.shape, np.uint8), pixel_size_um=PIXEL_SIZE_UM)
+    mesh = trimesh.load(io.BytesIO(tiles[0].glb), file_type="glb", force="mesh", process=False)
+    top = mesh.vertices[np.argmax(mesh.vertices[:, 1])]
+    np.testing.assert_allclose(top, [70 * PIXEL_SIZE_UM * 1e-6, 5e-6, 10 * PIXEL_SIZE_UM * 1e-6], rtol=1e-5)
+
+
+def test_meshing_service_streams_tiles_and_rejects_bad_input(client):
+    z, texture = _rough_with_hole(300)
+    tiles, report = client.build_mesh(z, texture, pixel_size_um=PIXEL_SIZE_UM)
+    local, local_report = meshing.mesh_height_map(z, texture, pixel_size_um=PIXEL_SIZE_UM)
+    assert [(t.level, t.tile_row, t.tile_col, t.triangle_count) for t in tiles] == [
+        (t.level, t.tile_row, t.tile_col, t.triangle_count) for t in local
+    ]
+    assert report["holes_filled"] == local_report.holes_filled
+    with pytest.raises(ClientError) as error:
+        client.build_mesh(z, texture[:100], pixel_size_um=PIXEL_SIZE_UM)
+    assert error.value.code == grpc.StatusCode.INVALID_ARGUMENT and error.value.field == "height_map.texture"
+    with pytest.raises(ClientError) as error:
+        client.build_mesh(z, texture, pixel_size_um=float("nan"))
+    assert error.value.field == "height_map.pixel_size_um"
+    with pytest.raises(ClientError) as error:
+        client.build_mesh(z, texture, pixel_size_um=PIXEL_SIZE_UM, method=7)
+    assert error.value.field == "method"
+    tiles, _ = client.build_mesh(z, None, pixel_size_um=PIXEL_SIZE_UM, method=meshing_pb2.SIMPLIFICATION_METHOD_QUADRIC, level_count=2)
+    assert {t.level for t in tiles} == {0, 1}
