@@ -22,9 +22,6 @@ from dataclasses import dataclass
 import cv2
 import fast_simplification
 import numpy as np
-import trimesh
-
-from fractoscope import gltf_tile
 
 TILE_CELLS = 254  # 255 x 255 vertices: indices fit 16 bits below the restart value 65535
 COARSEST_TRIANGLES = 5_000
@@ -58,7 +55,7 @@ class ClusterLevel:
 class MeshTile:
     """One tile of one level: a triangle mesh in the height map's pixel frame.
 
-    positions: (N, 3) float64 (col_px, row_px, z_um); normals: (N, 3) unit vectors in glTF axes
+    positions: (N, 3) (col_px, row_px, z_um); normals: (N, 3) unit vectors in glTF axes
     (X along columns, Y up, Z along rows); triangles: (M, 3) vertex indices, counter-clockwise
     seen from above; uvs: (N, 2) texture coordinates; texture: (h, w) uint8 grey image of the
     tile's area at the level's resolution.
@@ -158,7 +155,7 @@ def build_levels(
                     normals = _grid_normals(cluster, row_cells, col_cells, pixel_size_um)
                 else:
                     positions, triangles = _decimated_mesh(cluster, row_cells, col_cells)
-                    normals = _mesh_normals(positions, triangles, pixel_size_um)
+                    normals = _decimated_normals(cluster, row_cells, col_cells, positions, pixel_size_um)
                 footprint = _footprint(cluster.cell_px, row_cells, col_cells, z_um.shape)
                 if level == 0:
                     error = 0.0
@@ -207,12 +204,15 @@ def _grid_mesh(cluster: ClusterLevel, row_cells, col_cells) -> tuple[np.ndarray,
     block = (slice(row_cells[0], row_cells[1] + 1), slice(col_cells[0], col_cells[1] + 1))
     z = cluster.z_um[block]
     measured = np.isfinite(z)
+    positions = np.empty((int(measured.sum()), 3), np.float32)  # float32, as the GLB stores them
     if measured.all():
-        positions = np.column_stack([cluster.col_px[block].ravel(), cluster.row_px[block].ravel(), z.ravel()])
+        for axis, values in enumerate((cluster.col_px[block], cluster.row_px[block], z)):
+            positions[:, axis] = values.ravel()
         return positions, _complete_grid_triangles(z.shape)
     index = np.full(z.shape, -1, np.int64)
-    index[measured] = np.arange(int(measured.sum()))
-    positions = np.column_stack([cluster.col_px[block][measured], cluster.row_px[block][measured], z[measured]])
+    index[measured] = np.arange(len(positions))
+    for axis, values in enumerate((cluster.col_px[block], cluster.row_px[block], z)):
+        positions[:, axis] = values[measured]
     return positions, _quad_triangles(index)
 
 
@@ -236,8 +236,8 @@ def _quad_triangles(index: np.ndarray) -> np.ndarray:
 
 def _decimated_mesh(cluster: ClusterLevel, row_cells, col_cells):
     """The level's grid mesh of the tile decimated to half its triangles by quadric error
-    collapses, tile borders kept. Heights are scaled to cell units for the quadrics, which keeps
-    the optimal vertex placement well conditioned."""
+    collapses (heights in cell units for the quadrics), tile borders kept, vertices on the
+    level's surface."""
     positions, triangles = _grid_mesh(cluster, row_cells, col_cells)
     if len(triangles) < 8:
         return positions, triangles
@@ -246,7 +246,29 @@ def _decimated_mesh(cluster: ClusterLevel, row_cells, col_cells):
         positions * scale, np.array(triangles, np.int64), target_reduction=0.5, preserve_border=True
     )
     used, faces = np.unique(faces, return_inverse=True)  # drop vertices no triangle uses
-    return simplified[used] / scale, faces.reshape(-1, 3)
+    simplified = simplified[used] / scale
+    # Quadric placement is ill-conditioned on flat patches; keep every vertex on the level's
+    # surface. Vertices on hole rims (kept, being borders) may fall in an open quad: unchanged.
+    on_surface = _grid_height_at(cluster, simplified[:, 0], simplified[:, 1])
+    simplified[:, 2] = np.where(np.isfinite(on_surface), on_surface, simplified[:, 2])
+    return simplified, faces.reshape(-1, 3)
+
+
+def _grid_height_at(cluster: ClusterLevel, col_px: np.ndarray, row_px: np.ndarray) -> np.ndarray:
+    """Height of the level's grid mesh (its triangles through the cell centroids) at points."""
+    size = cluster.cell_px
+    centre = (size - 1) / 2.0
+    quad_rows = np.clip(np.floor((row_px - centre) / size).astype(np.int64), 0, cluster.z_um.shape[0] - 2)
+    quad_cols = np.clip(np.floor((col_px - centre) / size).astype(np.int64), 0, cluster.z_um.shape[1] - 2)
+
+    def corner(row_step, col_step):
+        index = (quad_rows + row_step, quad_cols + col_step)
+        return cluster.col_px[index], cluster.row_px[index], cluster.z_um[index]
+
+    a, b, c, d = corner(0, 0), corner(0, 1), corner(1, 0), corner(1, 1)
+    first, in_first = _barycentric_height(col_px, row_px, a, c, b)
+    second, _ = _barycentric_height(col_px, row_px, b, c, d)
+    return np.where(in_first, first, second)
 
 
 def _grid_deviation(cluster: ClusterLevel, z_full: np.ndarray) -> np.ndarray:
@@ -254,8 +276,7 @@ def _grid_deviation(cluster: ClusterLevel, z_full: np.ndarray) -> np.ndarray:
     has no triangle or the pixel is unknown), for a level of even cell size.
 
     Quads run between cell centres, so the pixels inside quad (i, j) form the block that starts
-    at (i s + s/2, j s + s/2): every quad is evaluated at once with fixed per-offset weights of its
-    two triangles. Quads with an incomplete corner cell (map edges, holes), whose vertices are
+    at (i s + s/2, j s + s/2), and all quads are evaluated at once. Quads with an incomplete corner cell (map edges, holes), whose vertices are
     centroids away from the regular layout, are evaluated with their actual vertex positions."""
     size, half = cluster.cell_px, cluster.cell_px // 2
     quads_r, quads_c = cluster.z_um.shape[0] - 1, cluster.z_um.shape[1] - 1
@@ -267,25 +288,18 @@ def _grid_deviation(cluster: ClusterLevel, z_full: np.ndarray) -> np.ndarray:
     padded[:rows, :cols] = z_full[:rows, :cols]
     blocks = padded[half:, half:].reshape(quads_r, size, quads_c, size)
 
+    # The triangle pair equals the bilinear patch minus the quad's twist (a - b - c + d) times
+    # u v in the upper triangle and (1 - u)(1 - v) in the lower one. OpenCV's linear resize puts
+    # output pixel x at input coordinate (x - (s - 1) / 2) / s: the cell-centre convention.
+    z = cluster.z_um.astype(np.float32)
+    bilinear = cv2.resize(z, (z.shape[1] * size, z.shape[0] * size), interpolation=cv2.INTER_LINEAR)
+    bilinear_blocks = bilinear[half : half + quads_r * size, half : half + quads_c * size].reshape(quads_r, size, quads_c, size)
     offset = (np.arange(size, dtype=np.float32) + 0.5) / size
     u, v = offset[None, None, None, :], offset[None, :, None, None]
-    upper = u + v <= 1.0
-    weights = {
-        name: weight.astype(np.float32)
-        for name, weight in {
-            "a": np.where(upper, 1.0 - u - v, 0.0), "b": np.where(upper, u, 1.0 - v),
-            "c": np.where(upper, v, 1.0 - u), "d": np.where(upper, 0.0, u + v - 1.0),
-        }.items()
-    }
-    z = cluster.z_um.astype(np.float32)
-    corners = {"a": z[:-1, :-1], "b": z[:-1, 1:], "c": z[1:, :-1], "d": z[1:, 1:]}
-    difference = np.empty(blocks.shape, np.float32)
-    term = np.empty(blocks.shape, np.float32)
-    np.multiply(corners["a"][:, None, :, None], weights["a"], out=difference)
-    for name in "bcd":
-        np.multiply(corners[name][:, None, :, None], weights[name], out=term)
-        difference += term
-    np.subtract(blocks, difference, out=difference)
+    twist_weight = np.where(u + v <= 1.0, u * v, (1.0 - u) * (1.0 - v)).astype(np.float32)
+    twist = (z[:-1, :-1] - z[:-1, 1:] - z[1:, :-1] + z[1:, 1:])[:, None, :, None]
+    difference = np.subtract(blocks, bilinear_blocks)
+    difference += twist * twist_weight
     np.abs(difference, out=difference)
 
     complete = cluster.complete
@@ -307,17 +321,8 @@ def _irregular_quad_deviation(cluster: ClusterLevel, blocks, quads) -> np.ndarra
     quad_rows, quad_cols = quads
     pixel_rows = (quad_rows * size + half)[:, None, None] + np.arange(size)[None, :, None]
     pixel_cols = (quad_cols * size + half)[:, None, None] + np.arange(size)[None, None, :]
-
-    def corner(row_step, col_step):
-        index = (quad_rows + row_step, quad_cols + col_step)
-        return tuple(values[index][:, None, None] for values in (cluster.col_px, cluster.row_px, cluster.z_um))
-
-    a, b, c, d = corner(0, 0), corner(0, 1), corner(1, 0), corner(1, 1)
-    x, y = pixel_cols.astype(np.float64), pixel_rows.astype(np.float64)
-    first, in_first = _barycentric_height(x, y, a, c, b)
-    second, _ = _barycentric_height(x, y, b, c, d)
-    heights = blocks[quad_rows, :, quad_cols, :]
-    return np.abs(heights - np.where(in_first, first, second))
+    surface = _grid_height_at(cluster, pixel_cols.astype(np.float64), pixel_rows.astype(np.float64))
+    return np.abs(blocks[quad_rows, :, quad_cols, :] - surface)
 
 
 def _barycentric_height(x, y, p, q, r):
@@ -375,29 +380,37 @@ def _uvs(positions, cell_px, row_cells, col_cells) -> np.ndarray:
     return np.column_stack([u, v])
 
 
-def _grid_normals(cluster: ClusterLevel, row_cells, col_cells, pixel_size_um: float) -> np.ndarray:
-    """Upward unit normals (-dh/dX, 1, -dh/dZ) / norm in glTF axes of the measured vertices of a
-    grid block, from central differences of the cell heights; (0, 1, 0) where a neighbour is unknown."""
+def _normal_field(cluster: ClusterLevel, row_cells, col_cells, pixel_size_um: float) -> np.ndarray:
+    """(rows, cols, 3) upward unit normals (-dh/dX, 1, -dh/dZ) / norm in glTF axes over a block
+    of cells, from central differences over the actual centroid spacing (cells at the map's edge
+    are partial); (0, 1, 0) where a neighbour is unknown."""
     block = (slice(row_cells[0], row_cells[1] + 1), slice(col_cells[0], col_cells[1] + 1))
     z = cluster.z_um[block].astype(np.float32)
-    measured = np.isfinite(z)
     if min(z.shape) < 2:
         slope_rows = slope_cols = np.zeros_like(z)
     else:
-        # Differences over the actual centroid spacing (cells at the map's edge are partial).
         with np.errstate(invalid="ignore", divide="ignore"):
             slope_rows = np.gradient(z, axis=0) / (np.gradient(cluster.row_px[block], axis=0) * pixel_size_um)
             slope_cols = np.gradient(z, axis=1) / (np.gradient(cluster.col_px[block], axis=1) * pixel_size_um)
-    slope_rows, slope_cols = np.nan_to_num(slope_rows[measured]), np.nan_to_num(slope_cols[measured])
+    slope_rows, slope_cols = np.nan_to_num(slope_rows), np.nan_to_num(slope_cols)
     inverse_norm = 1.0 / np.sqrt(1.0 + slope_rows**2 + slope_cols**2)
-    return np.column_stack([-slope_cols * inverse_norm, inverse_norm, -slope_rows * inverse_norm])
+    return np.stack([-slope_cols * inverse_norm, inverse_norm, -slope_rows * inverse_norm], axis=-1)
 
 
-def _mesh_normals(positions: np.ndarray, triangles: np.ndarray, pixel_size_um: float) -> np.ndarray:
-    """Area-weighted unit vertex normals (trimesh) in glTF axes; (0, 1, 0) for lone vertices."""
-    # In micrometres: trimesh's degeneracy tolerances would discard metre-scale micro-triangles.
-    gltf_um = gltf_tile.to_gltf_positions_m(positions, pixel_size_um=pixel_size_um) / gltf_tile.METRES_PER_UM
-    mesh = trimesh.Trimesh(vertices=gltf_um, faces=triangles, process=False)
-    normals = np.array(mesh.vertex_normals, dtype=np.float64)
-    normals[np.linalg.norm(normals, axis=1) < 0.5] = (0.0, 1.0, 0.0)
-    return normals
+def _grid_normals(cluster: ClusterLevel, row_cells, col_cells, pixel_size_um: float) -> np.ndarray:
+    """Normals of the measured vertices of a grid block, in `_grid_mesh`'s order."""
+    field = _normal_field(cluster, row_cells, col_cells, pixel_size_um)
+    block = (slice(row_cells[0], row_cells[1] + 1), slice(col_cells[0], col_cells[1] + 1))
+    return field[np.isfinite(cluster.z_um[block])]
+
+
+def _decimated_normals(cluster: ClusterLevel, row_cells, col_cells, positions, pixel_size_um: float) -> np.ndarray:
+    """Normals of decimated vertices (which lie on the level's surface): the surface normal of the
+    nearest cell."""
+    field = _normal_field(cluster, row_cells, col_cells, pixel_size_um)
+    centre = (cluster.cell_px - 1) / 2.0
+    rows = np.clip(np.round((positions[:, 1] - centre) / cluster.cell_px).astype(np.int64) - row_cells[0], 0, field.shape[0] - 1)
+    cols = np.clip(np.round((positions[:, 0] - centre) / cluster.cell_px).astype(np.int64) - col_cells[0], 0, field.shape[1] - 1)
+    return field[rows, cols]
+
+
