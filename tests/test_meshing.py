@@ -124,6 +124,7 @@ def test_coarsest_level_is_one_small_tile_and_errors_grow():
     levels = sorted({t.level for t in tiles})
     coarsest = [t for t in tiles if t.level == levels[-1]]
     assert len(coarsest) == 1 and coarsest[0].triangle_count <= surface_mesh.COARSEST_TRIANGLES
+    assert len(tiles) == surface_mesh.tile_count(z.shape)
     errors = [max(t.geometric_error_m for t in tiles if t.level == level) for level in levels]
     assert errors[0] == 0.0 and all(a < b for a, b in zip(errors, errors[1:]))
     finest = [t for t in tiles if t.level == 0]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -53,29 +54,28 @@ def mesh_height_map(
     )
     report(0.1, "filtered")
 
-    def level_progress(fraction: float, message: str) -> None:
-        report(0.1 + 0.6 * fraction, message)
-
-    levels = surface_mesh.build_levels(
-        filtered.z_um, texture, pixel_size_um=pixel_size_um, method=options.method,
-        level_count=options.level_count, progress=level_progress,
+    total = surface_mesh.tile_count(z_um.shape, options.level_count)
+    tiles = surface_mesh.iter_tiles(
+        filtered.z_um, texture, pixel_size_um=pixel_size_um, method=options.method, level_count=options.level_count
     )
-    tiles = [tile for level_tiles in levels for tile in level_tiles]
-
-    def encode(tile: surface_mesh.MeshTile) -> EncodedTile:
-        extras = {"level": tile.level, "tile_row": tile.tile_row, "tile_col": tile.tile_col}
-        return EncodedTile(
-            level=tile.level,
-            tile_row=tile.tile_row,
-            tile_col=tile.tile_col,
-            glb=gltf_tile.tile_glb(tile, pixel_size_um=pixel_size_um, extras=extras),
-            geometric_error_m=tile.geometric_error_um * gltf_tile.METRES_PER_UM,
-            vertex_count=len(tile.positions),
-            triangle_count=len(tile.triangles),
-        )
-
     encoded = []
-    for tile in tiles:
-        encoded.append(encode(tile))
-        report(0.7 + 0.3 * len(encoded) / len(tiles), f"encoded {len(encoded)} of {len(tiles)} tiles")
+    # Tiles are built (numpy, mostly outside the GIL) in a worker thread while this thread encodes
+    # the previous ones, so both cores work.
+    with ThreadPoolExecutor(max_workers=1) as builder:
+        pending = builder.submit(next, tiles, None)
+        while (tile := pending.result()) is not None:
+            pending = builder.submit(next, tiles, None)
+            extras = {"level": tile.level, "tile_row": tile.tile_row, "tile_col": tile.tile_col}
+            encoded.append(
+                EncodedTile(
+                    level=tile.level,
+                    tile_row=tile.tile_row,
+                    tile_col=tile.tile_col,
+                    glb=gltf_tile.tile_glb(tile, pixel_size_um=pixel_size_um, extras=extras),
+                    geometric_error_m=tile.geometric_error_um * gltf_tile.METRES_PER_UM,
+                    vertex_count=len(tile.positions),
+                    triangle_count=len(tile.triangles),
+                )
+            )
+            report(0.1 + 0.9 * len(encoded) / total, f"level {tile.level}: {len(encoded)} of {total} tiles")
     return encoded, filtered.report

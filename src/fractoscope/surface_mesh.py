@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import enum
 import functools
-from collections.abc import Callable
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import cv2
@@ -135,19 +135,32 @@ def build_levels(
     pixel_size_um: float,
     method: Simplification = Simplification.VERTEX_CLUSTERING,
     level_count: int | None = None,
-    progress: Callable[[float, str], None] | None = None,
 ) -> list[list[MeshTile]]:
-    """Tiled levels of detail, finest first. Each tile carries its measured geometric error: the
-    largest vertical distance between its surface and the full-resolution grid surface, µm."""
+    """Tiled levels of detail, finest first (see `iter_tiles`)."""
+    levels: list[list[MeshTile]] = []
+    for tile in iter_tiles(z_um, texture, pixel_size_um=pixel_size_um, method=method, level_count=level_count):
+        if tile.level == len(levels):
+            levels.append([])
+        levels[-1].append(tile)
+    return levels
+
+
+def iter_tiles(
+    z_um: np.ndarray,
+    texture: np.ndarray,
+    *,
+    pixel_size_um: float,
+    method: Simplification = Simplification.VERTEX_CLUSTERING,
+    level_count: int | None = None,
+) -> Iterator[MeshTile]:
+    """The tiles of every level, finest level first, as they are built. Each tile carries its
+    measured geometric error: the largest vertical distance between its surface and the
+    full-resolution grid surface, µm."""
     if z_um.shape != texture.shape or z_um.ndim != 2:
         raise ValueError(f"z_um and texture must be 2D of one shape, got {z_um.shape} and {texture.shape}")
     count = level_count or level_count_for(z_um.shape)
-    clusters = cluster_levels(z_um, texture, count=count)
-    report = progress or (lambda fraction, message: None)
-    levels = []
-    for level, cluster in enumerate(clusters):
+    for level, cluster in enumerate(cluster_levels(z_um, texture, count=count)):
         deviation = _grid_deviation(cluster, z_um) if level > 0 and method is Simplification.VERTEX_CLUSTERING else None
-        tiles = []
         for tile_row, row_cells in enumerate(_tile_spans(cluster.z_um.shape[0])):
             for tile_col, col_cells in enumerate(_tile_spans(cluster.z_um.shape[1])):
                 if level == 0 or method is Simplification.VERTEX_CLUSTERING:
@@ -164,22 +177,27 @@ def build_levels(
                 else:
                     error = _mesh_deviation(positions, triangles, z_um, footprint)
                 block = cluster.texture[row_cells[0] : row_cells[1] + 1, col_cells[0] : col_cells[1] + 1]
-                tiles.append(
-                    MeshTile(
-                        level=level,
-                        tile_row=tile_row,
-                        tile_col=tile_col,
-                        positions=positions,
-                        normals=normals,
-                        triangles=triangles,
-                        uvs=_uvs(positions, cluster.cell_px, row_cells, col_cells),
-                        texture=np.clip(np.round(block), 0, 255).astype(np.uint8),
-                        geometric_error_um=error,
-                    )
+                yield MeshTile(
+                    level=level,
+                    tile_row=tile_row,
+                    tile_col=tile_col,
+                    positions=positions,
+                    normals=normals,
+                    triangles=triangles,
+                    uvs=_uvs(positions, cluster.cell_px, row_cells, col_cells),
+                    texture=np.clip(np.round(block), 0, 255).astype(np.uint8),
+                    geometric_error_um=error,
                 )
-        levels.append(tiles)
-        report((level + 1) / count, f"level {level} of {count - 1}: {len(tiles)} tiles")
-    return levels
+
+
+def tile_count(shape: tuple[int, int], level_count: int | None = None) -> int:
+    """How many tiles `iter_tiles` yields for a height map of `shape`."""
+    count = level_count or level_count_for(shape)
+    total = 0
+    for level in range(count):
+        cells = [-(-size // 2**level) for size in shape]
+        total += len(_tile_spans(cells[0])) * len(_tile_spans(cells[1]))
+    return total
 
 
 def _tile_spans(cells: int) -> list[tuple[int, int]]:
