@@ -41,6 +41,8 @@ def run_demo(client: FractoscopeClient, data_dir: Path, *, shared_data: Path, co
 
     result = client.compute_height_map([left, right], tilt_deg=DEMO_TILTS_DEG, pixel_size_um=DEMO_PIXEL_SIZE_UM)
     np.savez_compressed(data_dir / "demo" / "demo_heights.npz", z_um=result.z_um, sigma_um=result.sigma_um)
+    tiles, filter_report = client.build_mesh(result.z_um, result.texture, pixel_size_um=DEMO_PIXEL_SIZE_UM)
+    write_tiles(tiles, data_dir / "demo" / "tiles")
     error = result.z_um - truth_um
     error -= np.nanmean(error)
     span = float(truth_um.max() - truth_um.min())
@@ -65,5 +67,19 @@ def run_demo(client: FractoscopeClient, data_dir: Path, *, shared_data: Path, co
     else:
         console.print(f"[yellow]{series} not found: real series skipped[/yellow]")
     console.print(table)
-    console.print(f"height maps written under {data_dir / 'demo'}")
+    levels = sorted({tile.level for tile in tiles})
+    errors = ", ".join(f"{max(t.geometric_error_m for t in tiles if t.level == level) * 1e6:.3f}" for level in levels)
+    console.print(
+        f"demo mesh: {len(tiles)} GLB tiles in {len(levels)} levels (geometric error per level, µm: {errors}); "
+        f"filter: {filter_report}"
+    )
+    console.print(f"height maps and tiles written under {data_dir / 'demo'}")
     return 0
+
+
+def write_tiles(tiles, directory: Path) -> None:
+    """GLB tiles as DIRECTORY/level_L/ROW_COL.glb."""
+    for tile in tiles:
+        path = directory / f"level_{tile.level}" / f"{tile.tile_row}_{tile.tile_col}.glb"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(tile.glb)
