@@ -29,6 +29,7 @@ DISPARITY_RANGE_PX = 32
 WINDOW_PX = 15
 BORDER_PX = 48
 TIMING_REPEATS = 3
+ROUNDS = 3
 
 
 def make_pair(size_px: int, path: Path) -> None:
@@ -151,8 +152,16 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as scratch:
         pair_1024 = Path(scratch) / "pair_1024.npz"
         make_pair(1024, pair_1024)
-        methods = ("fractoscope", "fractoscope_matcher_only", "sgbm", "template_2d", "template_row")
-        results = {method: _in_subprocess(method, pair_1024) for method in methods}
+        # Timed methods alternate over a few rounds, so a slow spell of a shared machine does not
+        # fall on one of them only; each keeps its fastest round.
+        results = {}
+        for _ in range(ROUNDS):
+            for method in ("fractoscope", "fractoscope_matcher_only", "sgbm"):
+                run = _in_subprocess(method, pair_1024)
+                if method not in results or run["seconds"] < results[method]["seconds"]:
+                    results[method] = run
+        for method in ("template_2d", "template_row"):
+            results[method] = _in_subprocess(method, pair_1024)
         pair_large = Path(scratch) / "pair_large.npz"
         make_pair(args.large_px, pair_large)
         results["fractoscope_large"] = _in_subprocess("fractoscope", pair_large)

@@ -235,19 +235,26 @@ def _refine(left, left_stats, right, disparity, window_px, radius) -> _Refinemen
     disparity = cv2.GaussianBlur(disparity, (0, 0), window_px / 4.0)
     warped = _warp_along_rows(right, disparity)
     scores = _zncc_scores(left, left_stats, warped, window_px, radius)
-    best, best_index = scores[0].copy(), np.zeros(left.shape, np.int8)
-    for index, score in enumerate(scores[1:], start=1):
-        better = score > best
-        np.copyto(best, score, where=better)
-        np.copyto(best_index, index, where=better)
-    before, after = np.zeros_like(best), np.zeros_like(best)
-    for index in range(1, 2 * radius):
-        at_index = best_index == index
-        np.copyto(before, scores[index - 1], where=at_index)
-        np.copyto(after, scores[index + 1], where=at_index)
-    curvature = before - 2.0 * best + after
-    at_centre = (best_index > 0) & (best_index < 2 * radius) & (curvature < 0)
-    offset = best_index.astype(np.float32) - radius
+    if radius == 1:  # the full-resolution case, kept lean: three scores, no index bookkeeping
+        before, centre, after = scores
+        best = np.maximum(np.maximum(before, centre), after)
+        offset = (after == best).astype(np.float32) - (before == best) * (after != best)
+        curvature = before - 2.0 * centre + after
+        at_centre = (centre == best) & (curvature < 0)
+    else:
+        best, best_index = scores[0].copy(), np.zeros(left.shape, np.int8)
+        for index, score in enumerate(scores[1:], start=1):
+            better = score > best
+            np.copyto(best, score, where=better)
+            np.copyto(best_index, index, where=better)
+        before, after = np.zeros_like(best), np.zeros_like(best)
+        for index in range(1, 2 * radius):
+            at_index = best_index == index
+            np.copyto(before, scores[index - 1], where=at_index)
+            np.copyto(after, scores[index + 1], where=at_index)
+        curvature = before - 2.0 * best + after
+        at_centre = (best_index > 0) & (best_index < 2 * radius) & (curvature < 0)
+        offset = best_index.astype(np.float32) - radius
     with np.errstate(invalid="ignore", divide="ignore"):
         fraction = np.where(at_centre, 0.5 * (before - after) / curvature, 0.0)
     fraction = np.clip(fraction, -0.5, 0.5)
