@@ -79,3 +79,33 @@ def test_bad_requests_get_invalid_argument_naming_the_field(client, case, field)
     assert error.value.code == grpc.StatusCode.INVALID_ARGUMENT
     assert error.value.field == field
     assert "Traceback" not in str(error.value)
+
+
+def test_cancelled_call_stops_the_work_at_its_next_progress_report():
+    """A client that goes away (cancel or deadline) must not leave the server computing."""
+    import threading
+
+    from fractoscope.errors import CancelledError
+    from fractoscope.services.progress import stream_progress
+
+    class GoneClient:
+        def add_callback(self, callback):
+            self.cancel = callback
+
+    context, stopped = GoneClient(), threading.Event()
+
+    def endless_work(progress):
+        try:
+            while True:
+                progress(0.5, "working")
+        except CancelledError:
+            stopped.set()
+            raise
+
+    events = stream_progress(context, endless_work)
+    assert next(events).stage == "working"
+    context.cancel()
+    with pytest.raises(CancelledError):
+        for _ in events:
+            pass
+    assert stopped.wait(10)  # the endless work ended: its next progress report raised
