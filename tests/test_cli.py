@@ -89,3 +89,22 @@ def test_missing_file_and_unreachable_server(pair_files, tmp_path):
     assert done.returncode == 2 and "absent.tif" in done.stderr
     done = _run("height", left, left, "--tilt", "-5", "5", "--pixel-size-um", "0.1", "-o", tmp_path / "x.npz", "--server", "127.0.0.1:1")
     assert done.returncode == 3 and done.stderr.startswith("error:")
+
+
+def test_height_then_mesh_writes_valid_glb_levels(pair_files, tmp_path):
+    from conftest import validate_glbs
+
+    (left, right), _ = pair_files
+    heights = tmp_path / "heights.npz"
+    assert _run("height", left, right, "--tilt", "-5", "5", "--pixel-size-um", "0.1", "-o", heights).returncode == 0
+    out = tmp_path / "tiles"
+    done = _run("mesh", heights, "--texture", left, "--pixel-size-um", "0.1", "-o", out, "--json")
+    assert done.returncode == 0, done.stderr
+    summary = json.loads(done.stdout)
+    errors = [row["geometric_error_m"] for row in summary["levels"]]
+    assert len(errors) >= 2 and errors[0] == 0.0 and errors == sorted(errors)
+    glbs = sorted(out.rglob("*.glb"))
+    assert len(glbs) == sum(row["tiles"] for row in summary["levels"])
+    assert all(report["errors"] == 0 for report in validate_glbs([p.read_bytes() for p in glbs], tmp_path))
+    done = _run("mesh", heights, "--texture", right, "--pixel-size-um", "-1", "-o", out)
+    assert done.returncode == 2 and done.stderr.startswith("error: height_map.pixel_size_um")

@@ -18,6 +18,7 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
 from fractoscope.client import ClientError, FractoscopeClient, HeightMap, embedded_server, server_address
+from fractoscope.errors import InvalidInputError
 
 EXIT_FAILURE, EXIT_BAD_INPUT, EXIT_UNAVAILABLE, EXIT_NOT_FOUND = 1, 2, 3, 4
 _EXIT_CODES = {
@@ -108,6 +109,53 @@ def height_summary(result: HeightMap) -> dict:
     }
 
 
+def command_mesh(args) -> int:
+    from fractoscope.client.demo import write_tiles
+    from fractoscope.sem_image import read_sem_image
+    from fractoscope.v1 import meshing_pb2
+
+    heights = _existing_file(args.heights)
+    try:
+        with np.load(heights) as arrays:
+            z_um = arrays["z_um"]
+    except (OSError, ValueError, KeyError) as error:
+        raise UsageError(f"cannot read z_um from {heights}: {error}") from None
+    texture = None
+    if args.texture:
+        image = read_sem_image(_existing_file(args.texture).read_bytes(), field="texture")
+        texture = image.pixels
+        if texture.shape != z_um.shape:
+            raise UsageError(f"texture {args.texture} is {texture.shape[1]}x{texture.shape[0]}, heights are {z_um.shape[1]}x{z_um.shape[0]}")
+    method = meshing_pb2.SIMPLIFICATION_METHOD_QUADRIC if args.method == "quadric" else meshing_pb2.SIMPLIFICATION_METHOD_VERTEX_CLUSTERING
+    with connected(args.server) as client, progress_bar("meshing", enabled=not args.json and _err.is_terminal) as advance:
+        tiles, report = client.build_mesh(
+            z_um, texture, pixel_size_um=args.pixel_size_um, method=method, level_count=args.levels, on_progress=advance
+        )
+    write_tiles(tiles, Path(args.output))
+    levels = sorted({tile.level for tile in tiles})
+    summary = {
+        "output": args.output,
+        "filter": report,
+        "levels": [
+            {
+                "level": level,
+                "tiles": sum(1 for t in tiles if t.level == level),
+                "triangles": sum(t.triangle_count for t in tiles if t.level == level),
+                "geometric_error_m": max(t.geometric_error_m for t in tiles if t.level == level),
+            }
+            for level in levels
+        ],
+    }
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        print(f"wrote {len(tiles)} GLB tiles in {len(levels)} levels to {args.output}")
+        for row in summary["levels"]:
+            print(f"  level {row['level']}: {row['tiles']} tiles, {row['triangles']} triangles, "
+                  f"geometric error {row['geometric_error_m'] * 1e6:.3f} µm")
+    return 0
+
+
 def command_demo(args) -> int:
     from fractoscope.client.demo import run_demo
 
@@ -130,6 +178,17 @@ def build_parser() -> argparse.ArgumentParser:
     height.add_argument("--json", action="store_true", help="print a JSON summary instead of text")
     height.set_defaults(run=command_height)
 
+    mesh = commands.add_parser("mesh", help="GLB levels of detail of a height map")
+    mesh.add_argument("heights", help=".npz with z_um (as written by fracto height)")
+    mesh.add_argument("--texture", help="the reference SEM image to texture the surface with")
+    mesh.add_argument("--pixel-size-um", type=float, required=True, help="pixel size of the height map, µm")
+    mesh.add_argument("--method", choices=("vertex-clustering", "quadric"), default="vertex-clustering")
+    mesh.add_argument("--levels", type=int, default=0, help="number of levels (default: down to one small tile)")
+    mesh.add_argument("-o", "--output", required=True, help="directory for level_L/ROW_COL.glb")
+    mesh.add_argument("--server", help="HOST:PORT of a Fractoscope server (default: FRACTO_SERVER, else in-process)")
+    mesh.add_argument("--json", action="store_true", help="print a JSON summary instead of text")
+    mesh.set_defaults(run=command_mesh)
+
     demo = commands.add_parser("demo", help="reconstruct the bundled demo specimen and report its accuracy")
     demo.add_argument("--data", default="./data", help="data directory (default ./data)")
     demo.add_argument("--shared-data", default="../shared/data", help="shared test data, used when present")
@@ -142,7 +201,7 @@ def main(argv: list[str] | None = None) -> None:
     args = build_parser().parse_args(argv)
     try:
         code = args.run(args)
-    except UsageError as error:
+    except (UsageError, InvalidInputError) as error:
         print(f"error: {error}", file=sys.stderr)
         code = EXIT_BAD_INPUT
     except ClientError as error:
