@@ -129,23 +129,6 @@ def level_count_for(shape: tuple[int, int]) -> int:
     return count
 
 
-def build_levels(
-    z_um: np.ndarray,
-    texture: np.ndarray,
-    *,
-    pixel_size_um: float,
-    method: Simplification = Simplification.VERTEX_CLUSTERING,
-    level_count: int | None = None,
-) -> list[list[MeshTile]]:
-    """Tiled levels of detail, finest first (see `iter_tiles`)."""
-    levels: list[list[MeshTile]] = []
-    for tile in iter_tiles(z_um, texture, pixel_size_um=pixel_size_um, method=method, level_count=level_count):
-        if tile.level == len(levels):
-            levels.append([])
-        levels[-1].append(tile)
-    return levels
-
-
 def iter_tiles(
     z_um: np.ndarray,
     texture: np.ndarray,
