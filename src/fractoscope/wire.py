@@ -50,4 +50,6 @@ def report_to_message(report: dict) -> matching_pb2.MatchingReport:
 
 def message_to_report(message: matching_pb2.MatchingReport) -> dict:
     """A MatchingReport message to a plain dict (lists for repeated fields)."""
-    return {key: (list(value) if key == "tilt_deg" else value) for key in REPORT_FIELDS for value in [getattr(message, key)]}
+    report = {key: getattr(message, key) for key in REPORT_FIELDS}
+    report["tilt_deg"] = list(report["tilt_deg"])
+    return report
