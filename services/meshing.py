@@ -10,6 +10,7 @@ from fractoscope import wire
 from fractoscope.errors import InvalidInputError
 from fractoscope.meshing import MeshingOptions, mesh_height_map
 from fractoscope.services.errors import abort_with_error
+from fractoscope.stereo_geometry import validate_pixel_size_um
 from fractoscope.services.progress import stream_progress
 from fractoscope.surface_mesh import Simplification
 from fractoscope.v1 import common_pb2, meshing_pb2, meshing_pb2_grpc
@@ -61,9 +62,7 @@ def height_map_arrays(height_map: common_pb2.HeightMap, *, field: str = "height_
             texture = (texture.astype(np.float32) / 257.0).astype(np.uint8)
     else:
         texture = np.full(z_um.shape, 128, np.uint8)
-    pixel_size_um = height_map.pixel_size_um
-    if not (np.isfinite(pixel_size_um) and 1e-5 <= pixel_size_um <= 1e4):
-        _invalid(f"{field}.pixel_size_um", f"must be between 1e-5 and 1e4 µm, got {pixel_size_um}")
+    pixel_size_um = validate_pixel_size_um(height_map.pixel_size_um, field=f"{field}.pixel_size_um")
     if min(z_um.shape) < 2:
         _invalid(f"{field}.z_um", "needs at least 2 x 2 heights")
     return z_um, texture, pixel_size_um

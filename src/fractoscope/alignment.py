@@ -1,6 +1,6 @@
 """Rectification of SEM stereo pairs: tilt axis to vertical, then global shift and rotation removed.
 
-Coordinates are pixels, x along columns and y along rows. After `rectify_for_tilt_axis` the tilt
+Coordinates are pixels, x along columns and y along rows. After `rotation_to_vertical_axis` the tilt
 axis is vertical and parallax runs along x. `estimate_alignment` then measures how the second
 image sits against the first from matched SIFT features: rows must agree (up to a rotation and an
 across shift), while x differences are parallax plus a global shift.
@@ -88,8 +88,8 @@ def estimate_alignment(
             return _NO_ALIGNMENT
         coef, *_ = np.linalg.lstsq(design[inliers], across[inliers], rcond=None)
         residual = across - design @ coef
-        scale = max(1.4826 * np.median(np.abs(residual[inliers])), 0.3)
-        inliers = np.abs(residual) < 3.0 * scale
+        residual_scale = max(1.4826 * np.median(np.abs(residual[inliers])), 0.3)
+        inliers = np.abs(residual) < 3.0 * residual_scale
     sin_rotation, shift_across = coef
     rotation = np.arcsin(np.clip(sin_rotation, -1.0, 1.0))
     rotated_x = np.cos(rotation) * points1[:, 0] - np.sin(rotation) * points1[:, 1]

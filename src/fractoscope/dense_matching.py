@@ -98,8 +98,9 @@ def _match_strip(left, right, window_px, max_disparity_px, min_confidence, max_l
     left_pyramid, right_pyramid = _pyramid(left_f, levels), _pyramid(right_f, levels)
     coarse_radius = int(np.ceil(max_disparity_px / 2 ** (levels - 1))) + 1
     # The two directions are independent; OpenCV and numpy release the GIL, so they overlap.
+    finest_left_stats = _window_stats(left_f, window_px)  # also tells textureless windows below
     with ThreadPoolExecutor(max_workers=2) as pool:
-        forward_job = pool.submit(_coarse_to_fine, left_pyramid, right_pyramid, window_px, coarse_radius)
+        forward_job = pool.submit(_coarse_to_fine, left_pyramid, right_pyramid, window_px, coarse_radius, finest_left_stats)
         backward_job = pool.submit(_coarse_to_fine, right_pyramid, left_pyramid, window_px, coarse_radius)
         forward, backward = forward_job.result(), backward_job.result().disparity
     report(0.8, "matched both ways")
@@ -113,7 +114,7 @@ def _match_strip(left, right, window_px, max_disparity_px, min_confidence, max_l
     valid = (
         (score >= min_confidence)
         & (lr_difference <= max_lr_difference_px)
-        & (_window_stats(left_f, window_px).inverse_std < 1e3)  # not a flat, textureless patch
+        & (finest_left_stats.inverse_std < 1e3)  # not a flat, textureless patch
         & _in_bounds(disparity)
         & np.isfinite(disparity)
     )
@@ -125,14 +126,16 @@ def _match_strip(left, right, window_px, max_disparity_px, min_confidence, max_l
     return disparity, confidence, sigma_px
 
 
-def _coarse_to_fine(left_pyramid, right_pyramid, window_px, coarse_radius) -> _Refinement:
+def _coarse_to_fine(left_pyramid, right_pyramid, window_px, coarse_radius, finest_left_stats=None) -> _Refinement:
     """Full search at the coarsest level, ±2 px residual searches on warped images at the
-    intermediate levels, ±1 px at full resolution, then sub-pixel iterations."""
+    intermediate levels, ±1 px at full resolution, then sub-pixel iterations. The window
+    statistics of the full-resolution left image are computed here unless given."""
     levels = len(left_pyramid)
     disparity = np.zeros(left_pyramid[-1].shape, np.float32)
     for level in range(levels - 1, -1, -1):
         left_level, right_level = left_pyramid[level], right_pyramid[level]
-        left_stats = _window_stats(left_level, window_px)
+        given = level == 0 and finest_left_stats is not None
+        left_stats = finest_left_stats if given else _window_stats(left_level, window_px)
         if level < levels - 1:
             disparity = 2.0 * cv2.resize(disparity, left_level.shape[::-1], interpolation=cv2.INTER_LINEAR)
         radius = coarse_radius if level == levels - 1 else (2 if level > 0 else 1)

@@ -156,9 +156,7 @@ def _resolve_pixel_size(first: SemImage, pixel_size_um: float | None) -> float:
     value = pixel_size_um if pixel_size_um is not None else first.pixel_size_um
     if value is None:
         raise InvalidInputError("pixel_size_um", "no pixel size given and the image file carries no calibration")
-    if not np.isfinite(value) or not 1e-5 <= value <= 1e4:
-        raise InvalidInputError("pixel_size_um", f"must be between 1e-5 and 1e4 µm, got {value}")
-    return float(value)
+    return stereo_geometry.validate_pixel_size_um(value)
 
 
 def _validate(first: SemImage, second: SemImage, tilt_axis_deg: float, options: MatchingOptions) -> None:

@@ -22,6 +22,13 @@ def validate_tilts(tilt_deg: tuple[float, float], *, field: str = "tilt_deg") ->
         raise InvalidInputError(field, f"the two tilts must differ by at least 0.1°, got {t1} and {t2}")
 
 
+def validate_pixel_size_um(value: float, *, field: str = "pixel_size_um") -> float:
+    """The pixel size as float, or InvalidInputError unless finite and within 1e-5 to 1e4 µm."""
+    if not np.isfinite(value) or not 1e-5 <= value <= 1e4:
+        raise InvalidInputError(field, f"must be between 1e-5 and 1e4 µm, got {value}")
+    return float(value)
+
+
 def heights_um(
     x1_px: np.ndarray, disparity_px: np.ndarray, *, tilt_deg: tuple[float, float], pixel_size_um: float
 ) -> np.ndarray:

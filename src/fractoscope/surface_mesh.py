@@ -356,12 +356,14 @@ def _mesh_deviation(positions, triangles, z_um, footprint, *, chunk_pixels: int 
     high = np.minimum(high, [footprint[1].stop - 1, footprint[0].stop - 1])
     widths, heights = np.maximum(high - low + 1, 0).T
     counts = widths * heights
+    ends = np.cumsum(counts)  # candidate pixels up to and including each triangle
     worst = 0.0
     start = 0
     while start < len(triangles):
-        stop = start + max(int(np.searchsorted(np.cumsum(counts[start:]), chunk_pixels)), 1)
+        done = ends[start - 1] if start else 0
+        stop = max(int(np.searchsorted(ends, done + chunk_pixels, side="right")), start + 1)
         ids = np.repeat(np.arange(start, stop), counts[start:stop])
-        offsets = np.arange(len(ids)) - np.repeat(np.cumsum(counts[start:stop]) - counts[start:stop], counts[start:stop])
+        offsets = np.arange(len(ids)) - np.repeat(ends[start:stop] - counts[start:stop] - done, counts[start:stop])
         x = low[ids, 0] + offsets % widths[ids]
         y = low[ids, 1] + offsets // widths[ids]
         p, q, r = (tuple(corners[ids, k, axis] for axis in range(3)) for k in range(3))
