@@ -75,9 +75,14 @@ class MeshingServicer(meshing_pb2_grpc.MeshingServiceServicer):
         try:
             z_um, texture, pixel_size_um = height_map_arrays(request.height_map)
             options = options_from_request(request)
+            origin_um = (request.origin_um.x_um, request.origin_um.y_um)
+            if not np.all(np.isfinite(origin_um)):
+                _invalid("origin_um", "must be finite")
 
             def work(progress):
-                return mesh_height_map(z_um, texture, pixel_size_um=pixel_size_um, options=options, progress=progress)
+                return mesh_height_map(
+                    z_um, texture, pixel_size_um=pixel_size_um, origin_um=origin_um, options=options, progress=progress
+                )
 
             for event in stream_progress(context, work):
                 if isinstance(event, common_pb2.Progress):

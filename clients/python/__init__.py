@@ -124,6 +124,7 @@ class FractoscopeClient:
         texture: np.ndarray | None,
         *,
         pixel_size_um: float,
+        origin_um: tuple[float, float] = (0.0, 0.0),
         method: int = meshing_pb2.SIMPLIFICATION_METHOD_VERTEX_CLUSTERING,
         level_count: int = 0,
         filter_parameters: meshing_pb2.FilterParameters | None = None,
@@ -131,12 +132,14 @@ class FractoscopeClient:
         request_id: str = "",
     ) -> tuple[list[EncodedTile], dict]:
         """GLB levels of detail of a height map ((rows, cols) µm, NaN unknown) textured with a grey
-        image of the same shape; returns the tiles (finest level first) and the filter report."""
+        image of the same shape, pixel (0, 0) placed at `origin_um` (x, y); returns the tiles (finest
+        level first) and the filter report."""
         height_map = common_pb2.HeightMap(z_um=wire.array_to_raster(np.asarray(z_um, np.float32)), pixel_size_um=pixel_size_um)
         if texture is not None:
             height_map.texture.CopyFrom(wire.array_to_raster(texture))
         request = meshing_pb2.BuildMeshRequest(
-            height_map=height_map, filter=filter_parameters, method=method, level_count=level_count, request_id=request_id
+            height_map=height_map, filter=filter_parameters, method=method, level_count=level_count, request_id=request_id,
+            origin_um=common_pb2.PointUm(x_um=origin_um[0], y_um=origin_um[1]),
         )
         tiles, report = [], {}
         with _translated_errors():

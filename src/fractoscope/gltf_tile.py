@@ -13,15 +13,20 @@ import pygltflib
 METRES_PER_UM = 1e-6
 
 
-def to_gltf_positions_m(positions: np.ndarray, *, pixel_size_um: float) -> np.ndarray:
-    """(col_px, row_px, z_um) to glTF metres: X = columns, Y = height (up), Z = rows."""
-    return np.column_stack([positions[:, 0] * pixel_size_um, positions[:, 2], positions[:, 1] * pixel_size_um]) * METRES_PER_UM
+def to_gltf_positions_m(
+    positions: np.ndarray, *, pixel_size_um: float, origin_um: tuple[float, float] = (0.0, 0.0)
+) -> np.ndarray:
+    """(col_px, row_px, z_um) to glTF metres: X = columns, Y = height (up), Z = rows; pixel (0, 0)
+    lands at `origin_um` (x, y)."""
+    x_um = origin_um[0] + positions[:, 0] * pixel_size_um
+    y_um = origin_um[1] + positions[:, 1] * pixel_size_um
+    return np.column_stack([x_um, positions[:, 2], y_um]) * METRES_PER_UM
 
 
-def tile_glb(tile, *, pixel_size_um: float, extras: dict | None = None) -> bytes:
-    """A `surface_mesh.MeshTile` as GLB, its texture as JPEG."""
+def tile_glb(tile, *, pixel_size_um: float, origin_um: tuple[float, float] = (0.0, 0.0), extras: dict | None = None) -> bytes:
+    """A `surface_mesh.MeshTile` as GLB, its texture as JPEG; pixel (0, 0) at `origin_um` (x, y)."""
     return mesh_glb(
-        to_gltf_positions_m(tile.positions, pixel_size_um=pixel_size_um),
+        to_gltf_positions_m(tile.positions, pixel_size_um=pixel_size_um, origin_um=origin_um),
         tile.normals,
         tile.uvs,
         tile.triangles,

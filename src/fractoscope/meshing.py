@@ -40,11 +40,13 @@ def mesh_height_map(
     texture: np.ndarray,
     *,
     pixel_size_um: float,
+    origin_um: tuple[float, float] = (0.0, 0.0),
     options: MeshingOptions = MeshingOptions(),
     progress: Callable[[float, str], None] | None = None,
 ) -> tuple[list[EncodedTile], height_filter.FilterReport]:
     """Filters `z_um` ((rows, cols) µm, NaN unknown), builds the levels with `texture` (grey, same
-    shape) and encodes every tile; tiles come finest level first."""
+    shape) and encodes every tile with pixel (0, 0) at `origin_um` (x, y); tiles come finest level
+    first."""
     report = progress or (lambda fraction, message: None)
     filtered = height_filter.filter_heights(
         z_um,
@@ -71,7 +73,7 @@ def mesh_height_map(
                     level=tile.level,
                     tile_row=tile.tile_row,
                     tile_col=tile.tile_col,
-                    glb=gltf_tile.tile_glb(tile, pixel_size_um=pixel_size_um, extras=extras),
+                    glb=gltf_tile.tile_glb(tile, pixel_size_um=pixel_size_um, origin_um=origin_um, extras=extras),
                     geometric_error_m=tile.geometric_error_um * gltf_tile.METRES_PER_UM,
                     vertex_count=len(tile.positions),
                     triangle_count=len(tile.triangles),

@@ -20,10 +20,17 @@ _SUPERSAMPLING = 2
 
 
 def self_affine_surface(
-    shape: tuple[int, int], *, hurst: float, rms_um: float, seed: int, min_wavelength_px: float = 4.0
+    shape: tuple[int, int],
+    *,
+    hurst: float,
+    rms_um: float,
+    seed: int,
+    min_wavelength_px: float = 4.0,
+    max_wavelength_px: float | None = None,
 ) -> np.ndarray:
     """Gaussian self-affine roughness by spectral synthesis: PSD ~ q^-(2 + 2 hurst), rolled off
-    below `min_wavelength_px` as a finite SEM probe would. Returns heights with the given RMS, µm."""
+    below `min_wavelength_px` as a finite SEM probe would and, if given, above `max_wavelength_px`
+    (detail to add to a coarser surface). Returns heights with the given RMS, µm."""
     rng = np.random.default_rng(seed)
     rows, cols = shape
     q_rows = np.fft.fftfreq(rows)[:, None]
@@ -31,6 +38,8 @@ def self_affine_surface(
     q = np.hypot(q_rows, q_cols)
     q[0, 0] = 1.0
     amplitude = q ** -(1.0 + hurst) * np.exp(-((q * min_wavelength_px) ** 2))
+    if max_wavelength_px is not None:
+        amplitude *= 1.0 - np.exp(-((q * max_wavelength_px) ** 2))
     amplitude[0, 0] = 0.0
     phases = rng.standard_normal(q.shape) + 1j * rng.standard_normal(q.shape)
     heights = np.fft.irfft2(amplitude * phases, s=shape)
@@ -101,20 +110,26 @@ def render_sem_view(
     noise_fraction: float = 0.02,
     seed: int = 0,
     material_seed: int = 0,
+    material: np.ndarray | None = None,
     bits: int = 8,
 ) -> RenderedView:
     """Renders `z_um` (rows, cols, µm) seen at stage tilt `tilt_deg` about the vertical axis.
 
     Gaussian noise (drawn from `seed`, so different per view) has a standard deviation of
     `noise_fraction` of the image's grey range; the material contrast belongs to the surface and
-    comes from `material_seed`, which all views of one surface must share.
+    comes from `material` (relative yield change, same grid as `z_um`) or else is drawn from
+    `material_seed`; all views of one surface must share it.
     """
     # Render on a finer grid and average down: the finite probe blurs detail below one pixel.
     fine_um = cv2.resize(z_um, None, fx=_SUPERSAMPLING, fy=_SUPERSAMPLING, interpolation=cv2.INTER_CUBIC)
     fine_pixel_um = pixel_size_um / _SUPERSAMPLING
     rows, cols = fine_um.shape
     tilt_rad = np.radians(tilt_deg)
-    shading = _secondary_electron_yield(fine_um, fine_pixel_um, tilt_rad, material_seed)
+    if material is None:
+        fine_material = self_affine_surface(fine_um.shape, hurst=0.3, rms_um=0.15, seed=material_seed, min_wavelength_px=4.0)
+    else:
+        fine_material = cv2.resize(material, None, fx=_SUPERSAMPLING, fy=_SUPERSAMPLING, interpolation=cv2.INTER_CUBIC)
+    shading = _secondary_electron_yield(fine_um, fine_pixel_um, tilt_rad, fine_material)
     x_px = np.arange(cols) - (cols - 1) / 2.0
     projected = x_px[None, :] * np.cos(tilt_rad) + fine_um / fine_pixel_um * np.sin(tilt_rad)
     # Hidden points fold back under the visible ones; the running maximum keeps the visible sheet.
@@ -136,7 +151,7 @@ def render_sem_view(
     return RenderedView(np.round(grey).astype(np.uint8 if bits == 8 else np.uint16), z_seen_um)
 
 
-def _secondary_electron_yield(z_um: np.ndarray, pixel_size_um: float, tilt_rad: float, material_seed: int) -> np.ndarray:
+def _secondary_electron_yield(z_um: np.ndarray, pixel_size_um: float, tilt_rad: float, material: np.ndarray) -> np.ndarray:
     """SE1 electrons follow the secant law of the incidence angle; SE2 electrons (excited by
     backscattered electrons, about half the signal) hardly depend on it. Both are modulated by
     the side detector's view of the facet and by material contrast."""
@@ -147,7 +162,6 @@ def _secondary_electron_yield(z_um: np.ndarray, pixel_size_um: float, tilt_rad: 
     cos_incidence = np.clip(np.tensordot(beam, normal, axes=1), 0.15, 1.0)
     detector = np.array([0.0, -0.6, 0.8])  # side detector towards the top of the image
     facing = np.clip(np.tensordot(detector, normal, axes=1), 0.0, 1.0)
-    material = self_affine_surface(z_um.shape, hurst=0.3, rms_um=0.15, seed=material_seed, min_wavelength_px=4.0)
     return (0.5 / cos_incidence + 0.5) * (0.55 + 0.45 * facing) * (1.0 + material)
 
 
@@ -173,6 +187,7 @@ def render_stereo_pair(
     second_rotation_deg: float = 0.0,
     noise_fraction: float = 0.02,
     seed: int = 0,
+    material: np.ndarray | None = None,
     bits: int = 8,
 ) -> StereoPair:
     """Renders `z_um` at both tilts about an axis at `tilt_axis_deg` in the image (counter-clockwise
@@ -180,7 +195,9 @@ def render_stereo_pair(
     centre and a (column, row) shift, as an imperfect stage does. `z_um` must be larger than
     `output_shape` to leave room for the rotation; the centre of the canvas is kept."""
     views = [
-        render_sem_view(z_um, pixel_size_um=pixel_size_um, tilt_deg=t, noise_fraction=noise_fraction, seed=seed + i, bits=bits)
+        render_sem_view(
+            z_um, pixel_size_um=pixel_size_um, tilt_deg=t, noise_fraction=noise_fraction, seed=seed + i, material=material, bits=bits
+        )
         for i, t in enumerate(tilt_deg)
     ]
     rows, cols = z_um.shape
@@ -201,3 +218,68 @@ def render_stereo_pair(
     first = np.round(place(views[0].image)).astype(dtype)
     second = np.round(place(views[1].image, misplace)).astype(dtype)
     return StereoPair(first, second, place(views[0].z_seen_um).astype(np.float64))
+
+
+@dataclass(frozen=True)
+class MultiscaleSpecimen:
+    """An overview pair and a higher-magnification ROI pair of one known surface.
+
+    The truths are heights seen at each pixel of each first image, µm. `roi_origin_px` is where the
+    ROI's first-image pixel (0, 0) appears in the overview's first image, (col, row) overview pixels.
+    """
+
+    overview: StereoPair
+    roi: StereoPair
+    overview_pixel_size_um: float
+    roi_pixel_size_um: float
+    roi_origin_px: tuple[float, float]
+    tilt_deg: tuple[float, float]
+
+
+def render_multiscale_specimen(
+    *,
+    overview_shape: tuple[int, int] = (512, 512),
+    roi_shape: tuple[int, int] = (512, 512),
+    zoom: int = 4,
+    roi_centre_px: tuple[float, float] = (300.0, 220.0),
+    pixel_size_um: float = 1.0,
+    rms_um: float = 8.0,
+    tilt_deg: tuple[float, float] = (-5.0, 5.0),
+    seed: int = 0,
+) -> MultiscaleSpecimen:
+    """Renders a self-affine fracture surface (H = 0.8) as an overview pair at `pixel_size_um` and
+    an ROI pair `zoom` times finer centred on `roi_centre_px` (col, row) of the overview. The ROI
+    sees the overview's surface (upsampled) plus detail finer than 4 overview pixels."""
+    margin = 32
+    canvas = (overview_shape[0] + 2 * margin, overview_shape[1] + 2 * margin)
+    coarse_um = self_affine_surface(canvas, hurst=0.8, rms_um=rms_um, seed=seed)
+    # Material contrast belongs to the specimen, so both magnifications see the same pattern.
+    coarse_material = self_affine_surface(canvas, hurst=0.3, rms_um=0.15, seed=seed + 2, min_wavelength_px=2.0)
+    overview = render_stereo_pair(
+        coarse_um, pixel_size_um=pixel_size_um, tilt_deg=tilt_deg, output_shape=overview_shape, seed=seed + 10,
+        material=coarse_material,
+    )
+    fine_canvas = (roi_shape[0] + 2 * margin, roi_shape[1] + 2 * margin)
+    # Fine canvas pixel (a, b) sits at coarse canvas (centre + (a - mid) / zoom) for both axes.
+    centre_col, centre_row = roi_centre_px[0] + margin, roi_centre_px[1] + margin
+    rows_f, cols_f = np.indices(fine_canvas, dtype=np.float32)
+    map_col = centre_col + (cols_f - (fine_canvas[1] - 1) / 2) / zoom
+    map_row = centre_row + (rows_f - (fine_canvas[0] - 1) / 2) / zoom
+    upsampled = cv2.remap(coarse_um.astype(np.float32), map_col, map_row, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+    # The self-affine spectrum continued below 4 overview pixels: RMS scales as wavelength^H.
+    detail = self_affine_surface(
+        fine_canvas, hurst=0.8, rms_um=rms_um * (4.0 / max(canvas)) ** 0.8, seed=seed + 1, max_wavelength_px=4.0 * zoom
+    )
+    fine_material = cv2.remap(coarse_material.astype(np.float32), map_col, map_row, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+    fine_material += self_affine_surface(fine_canvas, hurst=0.3, rms_um=0.05, seed=seed + 3, max_wavelength_px=2.0 * zoom)
+    roi = render_stereo_pair(
+        upsampled.astype(np.float64) + detail, pixel_size_um=pixel_size_um / zoom, tilt_deg=tilt_deg,
+        output_shape=roi_shape, seed=seed + 30, material=fine_material.astype(np.float64),
+    )
+    origin_col = centre_col + (margin - (fine_canvas[1] - 1) / 2) / zoom - margin
+    origin_row = centre_row + (margin - (fine_canvas[0] - 1) / 2) / zoom - margin
+    # Parallel projection shrinks x by cos(tilt) about each rendering's own centre, which shifts
+    # the ROI's picture by (overview centre - ROI centre)(1 - cos t1) in the overview's image.
+    shrink = 1.0 - np.cos(np.radians(tilt_deg[0]))
+    origin_col += ((canvas[1] - 1) / 2 - centre_col) * shrink
+    return MultiscaleSpecimen(overview, roi, pixel_size_um, pixel_size_um / zoom, (float(origin_col), float(origin_row)), tilt_deg)

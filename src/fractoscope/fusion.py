@@ -1,0 +1,156 @@
+"""One continuous surface from ROIs at several magnifications ("optical" and "digital" zoom).
+
+Specimen frame: micrometres in the plane of the overview, x along its columns, y down its rows.
+An ROI's pixel (row i, column j) lies at (origin_x + j·p, origin_y + i·p) for its pixel size p.
+Wherever a finer ROI has data it wins; elsewhere coarser data is resampled. At an ROI's border its
+weight ramps smoothly from 0 to 1 over `FEATHER_PX` of its pixels, so neither heights nor texture
+step where magnifications meet.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+FEATHER_PX = 32
+
+
+@dataclass(frozen=True)
+class PlacedRoi:
+    """An ROI's height map and texture placed in the specimen frame.
+
+    z_um: (rows, cols) float32 heights, µm, already aligned to its parent; NaN unknown.
+    texture: (rows, cols) uint8 grey SEM image on the same grid.
+    origin_um: (x, y) of pixel (0, 0) in the specimen frame, µm.
+    """
+
+    id: str
+    magnification: float
+    pixel_size_um: float
+    origin_um: tuple[float, float]
+    z_um: np.ndarray
+    texture: np.ndarray
+
+    @property
+    def extent_um(self) -> tuple[float, float, float, float]:
+        """(x_min, y_min, x_max, y_max) of the pixel centres, µm."""
+        rows, cols = self.z_um.shape
+        x0, y0 = self.origin_um
+        return x0, y0, x0 + (cols - 1) * self.pixel_size_um, y0 + (rows - 1) * self.pixel_size_um
+
+
+@dataclass(frozen=True)
+class FusedSamples:
+    """Fused values at sample points (any shape): heights µm (NaN unknown), texture 0-255 float32,
+    and the index (into FusedSurface.rois) of the ROI that contributes most, -1 where none."""
+
+    z_um: np.ndarray
+    texture: np.ndarray
+    source: np.ndarray
+
+
+@dataclass(frozen=True)
+class _PyramidLevel:
+    z_um: np.ndarray
+    texture: np.ndarray
+    weight: np.ndarray
+
+
+class FusedSurface:
+    """Samples the fused surface of ROIs at any point and resolution."""
+
+    def __init__(self, rois: Sequence[PlacedRoi]):
+        if not rois:
+            raise ValueError("a surface needs at least one ROI")
+        # Coarse to fine, so finer data is blended over coarser.
+        self.rois = sorted(rois, key=lambda roi: -roi.pixel_size_um)
+        self._pyramids = [_pyramid(roi) for roi in self.rois]
+
+    @property
+    def finest_pixel_size_um(self) -> float:
+        return self.rois[-1].pixel_size_um
+
+    def rois_intersecting(self, region_um: tuple[float, float, float, float]) -> list[PlacedRoi]:
+        """ROIs whose extent meets (x_min, y_min, x_max, y_max)."""
+        x0, y0, x1, y1 = region_um
+        return [roi for roi in self.rois if _overlaps(roi.extent_um, (x0, y0, x1, y1))]
+
+    def sample(self, x_um: np.ndarray, y_um: np.ndarray, *, cell_um: float) -> FusedSamples:
+        """The surface at points (x_um, y_um) (equal shapes, specimen frame) as seen with a sampling
+        cell of `cell_um`: finer ROIs are area-averaged to about that cell, coarser ones upsampled."""
+        x_um = np.asarray(x_um, np.float64)
+        y_um = np.asarray(y_um, np.float64)
+        # OpenCV remaps at most 32767 x 32767 points: lay them out in rows of 1024.
+        padding = -x_um.size % 1024
+        flat_x = np.pad(x_um.ravel(), (0, padding), mode="edge").reshape(-1, 1024)
+        flat_y = np.pad(y_um.ravel(), (0, padding), mode="edge").reshape(-1, 1024)
+        z = np.full(flat_x.shape, np.nan, np.float32)
+        texture = np.zeros(flat_x.shape, np.float32)
+        source = np.full(flat_x.shape, -1, np.int32)
+        for index, (roi, pyramid) in enumerate(zip(self.rois, self._pyramids)):
+            if not _overlaps(roi.extent_um, (flat_x.min(), flat_y.min(), flat_x.max(), flat_y.max())):
+                continue
+            level = _pyramid_level(cell_um, roi.pixel_size_um, len(pyramid))
+            scale = 2**level
+            # Level pixel k averages level-0 pixels k·s .. k·s + s - 1, centred at k·s + (s - 1) / 2.
+            col = ((flat_x - roi.origin_um[0]) / roi.pixel_size_um - (scale - 1) / 2) / scale
+            row = ((flat_y - roi.origin_um[1]) / roi.pixel_size_um - (scale - 1) / 2) / scale
+            maps = (col.astype(np.float32), row.astype(np.float32))
+            arrays = pyramid[level]
+            roi_z = _remap(arrays.z_um, maps, np.nan)
+            roi_weight = _remap(arrays.weight, maps, 0.0)
+            roi_weight[~np.isfinite(roi_z)] = 0.0
+            roi_texture = _remap(arrays.texture, maps, 0.0)
+            unknown = ~np.isfinite(z)
+            blend = np.where(unknown & (roi_weight > 0), 1.0, roi_weight).astype(np.float32)
+            z = np.where(blend > 0, np.where(unknown, roi_z, z * (1 - blend) + np.nan_to_num(roi_z) * blend), z)
+            texture = texture * (1 - blend) + roi_texture * blend
+            source = np.where(blend >= 0.5, index, source)
+        return FusedSamples(*(values.ravel()[: x_um.size].reshape(x_um.shape) for values in (z, texture, source)))
+
+
+def _overlaps(a, b) -> bool:
+    return a[0] <= b[2] and b[0] <= a[2] and a[1] <= b[3] and b[1] <= a[3]
+
+
+def _pyramid_level(cell_um: float, pixel_size_um: float, levels: int) -> int:
+    """The coarsest pyramid level whose pixels are no larger than the sampling cell."""
+    ratio = cell_um / pixel_size_um
+    return int(min(max(math.floor(math.log2(ratio) + 1e-9), 0), levels - 1)) if ratio > 1 else 0
+
+
+def _remap(values: np.ndarray, maps, fill: float) -> np.ndarray:
+    return cv2.remap(values, maps[0], maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=fill)
+
+
+def _border_weight(shape: tuple[int, int]) -> np.ndarray:
+    """0 at the ROI's edge rising smoothly (smoothstep) to 1 at FEATHER_PX pixels inside."""
+    rows, cols = shape
+    to_edge_rows = np.minimum(np.arange(rows), np.arange(rows)[::-1])[:, None]
+    to_edge_cols = np.minimum(np.arange(cols), np.arange(cols)[::-1])[None, :]
+    ramp = np.clip(np.minimum(to_edge_rows, to_edge_cols) / FEATHER_PX, 0.0, 1.0)
+    return (ramp * ramp * (3 - 2 * ramp)).astype(np.float32)
+
+
+def _pyramid(roi: PlacedRoi) -> list[_PyramidLevel]:
+    """Levels 0, 1, ... of 2x2 averages (unknown heights ignored) down to about 64 pixels."""
+    valid = np.isfinite(roi.z_um)
+    weight = _border_weight(roi.z_um.shape) * valid
+    z = np.where(valid, roi.z_um, 0).astype(np.float32)
+    counts = valid.astype(np.float32)
+    texture = roi.texture.astype(np.float32)
+    levels = [_PyramidLevel(np.where(valid, z, np.nan).astype(np.float32), texture, weight.astype(np.float32))]
+    while min(counts.shape) >= 128:
+        rows, cols = (counts.shape[0] // 2) * 2, (counts.shape[1] // 2) * 2
+        size = (cols // 2, rows // 2)
+        z_sum = cv2.resize(z[:rows, :cols] * counts[:rows, :cols], size, interpolation=cv2.INTER_AREA)
+        counts = cv2.resize(counts[:rows, :cols], size, interpolation=cv2.INTER_AREA)
+        z = np.where(counts > 0, z_sum / np.maximum(counts, 1e-6), 0).astype(np.float32)
+        texture = cv2.resize(texture[:rows, :cols], size, interpolation=cv2.INTER_AREA)
+        weight = cv2.resize(weight[:rows, :cols], size, interpolation=cv2.INTER_AREA)
+        levels.append(_PyramidLevel(np.where(counts > 0.25, z, np.nan).astype(np.float32), texture, weight))
+    return levels
