@@ -12,6 +12,7 @@ GEN := $(patsubst proto/fractoscope/v1/%.proto,$(GEN_DIR)/%_pb2.py,$(PROTOS))
 STAMP := $(VENV)/.installed
 NODE_STAMP := node_modules/.installed
 DATA ?= ./data
+CHROMIUM := /usr/bin/chromium
 
 .PHONY: install proto run test bench lint clean
 
@@ -32,7 +33,8 @@ $(GEN): $(PROTOS) | $(BIN)/python
 
 proto: $(GEN)
 
-# The Khronos glTF validator, which the tests run on every GLB they write.
+# The Khronos glTF validator, which the tests run on every GLB they write; three.js,
+# 3DTilesRendererJS and playwright-core for the browser test of our tilesets.
 $(NODE_STAMP): package.json package-lock.json
 	npm ci --no-audit --no-fund --loglevel=error
 	touch $@
@@ -45,8 +47,13 @@ $(STAMP): pyproject.toml $(GEN) | $(BIN)/python
 run: install
 	$(BIN)/fracto demo --data $(DATA)
 
+# Debian's Chromium for the browser test (never a browser downloaded by a test tool).
+$(CHROMIUM):
+	if [ "$$(id -u)" = 0 ]; then SUDO=; else SUDO=sudo; fi; \
+	$$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq --no-install-recommends chromium >/dev/null
+
 ## test: the whole test suite
-test: install
+test: install $(CHROMIUM)
 	$(BIN)/python -m pytest -q
 
 ## bench: speed, memory and accuracy figures, written to bench-results/

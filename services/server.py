@@ -2,7 +2,9 @@
 
 Configuration comes from flags, each with an environment variable as its default:
 FRACTO_ADDRESS (listen address), FRACTO_MAX_MESSAGE_MB (largest message either way),
-FRACTO_WORKERS (concurrent calls), FRACTO_LOG_LEVEL.
+FRACTO_WORKERS (concurrent calls), FRACTO_LOG_LEVEL, FRACTO_DATA_DIR (where specimens are kept),
+FRACTO_SERVICES_ADDRESS (matching and meshing for the tile service; default: this server),
+FRACTO_HTTP_ADDRESS (host:port of the plain-HTTP tile endpoint; empty = off).
 """
 
 from __future__ import annotations
@@ -16,26 +18,26 @@ import sys
 import threading
 import time
 from concurrent import futures
+from pathlib import Path
 
 import grpc
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
 
+from fractoscope.services.limits import DEFAULT_MAX_MESSAGE_MB, message_size_options
 from fractoscope.services.matching import MatchingServicer
 from fractoscope.services.meshing import MeshingServicer
-from fractoscope.v1 import matching_pb2, matching_pb2_grpc, meshing_pb2, meshing_pb2_grpc
+from fractoscope.services.tile_http import start_http_server
+from fractoscope.services.tiles import TileServicer
+from fractoscope.specimen_store import SpecimenStore
+from fractoscope.v1 import matching_pb2, matching_pb2_grpc, meshing_pb2, meshing_pb2_grpc, tiles_pb2, tiles_pb2_grpc
 
-DEFAULT_MAX_MESSAGE_MB = 512
 _SERVICES = {
-    "matching": (matching_pb2.DESCRIPTOR.services_by_name["MatchingService"], matching_pb2_grpc.add_MatchingServiceServicer_to_server, MatchingServicer),
-    "meshing": (meshing_pb2.DESCRIPTOR.services_by_name["MeshingService"], meshing_pb2_grpc.add_MeshingServiceServicer_to_server, MeshingServicer),
+    "matching": (matching_pb2.DESCRIPTOR.services_by_name["MatchingService"], matching_pb2_grpc.add_MatchingServiceServicer_to_server),
+    "meshing": (meshing_pb2.DESCRIPTOR.services_by_name["MeshingService"], meshing_pb2_grpc.add_MeshingServiceServicer_to_server),
+    "tiles": (tiles_pb2.DESCRIPTOR.services_by_name["TileService"], tiles_pb2_grpc.add_TileServiceServicer_to_server),
 }
-
-
-def message_size_options(max_message_mb: int) -> list[tuple[str, int]]:
-    """Channel and server options that lift gRPC's 4 MiB default for images and height maps."""
-    limit = max_message_mb * 1024 * 1024
-    return [("grpc.max_receive_message_length", limit), ("grpc.max_send_message_length", limit)]
+DEFAULT_DATA_DIR = "data"
 
 
 def create_server(
@@ -44,9 +46,12 @@ def create_server(
     services: tuple[str, ...] = tuple(_SERVICES),
     max_message_mb: int = DEFAULT_MAX_MESSAGE_MB,
     workers: int = 8,
+    data_dir: str | Path = DEFAULT_DATA_DIR,
+    services_address: str | None = None,
 ) -> tuple[grpc.Server, int]:
     """A server with the named services, health and reflection, bound to `address`; returns it
-    (not started) with the bound port."""
+    (not started) with the bound port. The tile service keeps specimens under `data_dir` and calls
+    matching and meshing at `services_address` (default: this server on loopback)."""
     server = grpc.server(futures.ThreadPoolExecutor(max_workers=workers), options=message_size_options(max_message_mb))
     health_servicer = health.HealthServicer()
     health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
@@ -54,8 +59,12 @@ def create_server(
     for name in services:
         if name not in _SERVICES:
             raise ValueError(f"unknown service {name!r}; known: {', '.join(_SERVICES)}")
-        descriptor, add, servicer = _SERVICES[name]
-        add(servicer(), server)
+        descriptor, add = _SERVICES[name]
+        if name == "tiles":
+            tile_servicer = TileServicer(SpecimenStore(Path(data_dir)), services_address=services_address)
+            add(tile_servicer, server)
+        else:
+            add(MatchingServicer() if name == "matching" else MeshingServicer(), server)
         names.append(descriptor.full_name)
         health_servicer.set(descriptor.full_name, health_pb2.HealthCheckResponse.SERVING)
     health_servicer.set("", health_pb2.HealthCheckResponse.SERVING)
@@ -63,6 +72,8 @@ def create_server(
     port = server.add_insecure_port(address)
     if port == 0:
         raise RuntimeError(f"cannot bind {address}")
+    if "tiles" in services and services_address is None:
+        tile_servicer.services_address = f"127.0.0.1:{port}"
     return server, port
 
 
@@ -98,13 +109,26 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--max-message-mb", type=int, default=int(os.environ.get("FRACTO_MAX_MESSAGE_MB", DEFAULT_MAX_MESSAGE_MB)))
     parser.add_argument("--workers", type=int, default=int(os.environ.get("FRACTO_WORKERS", "8")))
     parser.add_argument("--log-level", default=os.environ.get("FRACTO_LOG_LEVEL", "INFO"))
+    parser.add_argument("--data", default=os.environ.get("FRACTO_DATA_DIR", DEFAULT_DATA_DIR), help="specimen directory")
+    parser.add_argument("--services-address", default=os.environ.get("FRACTO_SERVICES_ADDRESS") or None,
+                        help="matching and meshing server for the tile service (default: this one)")
+    parser.add_argument("--http-address", default=os.environ.get("FRACTO_HTTP_ADDRESS", "0.0.0.0:8080"),
+                        help="host:port of the HTTP tile endpoint; empty = off")
     parser.add_argument("--grace-s", type=float, default=30.0, help="seconds in-flight calls get on SIGTERM")
     args = parser.parse_args(argv)
     configure_logging(args.log_level)
     services = tuple(name.strip() for name in args.services.split(",") if name.strip())
-    server, port = create_server(args.address, services=services, max_message_mb=args.max_message_mb, workers=args.workers)
+    server, port = create_server(
+        args.address, services=services, max_message_mb=args.max_message_mb, workers=args.workers,
+        data_dir=args.data, services_address=args.services_address,
+    )
     server.start()
-    logging.getLogger("fractoscope.server").info(f"serving {', '.join(services)} on port {port}")
+    log = logging.getLogger("fractoscope.server")
+    log.info(f"serving {', '.join(services)} on port {port}")
+    if "tiles" in services and args.http_address:
+        host, _, http_port = args.http_address.rpartition(":")
+        http = start_http_server(SpecimenStore(Path(args.data)), host or "0.0.0.0", int(http_port))
+        log.info(f"serving tilesets over HTTP on port {http.server_port}")
     stopped = threading.Event()
 
     def stop(signum, frame):

@@ -48,8 +48,8 @@ def pollen_series() -> Path:
 
 
 @pytest.fixture()
-def server_address():
-    server, port = create_server("127.0.0.1:0")
+def server_address(tmp_path):
+    server, port = create_server("127.0.0.1:0", data_dir=tmp_path / "data")
     server.start()
     yield f"127.0.0.1:{port}"
     server.stop(grace=None)

@@ -17,6 +17,7 @@ import os
 # gRPC core logs connection teardown (GOAWAY) at INFO on stderr, which would break the CLI's
 # one-line errors; users can still ask for more with GRPC_VERBOSITY.
 os.environ.setdefault("GRPC_VERBOSITY", "ERROR")
+import json
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,12 +25,13 @@ from pathlib import Path
 import grpc
 import numpy as np
 from google.rpc import error_details_pb2
+from google.protobuf import json_format
 from grpc_status import rpc_status
 
 from fractoscope import wire
 from fractoscope.meshing import EncodedTile
-from fractoscope.services.server import DEFAULT_MAX_MESSAGE_MB, create_server, message_size_options
-from fractoscope.v1 import common_pb2, matching_pb2, matching_pb2_grpc, meshing_pb2, meshing_pb2_grpc
+from fractoscope.services.limits import DEFAULT_MAX_MESSAGE_MB, message_size_options
+from fractoscope.v1 import common_pb2, matching_pb2, matching_pb2_grpc, meshing_pb2, meshing_pb2_grpc, tiles_pb2, tiles_pb2_grpc
 
 ProgressCallback = Callable[[float, str], None]
 
@@ -55,6 +57,25 @@ class HeightMap:
     report: dict
 
 
+@dataclass(frozen=True)
+class Profile:
+    """A profile: (n,) distance along the line µm, height µm (NaN unknown), source ROI per sample,
+    and its ISO 21920-2 parameters (Ra, Rq, Rz in µm, Rsk, Rku; empty if too few heights)."""
+
+    distance_um: np.ndarray
+    z_um: np.ndarray
+    source: list[str]
+    parameters: dict
+
+
+Region = tuple[float, float, float, float]
+_ZOOM_NAMES = {tiles_pb2.ZOOM_KIND_OPTICAL: "optical", tiles_pb2.ZOOM_KIND_DIGITAL: "digital"}
+_ROUGHNESS_NAMES = {
+    "sa_um": "Sa", "sq_um": "Sq", "ssk": "Ssk", "sku": "Sku", "sp_um": "Sp", "sv_um": "Sv", "sz_um": "Sz",
+    "sdq": "Sdq", "sdr_percent": "Sdr",
+}
+
+
 class FractoscopeClient:
     """Typed methods over one channel to a Fractoscope server."""
 
@@ -62,6 +83,7 @@ class FractoscopeClient:
         self._channel = grpc.insecure_channel(address, options=message_size_options(max_message_mb))
         self._matching = matching_pb2_grpc.MatchingServiceStub(self._channel)
         self._meshing = meshing_pb2_grpc.MeshingServiceStub(self._channel)
+        self._tiles = tiles_pb2_grpc.TileServiceStub(self._channel)
         self._timeout_s = timeout_s
 
     def __enter__(self) -> FractoscopeClient:
@@ -156,6 +178,113 @@ class FractoscopeClient:
         return tiles, report
 
 
+    def reconstruct_specimen(
+        self,
+        specimen_id: str,
+        rois: Sequence[tiles_pb2.RoiSpec],
+        *,
+        request_id: str = "",
+        on_progress: ProgressCallback | None = None,
+    ) -> dict:
+        """Builds a specimen from its ROIs (see `manifest.load_manifest`); returns its summary."""
+        request = tiles_pb2.ReconstructSpecimenRequest(specimen_id=specimen_id, rois=rois, request_id=request_id)
+        final = None
+        with _translated_errors():
+            for response in self._tiles.ReconstructSpecimen(request, timeout=self._timeout_s):
+                if response.HasField("progress"):
+                    if on_progress:
+                        on_progress(response.progress.fraction, response.progress.message)
+                else:
+                    final = response.specimen
+        if final is None:
+            raise ClientError(grpc.StatusCode.INTERNAL, "the server closed the stream without a specimen")
+        return _as_dict(final)
+
+    def get_specimen(self, specimen_id: str) -> dict:
+        """A stored specimen's summary: ROIs with placement and fit figures, tileset URI."""
+        with _translated_errors():
+            return _as_dict(self._tiles.GetSpecimen(tiles_pb2.GetSpecimenRequest(specimen_id=specimen_id), timeout=self._timeout_s).specimen)
+
+    def list_specimens(self) -> list[dict]:
+        with _translated_errors():
+            return [_as_dict(s) for s in self._tiles.ListSpecimens(tiles_pb2.ListSpecimensRequest(), timeout=self._timeout_s).specimens]
+
+    def get_tileset(self, specimen_id: str) -> dict:
+        """The specimen's 3D Tiles 1.1 tileset.json, parsed."""
+        with _translated_errors():
+            response = self._tiles.GetTileset(tiles_pb2.GetTilesetRequest(specimen_id=specimen_id), timeout=self._timeout_s)
+        return json.loads(response.tileset_json)
+
+    def get_tile(self, specimen_id: str, uri: str) -> bytes:
+        """One tile's GLB, by its URI in tileset.json."""
+        with _translated_errors():
+            return self._tiles.GetTile(tiles_pb2.GetTileRequest(specimen_id=specimen_id, uri=uri), timeout=self._timeout_s).tile.glb
+
+    def stream_view(self, specimen_id: str, region_um: Region, *, viewport_px: int = 1024) -> Iterator[tiles_pb2.Tile]:
+        """The tiles that show a region (x0, y0, x1, y1) µm on a screen `viewport_px` wide, coarse first."""
+        request = tiles_pb2.StreamViewRequest(specimen_id=specimen_id, region=_region(region_um), viewport_px=viewport_px)
+        with _translated_errors():
+            for response in self._tiles.StreamView(request, timeout=self._timeout_s):
+                yield response.tile
+
+    def zoom(self, specimen_id: str, region_um: Region, *, magnification: float) -> list[dict]:
+        """The tiles that show a region at a magnification: uri, roi, magnification, zoom
+        ("optical" where that ROI's data is at least as fine, "digital" where it is upsampled)."""
+        request = tiles_pb2.ZoomRequest(specimen_id=specimen_id, region=_region(region_um), magnification=magnification)
+        with _translated_errors():
+            tiles = self._tiles.Zoom(request, timeout=self._timeout_s).tiles
+        return [
+            {"uri": t.uri, "roi": t.roi, "magnification": t.magnification, "zoom": _ZOOM_NAMES.get(t.zoom, "unknown"),
+             "geometric_error_m": t.geometric_error_m}
+            for t in tiles
+        ]
+
+    def profile(
+        self, specimen_id: str, points_um: Sequence[tuple[float, float]], *, spacing_um: float = 0.0, magnification: float = 0.0
+    ) -> Profile:
+        """Heights along a polyline of (x, y) µm points in the specimen frame; finest data unless a
+        magnification is given."""
+        request = tiles_pb2.GetProfileRequest(
+            specimen_id=specimen_id, points=[common_pb2.PointUm(x_um=x, y_um=y) for x, y in points_um],
+            spacing_um=spacing_um, magnification=magnification,
+        )
+        with _translated_errors():
+            response = self._tiles.GetProfile(request, timeout=self._timeout_s)
+        parameters = {}
+        if response.HasField("parameters"):
+            p = response.parameters
+            parameters = {"Ra": p.ra_um, "Rq": p.rq_um, "Rz": p.rz_um, "Rsk": p.rsk, "Rku": p.rku}
+        return Profile(
+            np.array([s.distance_um for s in response.samples]), np.array([s.z_um for s in response.samples]),
+            [s.source for s in response.samples], parameters,
+        )
+
+    def roughness(self, specimen_id: str, *, roi: str | None = None, region_um: Region | None = None) -> dict:
+        """ISO 25178-2 parameters by their ISO names (Sa ... Sz in µm, Sdr in %) and fracture
+        metrics (hurst_exponent, its fit range in µm, fractal_dimension, the height-height curve)
+        of an ROI or a region of the fused surface (default: the overview ROI)."""
+        request = tiles_pb2.GetRoughnessRequest(specimen_id=specimen_id)
+        if region_um is not None:
+            request.region.CopyFrom(_region(region_um))
+        elif roi is not None:
+            request.roi = roi
+        else:
+            request.roi = self.get_specimen(specimen_id)["rois"][0]["id"]
+        with _translated_errors():
+            response = self._tiles.GetRoughness(request, timeout=self._timeout_s)
+        values = json_format.MessageToDict(response, preserving_proto_field_name=True, always_print_fields_with_no_presence=True)
+        return {_ROUGHNESS_NAMES.get(key, key): value for key, value in values.items()}
+
+
+def _region(region_um: Region) -> tiles_pb2.RegionUm:
+    x0, y0, x1, y1 = region_um
+    return tiles_pb2.RegionUm(min=common_pb2.PointUm(x_um=x0, y_um=y0), max=common_pb2.PointUm(x_um=x1, y_um=y1))
+
+
+def _as_dict(message) -> dict:
+    return json_format.MessageToDict(message, preserving_proto_field_name=True, always_print_fields_with_no_presence=True)
+
+
 @contextlib.contextmanager
 def _translated_errors() -> Iterator[None]:
     try:
@@ -178,9 +307,12 @@ def server_address(explicit: str | None) -> str | None:
 
 
 @contextlib.contextmanager
-def embedded_server() -> Iterator[str]:
-    """Runs all services in this process on a free loopback port for the block's duration."""
-    server, port = create_server("127.0.0.1:0")
+def embedded_server(data_dir: str | Path = "data") -> Iterator[str]:
+    """Runs all services in this process on a free loopback port for the block's duration, with
+    specimens kept under `data_dir`."""
+    from fractoscope.services.server import create_server
+
+    server, port = create_server("127.0.0.1:0", data_dir=data_dir)
     server.start()
     try:
         yield f"127.0.0.1:{port}"

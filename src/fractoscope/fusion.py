@@ -77,7 +77,7 @@ class FusedSurface:
     def rois_intersecting(self, region_um: tuple[float, float, float, float]) -> list[PlacedRoi]:
         """ROIs whose extent meets (x_min, y_min, x_max, y_max)."""
         x0, y0, x1, y1 = region_um
-        return [roi for roi in self.rois if _overlaps(roi.extent_um, (x0, y0, x1, y1))]
+        return [roi for roi in self.rois if overlaps(roi.extent_um, (x0, y0, x1, y1))]
 
     def sample(self, x_um: np.ndarray, y_um: np.ndarray, *, cell_um: float) -> FusedSamples:
         """The surface at points (x_um, y_um) (equal shapes, specimen frame) as seen with a sampling
@@ -92,7 +92,7 @@ class FusedSurface:
         texture = np.zeros(flat_x.shape, np.float32)
         source = np.full(flat_x.shape, -1, np.int32)
         for index, (roi, pyramid) in enumerate(zip(self.rois, self._pyramids)):
-            if not _overlaps(roi.extent_um, (flat_x.min(), flat_y.min(), flat_x.max(), flat_y.max())):
+            if not overlaps(roi.extent_um, (flat_x.min(), flat_y.min(), flat_x.max(), flat_y.max())):
                 continue
             level = _pyramid_level(cell_um, roi.pixel_size_um, len(pyramid))
             scale = 2**level
@@ -113,7 +113,8 @@ class FusedSurface:
         return FusedSamples(*(values.ravel()[: x_um.size].reshape(x_um.shape) for values in (z, texture, source)))
 
 
-def _overlaps(a, b) -> bool:
+def overlaps(a, b) -> bool:
+    """Whether rectangles (x_min, y_min, x_max, y_max) meet."""
     return a[0] <= b[2] and b[0] <= a[2] and a[1] <= b[3] and b[1] <= a[3]
 
 

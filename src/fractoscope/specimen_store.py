@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from fractoscope.errors import InvalidInputError, NotFoundError
-from fractoscope.fusion import FusedSurface, PlacedRoi
+from fractoscope.fusion import FusedSurface, PlacedRoi, overlaps
 from fractoscope.tileset import QuadtreeLayout, TileKey, TileRecord
 
 _ID = re.compile(r"[A-Za-z0-9_-]{1,64}")
@@ -71,6 +71,18 @@ class Specimen:
             if roi.id == roi_id:
                 return roi
         raise NotFoundError(f"specimen {self.id!r} has no ROI {roi_id!r}")
+
+    def pixel_size_at_magnification(self, magnification: float) -> float:
+        """Pixel size, µm, that a magnification means here (inversely proportional, from the overview)."""
+        overview = self.rois[0]
+        if overview.magnification <= 0:
+            raise InvalidInputError("magnification", f"specimen {self.id!r} was built without magnifications; give them in its manifest")
+        return overview.pixel_size_um * overview.magnification / magnification
+
+    def finest_pixel_size_um(self, region_um: tuple[float, float, float, float]) -> float:
+        """The smallest pixel size among the ROIs that meet a region (the overview's if none)."""
+        sizes = [roi.pixel_size_um for roi in self.rois if overlaps(roi.region_um, region_um)]
+        return min(sizes) if sizes else self.rois[0].pixel_size_um
 
     def heights(self, roi_id: str) -> PlacedRoi:
         return next(placed for placed in self.surface.rois if placed.id == roi_id)

@@ -243,7 +243,7 @@ def render_multiscale_specimen(
     zoom: int = 4,
     roi_centre_px: tuple[float, float] = (300.0, 220.0),
     pixel_size_um: float = 1.0,
-    rms_um: float = 8.0,
+    rms_um: float = 25.0,
     tilt_deg: tuple[float, float] = (-5.0, 5.0),
     seed: int = 0,
 ) -> MultiscaleSpecimen:

@@ -16,7 +16,7 @@ from dataclasses import asdict, dataclass, field
 import cv2
 import numpy as np
 
-from fractoscope.fusion import FusedSurface
+from fractoscope.fusion import FusedSurface, overlaps
 from fractoscope.gltf_tile import METRES_PER_UM
 from fractoscope.surface_mesh import TILE_CELLS
 
@@ -249,7 +249,7 @@ def tiles_in_region(
 
     def descend(key: TileKey) -> None:
         record = records.get(key)
-        if record is None or not _meets(layout.bounds_um(key), region_um):
+        if record is None or not overlaps(layout.bounds_um(key), region_um):
             return
         if key.level == wanted_level or not record.children:
             chosen[key] = key.level < wanted_level
@@ -271,13 +271,9 @@ def tiles_for_view(
     while level:
         next_level = []
         for key in level:
-            if not _meets(layout.bounds_um(key), region_um):
+            if not overlaps(layout.bounds_um(key), region_um):
                 continue
             yield records[key]
             if layout.cell_um(key.level) > pixel_um:
                 next_level += records[key].children
         level = next_level
-
-
-def _meets(a, b) -> bool:
-    return a[0] <= b[2] and b[0] <= a[2] and a[1] <= b[3] and b[1] <= a[3]

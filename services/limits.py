@@ -1,0 +1,11 @@
+"""Message size limits shared by servers and clients: images and height maps exceed gRPC's 4 MiB."""
+
+from __future__ import annotations
+
+DEFAULT_MAX_MESSAGE_MB = 512
+
+
+def message_size_options(max_message_mb: int) -> list[tuple[str, int]]:
+    """Channel and server options that lift gRPC's 4 MiB default for images and height maps."""
+    limit = max_message_mb * 1024 * 1024
+    return [("grpc.max_receive_message_length", limit), ("grpc.max_send_message_length", limit)]

@@ -1,0 +1,277 @@
+"""TileService: multi-scale specimens built on the matching and meshing services, and queries."""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+
+from fractoscope import profile, roughness, tileset, wire
+from fractoscope.client import ClientError, FractoscopeClient
+from fractoscope.errors import InvalidInputError
+from fractoscope.reconstruction import MeasuredHeights, RoiRequest, reconstruct_specimen
+from fractoscope.services.errors import abort_with_error
+from fractoscope.services.progress import stream_progress
+from fractoscope.specimen_store import Specimen, SpecimenStore, validate_id
+from fractoscope.stereo_geometry import validate_pixel_size_um
+from fractoscope.tileset import TileRecord
+from fractoscope.v1 import common_pb2, matching_pb2, tiles_pb2, tiles_pb2_grpc
+
+_log = logging.getLogger("fractoscope.tiles")
+_ZOOM_KINDS = {tileset.OPTICAL: tiles_pb2.ZOOM_KIND_OPTICAL, tileset.DIGITAL: tiles_pb2.ZOOM_KIND_DIGITAL}
+MAX_REGION_SAMPLES = 2048 * 2048
+MAX_PROFILE_SAMPLES = 1_000_000
+
+
+class TileServicer(tiles_pb2_grpc.TileServiceServicer):
+    """Thin wrappers over reconstruction, the specimen store and the analysis modules. Matching and
+    meshing run on the services at `services_address` (set once the server knows its own port when
+    they run in the same process)."""
+
+    def __init__(self, store: SpecimenStore, *, services_address: str | None = None, call_timeout_s: float = 1800.0):
+        self.store = store
+        self.services_address = services_address
+        self.call_timeout_s = call_timeout_s
+
+    def ReconstructSpecimen(self, request, context):
+        try:
+            specimen_id = validate_id(request.specimen_id, field="specimen_id")
+            if request.request_id:
+                existing = self._existing(specimen_id)
+                if existing is not None and existing.request_id == request.request_id:
+                    yield tiles_pb2.ReconstructSpecimenResponse(specimen=specimen_message(existing))
+                    return
+            rois = [_roi_request(spec, index) for index, spec in enumerate(request.rois)]
+            specs = {spec.id: (index, spec) for index, spec in enumerate(request.rois)}
+
+            def work(progress):
+                with FractoscopeClient(self.services_address, timeout_s=self.call_timeout_s) as client:
+                    def measure(roi: RoiRequest) -> MeasuredHeights:
+                        index, spec = specs[roi.id]
+                        return _measure(client, spec, index, request.request_id)
+
+                    def mesh_tile(z_um, texture, cell_um, origin_um) -> bytes:
+                        tiles, _ = client.build_mesh(z_um, texture, pixel_size_um=cell_um, origin_um=origin_um, level_count=1)
+                        return tiles[0].glb
+
+                    return reconstruct_specimen(
+                        specimen_id, rois, measure=measure, mesh_tile=mesh_tile, store=self.store,
+                        request_id=request.request_id, progress=progress,
+                    )
+
+            for event in stream_progress(context, work):
+                if isinstance(event, common_pb2.Progress):
+                    yield tiles_pb2.ReconstructSpecimenResponse(progress=event)
+                else:
+                    _log.info("specimen built", extra={"request_id": request.request_id})
+                    yield tiles_pb2.ReconstructSpecimenResponse(specimen=specimen_message(event))
+        except Exception as error:  # every failure becomes a gRPC status in one place
+            abort_with_error(context, error)
+
+    def GetSpecimen(self, request, context):
+        try:
+            return tiles_pb2.GetSpecimenResponse(specimen=specimen_message(self.store.load(request.specimen_id)))
+        except Exception as error:
+            abort_with_error(context, error)
+
+    def ListSpecimens(self, request, context):
+        try:
+            return tiles_pb2.ListSpecimensResponse(specimens=[specimen_message(self.store.load(i)) for i in self.store.ids()])
+        except Exception as error:
+            abort_with_error(context, error)
+
+    def GetTileset(self, request, context):
+        try:
+            return tiles_pb2.GetTilesetResponse(tileset_json=self.store.load(request.specimen_id).tileset_bytes)
+        except Exception as error:
+            abort_with_error(context, error)
+
+    def GetTile(self, request, context):
+        try:
+            specimen = self.store.load(request.specimen_id)
+            record = specimen.tile_record(request.uri)
+            return tiles_pb2.GetTileResponse(tile=tile_message(specimen, record, with_content=True))
+        except Exception as error:
+            abort_with_error(context, error)
+
+    def StreamView(self, request, context):
+        try:
+            specimen = self.store.load(request.specimen_id)
+            region = _region(request.region, "region")
+            viewport_px = request.viewport_px or 1024
+            if not 1 <= viewport_px <= 65536:
+                raise InvalidInputError("viewport_px", "must be 1 to 65536")
+            for record in tileset.tiles_for_view(specimen.layout, specimen.tiles, region, viewport_px=viewport_px):
+                yield tiles_pb2.StreamViewResponse(tile=tile_message(specimen, record, with_content=True))
+        except Exception as error:
+            abort_with_error(context, error)
+
+    def Zoom(self, request, context):
+        try:
+            specimen = self.store.load(request.specimen_id)
+            region = _region(request.region, "region")
+            cell_um = specimen.pixel_size_at_magnification(_positive(request.magnification, "magnification"))
+            chosen = tileset.tiles_in_region(specimen.layout, specimen.tiles, region, cell_um=cell_um)
+            return tiles_pb2.ZoomResponse(
+                tiles=[tile_message(specimen, record, with_content=False, upsampled=upsampled) for record, upsampled in chosen]
+            )
+        except Exception as error:
+            abort_with_error(context, error)
+
+    def GetProfile(self, request, context):
+        try:
+            specimen = self.store.load(request.specimen_id)
+            points = np.array([[p.x_um, p.y_um] for p in request.points], np.float64)
+            if len(points) < 2:
+                raise InvalidInputError("points", f"a profile needs at least two points, got {len(points)}")
+            if not np.all(np.isfinite(points)):
+                raise InvalidInputError("points", "coordinates must be finite")
+            if request.magnification:
+                cell_um = specimen.pixel_size_at_magnification(_positive(request.magnification, "magnification"))
+            else:
+                cell_um = specimen.finest_pixel_size_um(_bounding_region(points))
+            spacing_um = _positive(request.spacing_um, "spacing_um") if request.spacing_um else cell_um
+            length_um = float(np.hypot(*np.diff(points, axis=0).T).sum())
+            if length_um / spacing_um > MAX_PROFILE_SAMPLES:
+                raise InvalidInputError("spacing_um", f"gives more than {MAX_PROFILE_SAMPLES} samples; use a larger spacing")
+            try:
+                positions, distances = profile.polyline_positions(points, spacing_um=spacing_um)
+            except ValueError as error:
+                raise InvalidInputError("points", str(error)) from None
+            samples = specimen.surface.sample(positions[:, 0], positions[:, 1], cell_um=cell_um)
+            names = [roi.id for roi in specimen.surface.rois]
+            response = tiles_pb2.GetProfileResponse(
+                samples=[
+                    tiles_pb2.ProfileSample(distance_um=d, z_um=z, source=names[s] if s >= 0 else "")
+                    for d, z, s in zip(distances.tolist(), samples.z_um.tolist(), samples.source.tolist())
+                ]
+            )
+            if np.isfinite(samples.z_um).sum() >= 3:
+                values = profile.profile_parameters(distances, samples.z_um.astype(np.float64))
+                response.parameters.CopyFrom(
+                    tiles_pb2.ProfileParameters(ra_um=values["Ra"], rq_um=values["Rq"], rz_um=values["Rz"], rsk=values["Rsk"], rku=values["Rku"])
+                )
+            return response
+        except Exception as error:
+            abort_with_error(context, error)
+
+    def GetRoughness(self, request, context):
+        try:
+            specimen = self.store.load(request.specimen_id)
+            z_um, pixel_size_um = _area_heights(specimen, request)
+            if np.isfinite(z_um).sum() < 64:
+                raise InvalidInputError("region", "holds fewer than 64 measured points")
+            areal = roughness.areal_parameters(z_um, pixel_size_um=pixel_size_um)
+            try:
+                fracture = roughness.fracture_metrics(z_um, pixel_size_um=pixel_size_um)
+            except ValueError as error:
+                raise InvalidInputError("region", str(error)) from None
+            return tiles_pb2.GetRoughnessResponse(
+                sa_um=areal["Sa"], sq_um=areal["Sq"], ssk=areal["Ssk"], sku=areal["Sku"], sp_um=areal["Sp"],
+                sv_um=areal["Sv"], sz_um=areal["Sz"], sdq=areal["Sdq"], sdr_percent=areal["Sdr"], **fracture,
+            )
+        except Exception as error:
+            abort_with_error(context, error)
+
+    def _existing(self, specimen_id: str) -> Specimen | None:
+        return self.store.load(specimen_id) if specimen_id in self.store.ids() else None
+
+
+def specimen_message(specimen: Specimen) -> tiles_pb2.Specimen:
+    message = tiles_pb2.Specimen(id=specimen.id, tileset_uri=f"/specimens/{specimen.id}/tileset.json")
+    for roi in specimen.rois:
+        x0, y0, x1, y1 = roi.region_um
+        message.rois.append(
+            tiles_pb2.RoiSummary(
+                id=roi.id, parent=roi.parent, magnification=roi.magnification, pixel_size_um=roi.pixel_size_um,
+                region=_region_message(x0, y0, x1, y1), alignment_residual_um=roi.alignment_residual_um,
+                matching=wire.report_to_message(roi.matching), registration_score=roi.registration_score,
+            )
+        )
+    return message
+
+
+def tile_message(specimen: Specimen, record: TileRecord, *, with_content: bool, upsampled: bool = False) -> tiles_pb2.Tile:
+    """A tile's identity (and GLB); `upsampled` marks a tile shown beyond its resolution (digital)."""
+    zoom = tiles_pb2.ZOOM_KIND_DIGITAL if upsampled else _ZOOM_KINDS[record.zoom]
+    return tiles_pb2.Tile(
+        uri=record.key.uri,
+        glb=specimen.tile_bytes(record.key.uri) if with_content else b"",
+        roi=record.roi,
+        magnification=record.magnification,
+        zoom=zoom,
+        geometric_error_m=record.geometric_error_um * 1e-6,
+    )
+
+
+def _measure(client: FractoscopeClient, spec: tiles_pb2.RoiSpec, index: int, request_id: str) -> MeasuredHeights:
+    """One ROI's height map from the matching service; its errors name the ROI's fields."""
+    tilts = [item.tilt_deg for item in spec.images] if all(item.HasField("tilt_deg") for item in spec.images) else None
+    try:
+        result = client.compute_height_map(
+            [item.image.content for item in spec.images],
+            tilt_deg=tilts,
+            pixel_size_um=spec.pixel_size_um if spec.HasField("pixel_size_um") else None,
+            tilt_axis_deg=spec.tilt_axis_deg if spec.HasField("tilt_axis_deg") else None,
+            request_id=request_id,
+        )
+    except ClientError as error:
+        if error.field:
+            raise InvalidInputError(f"rois[{index}].{error.field}", str(error).split(": ", 1)[-1]) from None
+        raise
+    return MeasuredHeights(result.z_um, result.texture, result.pixel_size_um, result.report)
+
+
+def _roi_request(spec: tiles_pb2.RoiSpec, index: int) -> RoiRequest:
+    if len(spec.images) != 2:
+        raise InvalidInputError(f"rois[{index}].images", f"an ROI needs a stereo pair, got {len(spec.images)} images")
+    if spec.HasField("pixel_size_um"):
+        validate_pixel_size_um(spec.pixel_size_um, field=f"rois[{index}].pixel_size_um")
+    if not (math.isfinite(spec.magnification) and spec.magnification >= 0):
+        raise InvalidInputError(f"rois[{index}].magnification", "must be finite and >= 0")
+    centre = None
+    if spec.HasField("center_um"):
+        centre = (spec.center_um.x_um, spec.center_um.y_um)
+        if not all(math.isfinite(v) for v in centre):
+            raise InvalidInputError(f"rois[{index}].center_um", "must be finite")
+    return RoiRequest(spec.id, spec.parent, spec.magnification, centre)
+
+
+def _region(message: tiles_pb2.RegionUm, field: str) -> tuple[float, float, float, float]:
+    values = (message.min.x_um, message.min.y_um, message.max.x_um, message.max.y_um)
+    if not all(math.isfinite(v) for v in values):
+        raise InvalidInputError(field, "coordinates must be finite")
+    if not (values[0] < values[2] and values[1] < values[3]):
+        raise InvalidInputError(field, "min must be smaller than max in x and y")
+    return values
+
+
+def _region_message(x0, y0, x1, y1) -> tiles_pb2.RegionUm:
+    return tiles_pb2.RegionUm(min=common_pb2.PointUm(x_um=x0, y_um=y0), max=common_pb2.PointUm(x_um=x1, y_um=y1))
+
+
+def _positive(value: float, field: str) -> float:
+    if not (math.isfinite(value) and value > 0):
+        raise InvalidInputError(field, f"must be a positive number, got {value}")
+    return value
+
+
+def _bounding_region(points: np.ndarray) -> tuple[float, float, float, float]:
+    return float(points[:, 0].min()), float(points[:, 1].min()), float(points[:, 0].max()), float(points[:, 1].max())
+
+
+def _area_heights(specimen: Specimen, request) -> tuple[np.ndarray, float]:
+    """Heights of one ROI as measured, or of a region of the fused surface sampled at the finest
+    pixel size there (coarser if that would exceed MAX_REGION_SAMPLES)."""
+    if request.WhichOneof("area") == "roi":
+        specimen.roi(request.roi)
+        placed = specimen.heights(request.roi)
+        return placed.z_um, placed.pixel_size_um
+    if request.WhichOneof("area") != "region":
+        raise InvalidInputError("area", "give an ROI id or a region")
+    x0, y0, x1, y1 = _region(request.region, "region")
+    cell_um = specimen.finest_pixel_size_um((x0, y0, x1, y1))
+    cell_um = max(cell_um, math.sqrt((x1 - x0) * (y1 - y0) / MAX_REGION_SAMPLES))
+    x_um, y_um = np.meshgrid(np.arange(x0, x1 + 1e-9, cell_um), np.arange(y0, y1 + 1e-9, cell_um))
+    return specimen.surface.sample(x_um, y_um, cell_um=cell_um).z_um, cell_um

@@ -1,0 +1,117 @@
+// Loads a 3D Tiles tileset with 3DTilesRendererJS (three.js) in headless Chromium and prints one
+// JSON line: tiles loaded and drawn, failures, and whether the picture is blank.
+// Usage: node load_tileset.mjs TILESET_URL SCREENSHOT.png
+import { createServer } from "node:http";
+import { readFile, writeFile } from "node:fs/promises";
+import { extname, join, normalize } from "node:path";
+import { chromium } from "playwright-core";
+
+const [tilesetUrl, screenshotPath] = process.argv.slice(2);
+const root = join(import.meta.dirname, "..", "..");
+const types = { ".js": "text/javascript", ".html": "text/html", ".mjs": "text/javascript" };
+
+const page = `<!doctype html><html><body style="margin:0;background:#000">
+<script type="importmap">{"imports": {
+  "three": "/node_modules/three/build/three.module.js",
+  "three/addons/": "/node_modules/three/examples/jsm/",
+  "3d-tiles-renderer": "/node_modules/3d-tiles-renderer/build/index.js"}}</script>
+<script type="module">
+import * as THREE from "three";
+import { TilesRenderer } from "3d-tiles-renderer";
+const status = { loaded: 0, failed: [], tilesetLoaded: false, done: false };
+window.status3d = status;
+const renderer = new THREE.WebGLRenderer({ antialias: false, preserveDrawingBuffer: true });
+renderer.setSize(512, 512);
+document.body.appendChild(renderer.domElement);
+const scene = new THREE.Scene();
+scene.add(new THREE.HemisphereLight(0xffffff, 0x444444, 3));
+const camera = new THREE.PerspectiveCamera(45, 1, 1e-7, 10);
+const tiles = new TilesRenderer(${JSON.stringify(tilesetUrl)});
+tiles.errorTarget = 2;
+tiles.setCamera(camera);
+tiles.setResolutionFromRenderer(camera, renderer);
+tiles.addEventListener("load-tileset", () => {
+  status.tilesetLoaded = true;
+  const sphere = new THREE.Sphere();
+  tiles.getBoundingSphere(sphere);
+  // Look straight down on the specimen (tileset z is up) from a distance that shows all of it.
+  camera.position.copy(sphere.center).add(new THREE.Vector3(0, 0, sphere.radius * 2.2));
+  camera.up.set(0, 1, 0);
+  camera.lookAt(sphere.center);
+  camera.near = sphere.radius * 0.01;
+  camera.far = sphere.radius * 10;
+  camera.updateProjectionMatrix();
+});
+tiles.addEventListener("load-model", () => { status.loaded += 1; });
+tiles.addEventListener("load-error", (event) => { status.failed.push(String(event.url || event.error)); });
+scene.add(tiles.group);
+function frame() {
+  camera.updateMatrixWorld();
+  tiles.update();
+  renderer.render(scene, camera);
+  status.visible = tiles.visibleTiles ? tiles.visibleTiles.size : -1;
+  status.downloading = tiles.stats ? tiles.stats.downloading + tiles.stats.parsing : 0;
+  requestAnimationFrame(frame);
+}
+frame();
+</script></body></html>`;
+
+const server = createServer(async (request, response) => {
+  const path = normalize(decodeURIComponent(new URL(request.url, "http://x").pathname));
+  if (path === "/") {
+    response.writeHead(200, { "Content-Type": "text/html" });
+    response.end(page);
+    return;
+  }
+  if (!path.startsWith("/node_modules/")) {
+    response.writeHead(404);
+    response.end();
+    return;
+  }
+  try {
+    const body = await readFile(join(root, path));
+    response.writeHead(200, { "Content-Type": types[extname(path)] ?? "application/octet-stream" });
+    response.end(body);
+  } catch {
+    response.writeHead(404);
+    response.end();
+  }
+});
+await new Promise((resolve) => server.listen(0, "127.0.0.1", resolve));
+
+const browser = await chromium.launch({
+  executablePath: process.env.CHROMIUM ?? "/usr/bin/chromium",
+  args: ["--headless", "--no-sandbox", "--disable-gpu", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"],
+});
+const result = { errors: [] };
+try {
+  const tab = await browser.newPage();
+  tab.on("pageerror", (error) => result.errors.push(String(error)));
+  await tab.goto(`http://127.0.0.1:${server.address().port}/`);
+  // Wait until tiles have loaded and nothing is downloading or parsing for a moment.
+  let quiet = 0;
+  for (let i = 0; i < 240 && quiet < 5; i++) {
+    await tab.waitForTimeout(250);
+    const s = await tab.evaluate(() => window.status3d);
+    quiet = s && s.loaded > 0 && s.downloading === 0 ? quiet + 1 : 0;
+  }
+  Object.assign(result, await tab.evaluate(() => window.status3d));
+  const png = await tab.locator("canvas").screenshot();
+  await writeFile(screenshotPath, png);
+  // Share of canvas pixels that are not background (black), read back from WebGL.
+  result.litFraction = await tab.evaluate(() => {
+    const canvas = document.querySelector("canvas");
+    const copy = document.createElement("canvas");
+    copy.width = canvas.width; copy.height = canvas.height;
+    const context = copy.getContext("2d");
+    context.drawImage(canvas, 0, 0);
+    const pixels = context.getImageData(0, 0, copy.width, copy.height).data;
+    let lit = 0;
+    for (let i = 0; i < pixels.length; i += 4) if (pixels[i] + pixels[i + 1] + pixels[i + 2] > 30) lit++;
+    return lit / (pixels.length / 4);
+  });
+} finally {
+  await browser.close();
+  server.close();
+}
+console.log(JSON.stringify(result));
