@@ -51,7 +51,7 @@ function frame() {
   renderer.render(scene, camera);
   status.visible = tiles.visibleTiles ? tiles.visibleTiles.size : -1;
   status.downloading = tiles.stats ? tiles.stats.downloading + tiles.stats.parsing : 0;
-  requestAnimationFrame(frame);
+  if (!status.stop) requestAnimationFrame(frame);
 }
 frame();
 </script></body></html>`;
@@ -96,8 +96,10 @@ try {
     quiet = s && s.loaded > 0 && s.downloading === 0 ? quiet + 1 : 0;
   }
   Object.assign(result, await tab.evaluate(() => window.status3d));
-  const png = await tab.locator("canvas").screenshot();
-  await writeFile(screenshotPath, png);
+  // Stop rendering so the picture holds still for the screenshot.
+  await tab.evaluate(() => { window.status3d.stop = true; });
+  await tab.waitForTimeout(200);
+  await writeFile(screenshotPath, await tab.screenshot({ clip: { x: 0, y: 0, width: 512, height: 512 }, timeout: 60000 }));
   // Share of canvas pixels that are not background (black), read back from WebGL.
   result.litFraction = await tab.evaluate(() => {
     const canvas = document.querySelector("canvas");
