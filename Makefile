@@ -60,6 +60,7 @@ test: install $(CHROMIUM)
 bench: install
 	$(BIN)/python -m benchmarks.matching --out bench-results
 	$(BIN)/python -m benchmarks.meshing --out bench-results
+	$(BIN)/python -m benchmarks.serving --out bench-results
 
 lint: install
 	$(BIN)/python -m compileall -q src services clients tests

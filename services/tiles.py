@@ -140,12 +140,9 @@ class TileServicer(tiles_pb2_grpc.TileServiceServicer):
             except ValueError as error:
                 raise InvalidInputError("points", str(error)) from None
             samples = specimen.surface.sample(positions[:, 0], positions[:, 1], cell_um=cell_um)
-            names = [roi.id for roi in specimen.surface.rois]
             response = tiles_pb2.GetProfileResponse(
-                samples=[
-                    tiles_pb2.ProfileSample(distance_um=d, z_um=z, source=names[s] if s >= 0 else "")
-                    for d, z, s in zip(distances.tolist(), samples.z_um.tolist(), samples.source.tolist())
-                ]
+                distance_um=distances, z_um=samples.z_um.astype(np.float64), source_index=samples.source,
+                sources=[roi.id for roi in specimen.surface.rois],
             )
             if np.isfinite(samples.z_um).sum() >= 3:
                 values = profile.profile_parameters(distances, samples.z_um.astype(np.float64))

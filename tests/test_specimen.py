@@ -10,7 +10,6 @@ import urllib.error
 import urllib.request
 from pathlib import Path
 
-import cv2
 import grpc
 import numpy as np
 import pytest
@@ -19,37 +18,20 @@ from scipy import ndimage
 from conftest import validate_glbs
 from fractoscope import synthetic
 from fractoscope.client import ClientError, FractoscopeClient
+from fractoscope.client.demo import MULTISCALE_MAGNIFICATIONS, write_multiscale_specimen
 from fractoscope.client.manifest import load_manifest
 from fractoscope.services.server import create_server
 from fractoscope.services.tile_http import start_http_server
 from fractoscope.specimen_store import SpecimenStore
 
-OVERVIEW_MAG, ZOOM_MAG = 100.0, 400.0
-
-
-def write_specimen(folder: Path) -> synthetic.MultiscaleSpecimen:
-    """PNG pairs and a manifest of an overview (1 µm/px) and a 4x ROI placed automatically."""
-    spec = synthetic.render_multiscale_specimen()
-    folder.mkdir(parents=True, exist_ok=True)
-    rois = []
-    for roi_id, pair, pixel_um, magnification in [
-        ("overview", spec.overview, spec.overview_pixel_size_um, OVERVIEW_MAG),
-        ("zoom", spec.roi, spec.roi_pixel_size_um, ZOOM_MAG),
-    ]:
-        cv2.imwrite(str(folder / f"{roi_id}_left.png"), pair.first)
-        cv2.imwrite(str(folder / f"{roi_id}_right.png"), pair.second)
-        rois.append({"id": roi_id, "left": f"{roi_id}_left.png", "right": f"{roi_id}_right.png", "tilt_deg": list(spec.tilt_deg),
-                     "pixel_size_um": pixel_um, "magnification": magnification})
-    rois[1].update(parent="overview", center_um="auto")
-    (folder / "manifest.json").write_text(json.dumps({"specimen": "synthetic", "rois": rois}))
-    return spec
+OVERVIEW_MAG, ZOOM_MAG = MULTISCALE_MAGNIFICATIONS
 
 
 @pytest.fixture(scope="module")
 def built(tmp_path_factory):
     """(truth, client, data directory) with the specimen reconstructed by a loopback server."""
     root = tmp_path_factory.mktemp("specimen")
-    truth = write_specimen(root / "input")
+    truth = write_multiscale_specimen(root / "input")
     server, port = create_server("127.0.0.1:0", data_dir=root / "data")
     server.start()
     with FractoscopeClient(f"127.0.0.1:{port}", timeout_s=300) as client:

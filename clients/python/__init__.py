@@ -254,9 +254,9 @@ class FractoscopeClient:
         if response.HasField("parameters"):
             p = response.parameters
             parameters = {"Ra": p.ra_um, "Rq": p.rq_um, "Rz": p.rz_um, "Rsk": p.rsk, "Rku": p.rku}
+        names = list(response.sources) + [""]  # index -1: no data
         return Profile(
-            np.array([s.distance_um for s in response.samples]), np.array([s.z_um for s in response.samples]),
-            [s.source for s in response.samples], parameters,
+            np.array(response.distance_um), np.array(response.z_um), [names[i] for i in response.source_index], parameters
         )
 
     def roughness(self, specimen_id: str, *, roi: str | None = None, region_um: Region | None = None) -> dict:
