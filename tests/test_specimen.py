@@ -81,6 +81,19 @@ def test_profile_follows_the_true_surface_across_magnifications(built):
     assert profile.parameters["Rz"] > profile.parameters["Rq"] > profile.parameters["Ra"] > 0
 
 
+def test_no_step_where_the_roi_meets_the_overview(built):
+    """Across the ROI's left border the surface changes no faster than anywhere else on the line."""
+    _, client, _, summary = built
+    region = summary["rois"][1]["region"]
+    border_x = region["min"]["x_um"]
+    for y_um in np.linspace(region["min"]["y_um"] + 10, region["max"]["y_um"] - 10, 6):
+        line = client.profile("synthetic", [(border_x - 40, y_um), (border_x + 40, y_um)])
+        steps = np.abs(np.diff(line.z_um))
+        x_um = border_x - 40 + line.distance_um[1:]
+        blend = (x_um > border_x - 1) & (x_um < border_x + 12)  # the 32-pixel ramp of the ROI
+        assert np.nanmax(steps[blend]) <= 1.2 * np.nanmax(steps[~blend]), y_um
+
+
 def test_profile_at_a_magnification_uses_that_resolution(built):
     _, client, _, _ = built
     profile = client.profile("synthetic", [(250.0, 200.0), (350.0, 200.0)], magnification=OVERVIEW_MAG)

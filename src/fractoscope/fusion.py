@@ -3,8 +3,8 @@
 Specimen frame: micrometres in the plane of the overview, x along its columns, y down its rows.
 An ROI's pixel (row i, column j) lies at (origin_x + j·p, origin_y + i·p) for its pixel size p.
 Wherever a finer ROI has data it wins; elsewhere coarser data is resampled. At an ROI's border its
-weight ramps smoothly from 0 to 1 over `FEATHER_PX` of its pixels, so neither heights nor texture
-step where magnifications meet.
+weight ramps smoothly from 0 to 1 over `FEATHER_PX` of its pixels (from its border and from any
+hole in its data), so neither heights nor texture step where magnifications meet.
 """
 
 from __future__ import annotations
@@ -128,19 +128,19 @@ def _remap(values: np.ndarray, maps, fill: float) -> np.ndarray:
     return cv2.remap(values, maps[0], maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=fill)
 
 
-def _border_weight(shape: tuple[int, int]) -> np.ndarray:
-    """0 at the ROI's edge rising smoothly (smoothstep) to 1 at FEATHER_PX pixels inside."""
-    rows, cols = shape
-    to_edge_rows = np.minimum(np.arange(rows), np.arange(rows)[::-1])[:, None]
-    to_edge_cols = np.minimum(np.arange(cols), np.arange(cols)[::-1])[None, :]
-    ramp = np.clip(np.minimum(to_edge_rows, to_edge_cols) / FEATHER_PX, 0.0, 1.0)
+def _border_weight(valid: np.ndarray) -> np.ndarray:
+    """0 at the edge of an ROI's measured data (its border and its holes) rising smoothly
+    (smoothstep) to 1 at FEATHER_PX pixels inside, so coarser data takes over gradually."""
+    padded = np.pad(valid, 1, constant_values=False).astype(np.uint8)
+    distance = cv2.distanceTransform(padded, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)[1:-1, 1:-1]
+    ramp = np.clip((distance - 1) / FEATHER_PX, 0.0, 1.0)
     return (ramp * ramp * (3 - 2 * ramp)).astype(np.float32)
 
 
 def _pyramid(roi: PlacedRoi) -> list[_PyramidLevel]:
     """Levels 0, 1, ... of 2x2 averages (unknown heights ignored) down to about 64 pixels."""
     valid = np.isfinite(roi.z_um)
-    weight = _border_weight(roi.z_um.shape) * valid
+    weight = _border_weight(valid)
     z = np.where(valid, roi.z_um, 0).astype(np.float32)
     counts = valid.astype(np.float32)
     texture = roi.texture.astype(np.float32)
