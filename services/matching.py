@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import logging
 
-import grpc
-
 from fractoscope import wire
 from fractoscope.errors import InvalidInputError
 from fractoscope.height_map import MatchingOptions, compute_height_map

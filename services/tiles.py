@@ -5,9 +5,8 @@ from __future__ import annotations
 import logging
 import math
 
-import numpy as np
 
-from fractoscope import profile, roughness, tileset, wire
+from fractoscope import specimen_queries, tileset, wire
 from fractoscope.client import ClientError, FractoscopeClient
 from fractoscope.errors import InvalidInputError
 from fractoscope.reconstruction import MeasuredHeights, RoiRequest, reconstruct_specimen
@@ -16,12 +15,10 @@ from fractoscope.services.progress import stream_progress
 from fractoscope.specimen_store import Specimen, SpecimenStore, validate_id
 from fractoscope.stereo_geometry import validate_pixel_size_um
 from fractoscope.tileset import TileRecord
-from fractoscope.v1 import common_pb2, matching_pb2, tiles_pb2, tiles_pb2_grpc
+from fractoscope.v1 import common_pb2, tiles_pb2, tiles_pb2_grpc
 
 _log = logging.getLogger("fractoscope.tiles")
 _ZOOM_KINDS = {tileset.OPTICAL: tiles_pb2.ZOOM_KIND_OPTICAL, tileset.DIGITAL: tiles_pb2.ZOOM_KIND_DIGITAL}
-MAX_REGION_SAMPLES = 2048 * 2048
-MAX_PROFILE_SAMPLES = 1_000_000
 
 
 class TileServicer(tiles_pb2_grpc.TileServiceServicer):
@@ -111,7 +108,7 @@ class TileServicer(tiles_pb2_grpc.TileServiceServicer):
         try:
             specimen = self.store.load(request.specimen_id)
             region = _region(request.region, "region")
-            cell_um = specimen.pixel_size_at_magnification(_positive(request.magnification, "magnification"))
+            cell_um = specimen.pixel_size_at_magnification(specimen_queries.positive(request.magnification, "magnification"))
             chosen = tileset.tiles_in_region(specimen.layout, specimen.tiles, region, cell_um=cell_um)
             return tiles_pb2.ZoomResponse(
                 tiles=[tile_message(specimen, record, with_content=False, upsampled=upsampled) for record, upsampled in chosen]
@@ -122,30 +119,15 @@ class TileServicer(tiles_pb2_grpc.TileServiceServicer):
     def GetProfile(self, request, context):
         try:
             specimen = self.store.load(request.specimen_id)
-            points = np.array([[p.x_um, p.y_um] for p in request.points], np.float64)
-            if len(points) < 2:
-                raise InvalidInputError("points", f"a profile needs at least two points, got {len(points)}")
-            if not np.all(np.isfinite(points)):
-                raise InvalidInputError("points", "coordinates must be finite")
-            if request.magnification:
-                cell_um = specimen.pixel_size_at_magnification(_positive(request.magnification, "magnification"))
-            else:
-                cell_um = specimen.finest_pixel_size_um(_bounding_region(points))
-            spacing_um = _positive(request.spacing_um, "spacing_um") if request.spacing_um else cell_um
-            length_um = float(np.hypot(*np.diff(points, axis=0).T).sum())
-            if length_um / spacing_um > MAX_PROFILE_SAMPLES:
-                raise InvalidInputError("spacing_um", f"gives more than {MAX_PROFILE_SAMPLES} samples; use a larger spacing")
-            try:
-                positions, distances = profile.polyline_positions(points, spacing_um=spacing_um)
-            except ValueError as error:
-                raise InvalidInputError("points", str(error)) from None
-            samples = specimen.surface.sample(positions[:, 0], positions[:, 1], cell_um=cell_um)
-            response = tiles_pb2.GetProfileResponse(
-                distance_um=distances, z_um=samples.z_um.astype(np.float64), source_index=samples.source,
-                sources=[roi.id for roi in specimen.surface.rois],
+            found = specimen_queries.profile_along(
+                specimen, [[p.x_um, p.y_um] for p in request.points],
+                spacing_um=request.spacing_um, magnification=request.magnification,
             )
-            if np.isfinite(samples.z_um).sum() >= 3:
-                values = profile.profile_parameters(distances, samples.z_um.astype(np.float64))
+            response = tiles_pb2.GetProfileResponse(
+                distance_um=found.distance_um, z_um=found.z_um, source_index=found.source_index, sources=found.sources
+            )
+            if found.parameters:
+                values = found.parameters
                 response.parameters.CopyFrom(
                     tiles_pb2.ProfileParameters(ra_um=values["Ra"], rq_um=values["Rq"], rz_um=values["Rz"], rsk=values["Rsk"], rku=values["Rku"])
                 )
@@ -156,18 +138,13 @@ class TileServicer(tiles_pb2_grpc.TileServiceServicer):
     def GetRoughness(self, request, context):
         try:
             specimen = self.store.load(request.specimen_id)
-            z_um, pixel_size_um = _area_heights(specimen, request)
-            if np.isfinite(z_um).sum() < 64:
-                raise InvalidInputError("region", "holds fewer than 64 measured points")
-            areal = roughness.areal_parameters(z_um, pixel_size_um=pixel_size_um)
-            try:
-                fracture = roughness.fracture_metrics(z_um, pixel_size_um=pixel_size_um)
-            except ValueError as error:
-                raise InvalidInputError("region", str(error)) from None
-            return tiles_pb2.GetRoughnessResponse(
-                sa_um=areal["Sa"], sq_um=areal["Sq"], ssk=areal["Ssk"], sku=areal["Sku"], sp_um=areal["Sp"],
-                sv_um=areal["Sv"], sz_um=areal["Sz"], sdq=areal["Sdq"], sdr_percent=areal["Sdr"], **fracture,
+            area = request.WhichOneof("area")
+            values = specimen_queries.roughness_of(
+                specimen, roi=request.roi if area == "roi" else None,
+                region_um=_region(request.region, "region") if area == "region" else None,
             )
+            names = {"Sa": "sa_um", "Sq": "sq_um", "Ssk": "ssk", "Sku": "sku", "Sp": "sp_um", "Sv": "sv_um", "Sz": "sz_um", "Sdq": "sdq", "Sdr": "sdr_percent"}
+            return tiles_pb2.GetRoughnessResponse(**{names.get(key, key): value for key, value in values.items()})
         except Exception as error:
             abort_with_error(context, error)
 
@@ -236,39 +213,9 @@ def _roi_request(spec: tiles_pb2.RoiSpec, index: int) -> RoiRequest:
 
 
 def _region(message: tiles_pb2.RegionUm, field: str) -> tuple[float, float, float, float]:
-    values = (message.min.x_um, message.min.y_um, message.max.x_um, message.max.y_um)
-    if not all(math.isfinite(v) for v in values):
-        raise InvalidInputError(field, "coordinates must be finite")
-    if not (values[0] < values[2] and values[1] < values[3]):
-        raise InvalidInputError(field, "min must be smaller than max in x and y")
-    return values
+    return specimen_queries.checked_region((message.min.x_um, message.min.y_um, message.max.x_um, message.max.y_um), field)
 
 
 def _region_message(x0, y0, x1, y1) -> tiles_pb2.RegionUm:
     return tiles_pb2.RegionUm(min=common_pb2.PointUm(x_um=x0, y_um=y0), max=common_pb2.PointUm(x_um=x1, y_um=y1))
 
-
-def _positive(value: float, field: str) -> float:
-    if not (math.isfinite(value) and value > 0):
-        raise InvalidInputError(field, f"must be a positive number, got {value}")
-    return value
-
-
-def _bounding_region(points: np.ndarray) -> tuple[float, float, float, float]:
-    return float(points[:, 0].min()), float(points[:, 1].min()), float(points[:, 0].max()), float(points[:, 1].max())
-
-
-def _area_heights(specimen: Specimen, request) -> tuple[np.ndarray, float]:
-    """Heights of one ROI as measured, or of a region of the fused surface sampled at the finest
-    pixel size there (coarser if that would exceed MAX_REGION_SAMPLES)."""
-    if request.WhichOneof("area") == "roi":
-        specimen.roi(request.roi)
-        placed = specimen.heights(request.roi)
-        return placed.z_um, placed.pixel_size_um
-    if request.WhichOneof("area") != "region":
-        raise InvalidInputError("area", "give an ROI id or a region")
-    x0, y0, x1, y1 = _region(request.region, "region")
-    cell_um = specimen.finest_pixel_size_um((x0, y0, x1, y1))
-    cell_um = max(cell_um, math.sqrt((x1 - x0) * (y1 - y0) / MAX_REGION_SAMPLES))
-    x_um, y_um = np.meshgrid(np.arange(x0, x1 + 1e-9, cell_um), np.arange(y0, y1 + 1e-9, cell_um))
-    return specimen.surface.sample(x_um, y_um, cell_um=cell_um).z_um, cell_um
