@@ -12,6 +12,8 @@ GEN := $(patsubst proto/fractoscope/v1/%.proto,$(GEN_DIR)/%_pb2.py,$(PROTOS))
 STAMP := $(VENV)/.installed
 NODE_STAMP := node_modules/.installed
 DATA ?= ./data
+PORT ?= 8080
+GRPC_PORT ?= 50051
 CHROMIUM := /usr/bin/chromium
 
 .PHONY: install proto run test bench lint clean
@@ -43,9 +45,9 @@ $(STAMP): pyproject.toml $(GEN) | $(BIN)/python
 	$(BIN)/pip install --quiet -e '.[dev]'
 	touch $@
 
-## run: the main job on embedded defaults (local data directory, services in-process)
+## run: the main job on embedded defaults: services and viewer on loopback until Ctrl-C
 run: install
-	$(BIN)/fracto demo --data $(DATA)
+	$(BIN)/fracto demo --data $(DATA) --http-port $(PORT) --port $(GRPC_PORT)
 
 # Debian's Chromium for the browser test (never a browser downloaded by a test tool).
 $(CHROMIUM):

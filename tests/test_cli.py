@@ -108,3 +108,36 @@ def test_height_then_mesh_writes_valid_glb_levels(pair_files, tmp_path):
     assert all(report["errors"] == 0 for report in validate_glbs([p.read_bytes() for p in glbs], tmp_path))
     done = _run("mesh", heights, "--texture", right, "--pixel-size-um", "-1", "-o", out)
     assert done.returncode == 2 and done.stderr.startswith("error: height_map.pixel_size_um")
+
+
+def test_demo_builds_the_specimens_and_prints_the_viewer_url(tmp_path):
+    done = _run("demo", "--data", tmp_path / "data", "--shared-data", tmp_path / "none", "--port", 0, "--http-port", 0, "--exit")
+    assert done.returncode == 0, done.stderr
+    assert "viewer: http://127.0.0.1:" in done.stdout and "/viewer/?specimen=synthetic" in done.stdout
+    assert "found" in done.stdout  # the ROI's automatic placement checked against the truth
+    assert (tmp_path / "data" / "specimens" / "synthetic" / "tileset.json").is_file()
+
+
+def test_specimen_commands_from_a_manifest(tmp_path):
+    from fractoscope.client.demo import write_multiscale_specimen
+
+    write_multiscale_specimen(tmp_path / "input")
+    data = tmp_path / "data"
+    built = _run("reconstruct", tmp_path / "input" / "manifest.json", "--data", data)
+    assert built.returncode == 0, built.stderr
+    assert built.stdout.strip() == "synthetic"
+    profile = _run("profile", "synthetic", "--from", "100,200", "--to", "400,250", "-o", tmp_path / "p.csv",
+                     "--plot", tmp_path / "p.png", "--data", data)
+    assert profile.returncode == 0, profile.stderr
+    rows = (tmp_path / "p.csv").read_text().splitlines()
+    assert rows[0] == "distance_um,z_um,source" and {row.rsplit(",", 1)[1] for row in rows[1:]} == {"overview", "zoom"}
+    assert (tmp_path / "p.png").read_bytes()[:4] == b"\x89PNG"
+    rough = _run("roughness", "synthetic", "--roi", "zoom", "--json", "--data", data)
+    values = json.loads(rough.stdout)
+    assert {"Sa", "Sq", "Ssk", "Sku", "Sp", "Sv", "Sz", "Sdq", "Sdr", "hurst_exponent", "fractal_dimension"} <= set(values)
+    zoom = _run("zoom", "synthetic", "--region", "270,200,300,240", "--magnification", "400", "--json", "--data", data)
+    assert {tile["zoom"] for tile in json.loads(zoom.stdout)["tiles"]} == {"optical"}
+    tiles = _run("tiles", "synthetic", "-o", tmp_path / "download", "--data", data)
+    assert tiles.returncode == 0 and (tmp_path / "download" / "tileset.json").is_file()
+    missing = _run("roughness", "nothing", "--data", data)
+    assert missing.returncode == 4 and missing.stderr.count("\n") == 1

@@ -264,3 +264,49 @@ def test_tileset_loads_in_3d_tiles_renderer_in_headless_chromium(built, tmp_path
     assert result["tilesetLoaded"] and not result["failed"] and not result["errors"], result
     assert result["loaded"] >= 5  # the root and refining levels streamed in
     assert result["litFraction"] > 0.3  # the textured surface fills much of the view
+
+
+def test_web_viewer_streams_tiles_and_measures_a_profile(built, tmp_path):
+    """The viewer page, served by the tile endpoint, in headless Chromium: tiles requested and
+    drawn, the profile tool (two clicks) and the roughness panel return numbers."""
+    _, _, data, _ = built
+    http = start_http_server(SpecimenStore(data))
+    script = Path(__file__).resolve().parent / "js" / "check_viewer.mjs"
+    try:
+        done = subprocess.run(
+            ["node", str(script), f"http://127.0.0.1:{http.server_port}/viewer/?specimen=synthetic", str(tmp_path / "viewer.png")],
+            capture_output=True, text=True, timeout=240, cwd=script.parents[2],
+        )
+    finally:
+        http.shutdown()
+    assert done.returncode == 0, done.stderr[-2000:]
+    result = json.loads(done.stdout.splitlines()[-1])
+    assert not result["errors"] and result["status"]["failed"] == 0, result
+    assert result["tileRequests"] >= 5 and result["status"]["loaded"] >= 5
+    assert result["litFraction"] > 0.2
+    assert result["profile"]["samples"] > 100 and result["profile"]["parameters"]["Ra"] > 0
+    assert "Ra" in result["profile"]["text"]
+    assert result["roughness"]["Sa"] > 0 and 0 < result["roughness"]["hurst_exponent"] < 1.5
+    assert result["scaleBar"].endswith("µm")
+
+
+def test_http_json_api_names_bad_parameters(built):
+    _, _, data, _ = built
+    http = start_http_server(SpecimenStore(data))
+    base = f"http://127.0.0.1:{http.server_port}/api/specimens"
+    try:
+        with urllib.request.urlopen(f"{base}/synthetic/profile?from=100,200&to=300,200") as response:
+            answer = json.loads(response.read())
+        assert answer["parameters"]["Rq"] > 0 and len(answer["z_um"]) == len(answer["source"])
+        with pytest.raises(urllib.error.HTTPError) as bad:
+            urllib.request.urlopen(f"{base}/synthetic/profile?from=100&to=300,200")
+        assert bad.value.code == 400 and json.loads(bad.value.read())["field"] == "from"
+        with pytest.raises(urllib.error.HTTPError) as missing:
+            urllib.request.urlopen(f"{base}/nothing/roughness")
+        assert missing.value.code == 404
+        for outside in ("/viewer/../../pyproject.toml", "/vendor/three/../../package.json", "/vendor/other/x.js"):
+            with pytest.raises(urllib.error.HTTPError) as denied:
+                urllib.request.urlopen(f"http://127.0.0.1:{http.server_port}{outside}")
+            assert denied.value.code == 404
+    finally:
+        http.shutdown()

@@ -307,14 +307,14 @@ def server_address(explicit: str | None) -> str | None:
 
 
 @contextlib.contextmanager
-def embedded_server(data_dir: str | Path = "data") -> Iterator[str]:
-    """Runs all services in this process on a free loopback port for the block's duration, with
-    specimens kept under `data_dir`."""
+def embedded_server(data_dir: str | Path = "data", *, host: str = "127.0.0.1", port: int = 0) -> Iterator[str]:
+    """Runs all services in this process on `host:port` (port 0: a free one) for the block's
+    duration, with specimens kept under `data_dir`; yields the address."""
     from fractoscope.services.server import create_server
 
-    server, port = create_server("127.0.0.1:0", data_dir=data_dir)
+    server, bound = create_server(f"{host}:{port}", data_dir=data_dir)
     server.start()
     try:
-        yield f"127.0.0.1:{port}"
+        yield f"{host}:{bound}"
     finally:
         server.stop(grace=None)

@@ -9,6 +9,7 @@ import argparse
 import contextlib
 import json
 import sys
+import threading
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -159,9 +160,30 @@ def command_mesh(args) -> int:
 
 def command_demo(args) -> int:
     from fractoscope.client.demo import run_demo
+    from fractoscope.services.tile_http import start_http_server
+    from fractoscope.specimen_store import SpecimenStore
 
-    with connected(args.server) as client:
-        return run_demo(client, Path(args.data), shared_data=Path(args.shared_data), console=Console())
+    console = Console()
+    data = Path(args.data)
+    try:
+        http = start_http_server(SpecimenStore(data), args.host, args.http_port)
+    except OSError as error:
+        raise UsageError(f"cannot serve HTTP on {args.host}:{args.http_port}: {error.strerror}; choose another --http-port") from None
+    try:
+        with embedded_server(data, host=args.host, port=args.port) as address, FractoscopeClient(address) as client:
+            specimens = run_demo(client, data, shared_data=Path(args.shared_data), console=console)
+            url = f"http://{args.host}:{http.server_port}/viewer/?specimen={specimens[0]}"
+            console.print(f"viewer: [bold]{url}[/bold]")
+            console.print(f"gRPC:   {address}   (e.g. fracto roughness {specimens[0]} --server {address})")
+            console.print(f"data:   {data.resolve()}")
+            if not args.exit:
+                console.print("serving until Ctrl-C")
+                threading.Event().wait()
+    except KeyboardInterrupt:
+        console.print("stopped")
+    finally:
+        http.shutdown()
+    return 0
 
 
 def command_reconstruct(args) -> int:
@@ -349,10 +371,13 @@ def build_parser() -> argparse.ArgumentParser:
     tiles.add_argument("specimen")
     tiles.add_argument("-o", "--output", required=True, help="directory to write into")
 
-    demo = commands.add_parser("demo", help="reconstruct the bundled demo specimen and report its accuracy")
+    demo = commands.add_parser("demo", help="serve the demo specimens with the web viewer (the main job of make run)")
     demo.add_argument("--data", default="./data", help="data directory (default ./data)")
     demo.add_argument("--shared-data", default="../shared/data", help="shared test data, used when present")
-    demo.add_argument("--server", help="HOST:PORT of a Fractoscope server (default: in-process)")
+    demo.add_argument("--host", default="127.0.0.1", help="address to serve on (default loopback)")
+    demo.add_argument("--port", type=int, default=50051, help="gRPC port (default 50051; 0 = any free port)")
+    demo.add_argument("--http-port", type=int, default=8080, help="HTTP port of tiles and viewer (default 8080; 0 = any)")
+    demo.add_argument("--exit", action="store_true", help="stop after building the specimens instead of serving")
     demo.set_defaults(run=command_demo)
     return parser
 
@@ -367,6 +392,9 @@ def main(argv: list[str] | None = None) -> None:
     except ClientError as error:
         print(f"error: {error}", file=sys.stderr)
         code = _EXIT_CODES.get(error.code, EXIT_FAILURE)
+    except (OSError, RuntimeError) as error:  # e.g. a port in use: one line, not a traceback
+        print(f"error: {error}", file=sys.stderr)
+        code = EXIT_FAILURE
     except KeyboardInterrupt:
         code = 130
     sys.exit(code)

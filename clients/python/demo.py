@@ -1,36 +1,19 @@
-"""The demo job behind `make run`: a deterministic synthetic fracture pair with known truth, and
-the real pollen tilt series from the shared data when it is present."""
+"""The demo job behind `make run`: a deterministic synthetic multi-scale fracture specimen with
+known truth, and the real pollen pair from the shared data when it is present."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 import numpy as np
-import tifffile
 from rich.console import Console
 from rich.table import Table
 
 from fractoscope import roughness, synthetic
 from fractoscope.client import FractoscopeClient
+from fractoscope.client.manifest import load_manifest
 
-DEMO_PIXEL_SIZE_UM = 0.1
-DEMO_TILTS_DEG = (-5.0, 5.0)
 REAL_SERIES = "real/potamogeton-tilt-series"
-
-
-def write_demo_pair(directory: Path, *, size_px: int = 640) -> tuple[Path, Path, np.ndarray]:
-    """Renders the demo pair (self-affine fracture surface, H = 0.8) into `directory`; returns the
-    two TIFF paths and the true heights on the first image's grid, µm."""
-    directory.mkdir(parents=True, exist_ok=True)
-    surface_um = synthetic.self_affine_surface((size_px + 64, size_px + 64), hurst=0.8, rms_um=2.5, seed=2026)
-    pair = synthetic.render_stereo_pair(
-        surface_um, pixel_size_um=DEMO_PIXEL_SIZE_UM, tilt_deg=DEMO_TILTS_DEG, output_shape=(size_px, size_px), seed=7
-    )
-    paths = directory / "demo_left.tif", directory / "demo_right.tif"
-    for path, image in zip(paths, (pair.first, pair.second)):
-        tifffile.imwrite(path, image, compression="zlib")
-    np.save(directory / "demo_truth_z_um.npy", pair.z_seen_um.astype(np.float32))
-    return paths[0], paths[1], pair.z_seen_um
 
 
 MULTISCALE_MAGNIFICATIONS = (100.0, 400.0)
@@ -59,48 +42,56 @@ def write_multiscale_specimen(directory: Path, *, specimen_id: str = "synthetic"
     return spec
 
 
-def run_demo(client: FractoscopeClient, data_dir: Path, *, shared_data: Path, console: Console) -> int:
-    left, right, truth_um = write_demo_pair(data_dir / "demo")
-    table = Table(title="Fractoscope demo: height maps")
-    for column in ("pair", "tilts °", "valid %", "height range µm", "Sa µm", "check"):
-        table.add_column(column)
-
-    result = client.compute_height_map([left, right], tilt_deg=DEMO_TILTS_DEG, pixel_size_um=DEMO_PIXEL_SIZE_UM)
-    np.savez_compressed(data_dir / "demo" / "demo_heights.npz", z_um=result.z_um, sigma_um=result.sigma_um)
-    tiles, filter_report = client.build_mesh(result.z_um, result.texture, pixel_size_um=DEMO_PIXEL_SIZE_UM)
-    write_tiles(tiles, data_dir / "demo" / "tiles")
-    error = result.z_um - truth_um
-    error -= np.nanmean(error)
-    span = float(truth_um.max() - truth_um.min())
-    rms_percent = 100 * float(np.sqrt(np.nanmean(error**2))) / span
-    table.add_row(
-        "synthetic fracture", "-5 / +5", f"{100 * result.report['valid_fraction']:.1f}",
-        f"{np.nanmax(result.z_um) - np.nanmin(result.z_um):.2f}", f"{roughness.sa_um(result.z_um):.3f}",
-        f"RMS error {rms_percent:.2f} % of range; true Sa {roughness.sa_um(truth_um):.3f}",
-    )
-
+def run_demo(client: FractoscopeClient, data_dir: Path, *, shared_data: Path, console: Console) -> list[str]:
+    """Builds the demo specimens (the synthetic multi-scale fracture, and the pollen pair pot_02 /
+    pot_04 when the shared data is present) and prints a summary; returns their ids."""
+    inputs = data_dir / "demo-input"
+    truth = write_multiscale_specimen(inputs / "synthetic")
+    manifests = [inputs / "synthetic" / "manifest.json"]
     series = shared_data / REAL_SERIES
     if (series / "pot_02.tif").is_file():
-        real = client.compute_height_map([series / "pot_02.tif", series / "pot_04.tif"])
-        np.savez_compressed(data_dir / "demo" / "pollen_heights.npz", z_um=real.z_um, sigma_um=real.sigma_um)
-        z = real.z_um
-        table.add_row(
-            "pollen pot_02/pot_04", "/".join(f"{t:+.0f}" for t in real.report["tilt_deg"]),
-            f"{100 * real.report['valid_fraction']:.1f}",
-            f"{np.nanpercentile(z, 99.5) - np.nanpercentile(z, 0.5):.2f}", f"{roughness.sa_um(z):.3f}",
-            f"pixel {real.report['pixel_size_um'] * 1000:.2f} nm from metadata",
-        )
+        manifests.append(_write_pollen_manifest(series, inputs / "pollen"))
     else:
-        console.print(f"[yellow]{series} not found: real series skipped[/yellow]")
+        console.print(f"[yellow]{series} not found: the real pollen specimen is skipped[/yellow]")
+
+    table = Table(title="Fractoscope demo specimens")
+    for column in ("specimen", "ROI", "µm/px", "placed at (x, y) µm", "height range µm", "Sa µm", "check"):
+        table.add_column(column)
+    built = []
+    for manifest in manifests:
+        specimen_id, rois = load_manifest(manifest)
+        with console.status(f"reconstructing {specimen_id}"):
+            summary = client.reconstruct_specimen(specimen_id, rois)
+        built.append(specimen_id)
+        for roi in summary["rois"]:
+            values = client.roughness(specimen_id, roi=roi["id"])
+            region = roi["region"]["min"]
+            check = ""
+            if specimen_id == "synthetic" and roi["parent"]:
+                error_px = np.hypot(region["x_um"] - truth.roi_origin_px[0] * truth.overview_pixel_size_um,
+                                    region["y_um"] - truth.roi_origin_px[1] * truth.overview_pixel_size_um) / truth.overview_pixel_size_um
+                check = f"found {error_px:.2f} px from the truth; fit residual {roi['alignment_residual_um']:.2f} µm"
+            elif specimen_id == "synthetic":
+                check = f"true Sa {roughness.sa_um(truth.overview.z_seen_um):.3f}"
+            table.add_row(
+                specimen_id, roi["id"], f"{roi['pixel_size_um']:.4g}", f"{region['x_um']:.1f}, {region['y_um']:.1f}",
+                f"{values['Sz']:.2f}", f"{values['Sa']:.3f}", check,
+            )
     console.print(table)
-    levels = sorted({tile.level for tile in tiles})
-    errors = ", ".join(f"{max(t.geometric_error_m for t in tiles if t.level == level) * 1e6:.3f}" for level in levels)
-    console.print(
-        f"demo mesh: {len(tiles)} GLB tiles in {len(levels)} levels (geometric error per level, µm: {errors}); "
-        f"filter: {filter_report}"
-    )
-    console.print(f"height maps and tiles written under {data_dir / 'demo'}")
-    return 0
+    return built
+
+
+def _write_pollen_manifest(series: Path, directory: Path) -> Path:
+    """A one-ROI specimen of the real pollen pair at -3/+3 degrees (tilts and pixel size from the
+    Zeiss metadata)."""
+    import json
+
+    directory.mkdir(parents=True, exist_ok=True)
+    manifest = directory / "manifest.json"
+    rois = [{"id": "pot-02-04", "left": str((series / "pot_02.tif").resolve()), "right": str((series / "pot_04.tif").resolve()),
+             "magnification": 0}]
+    manifest.write_text(json.dumps({"specimen": "pollen", "rois": rois}, indent=1))
+    return manifest
 
 
 def write_tiles(tiles, directory: Path) -> None:

@@ -1,0 +1,57 @@
+// Opens the web viewer of a running stack in headless Chromium, waits for tiles to stream in,
+// measures a profile by clicking two points and the roughness of the view, and prints one JSON
+// line with what happened. Usage: node check_viewer.mjs VIEWER_URL SCREENSHOT.png
+import { writeFile } from "node:fs/promises";
+import { chromium } from "playwright-core";
+
+const [viewerUrl, screenshotPath] = process.argv.slice(2);
+const browser = await chromium.launch({
+  executablePath: process.env.CHROMIUM ?? "/usr/bin/chromium",
+  args: ["--headless", "--no-sandbox", "--disable-gpu", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"],
+});
+const result = { errors: [], tileRequests: 0 };
+try {
+  const page = await browser.newPage({ viewport: { width: 1100, height: 700 } });
+  page.on("pageerror", (error) => result.errors.push(String(error)));
+  page.on("request", (request) => { if (request.url().endsWith(".glb")) result.tileRequests++; });
+  await page.goto(viewerUrl);
+  let quiet = 0;
+  for (let i = 0; i < 240 && quiet < 4; i++) {
+    await page.waitForTimeout(250);
+    const status = await page.evaluate(() => window.viewer?.status);
+    quiet = status && status.loaded > 0 && status.downloading === 0 ? quiet + 1 : 0;
+  }
+  result.status = await page.evaluate(() => window.viewer.status);
+  // Profile tool: two clicks across the middle of the view.
+  const view = await page.locator("#view canvas").boundingBox();
+  await page.click("#profile-tool");
+  await page.mouse.click(view.x + view.width * 0.35, view.y + view.height * 0.5);
+  await page.mouse.click(view.x + view.width * 0.65, view.y + view.height * 0.55);
+  await page.waitForFunction(() => window.viewer.profile !== null, null, { timeout: 30000 });
+  result.profile = await page.evaluate(() => ({
+    samples: window.viewer.profile.distance_um?.length ?? 0,
+    parameters: window.viewer.profile.parameters,
+    text: document.getElementById("profile-stats").textContent,
+  }));
+  await page.click("#roughness-button");
+  await page.waitForFunction(() => window.viewer.roughness !== null, null, { timeout: 30000 });
+  result.roughness = await page.evaluate(() => window.viewer.roughness);
+  result.scaleBar = await page.evaluate(() => document.getElementById("scale-label").textContent);
+  await page.check("#zoom-kinds");
+  await page.evaluate(() => new Promise((resolve) => requestAnimationFrame(() => requestAnimationFrame(resolve))));
+  await writeFile(screenshotPath, await page.screenshot({ timeout: 60000 }));
+  result.litFraction = await page.evaluate(() => {
+    const canvas = document.querySelector("#view canvas");
+    const copy = document.createElement("canvas");
+    copy.width = canvas.width; copy.height = canvas.height;
+    const context = copy.getContext("2d");
+    context.drawImage(canvas, 0, 0);
+    const pixels = context.getImageData(0, 0, copy.width, copy.height).data;
+    let lit = 0;
+    for (let i = 0; i < pixels.length; i += 4) if (Math.abs(pixels[i] - 17) + Math.abs(pixels[i + 1] - 17) + Math.abs(pixels[i + 2] - 17) > 30) lit++;
+    return lit / (pixels.length / 4);
+  });
+} finally {
+  await browser.close();
+}
+console.log(JSON.stringify(result));
