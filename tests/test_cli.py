@@ -141,3 +141,15 @@ def test_specimen_commands_from_a_manifest(tmp_path):
     assert tiles.returncode == 0 and (tmp_path / "download" / "tileset.json").is_file()
     missing = _run("roughness", "nothing", "--data", data)
     assert missing.returncode == 4 and missing.stderr.count("\n") == 1
+
+
+def test_height_png_is_a_picture(pair_files, tmp_path):
+    (left, right), _ = pair_files
+    done = _run("height", left, right, "--tilt", -5, 5, "--pixel-size-um", 0.1, "-o", tmp_path / "h.npz", "--png", tmp_path / "h.png", "--json")
+    assert done.returncode == 0, done.stderr
+    from PIL import Image
+
+    with Image.open(tmp_path / "h.png") as picture:
+        colours = np.asarray(picture.convert("RGB"))
+    assert picture.width > 400 and len(np.unique(colours.reshape(-1, 3), axis=0)) > 1000  # a shaded colour map, not blank
+    assert json.loads(done.stdout)["png"] == str(tmp_path / "h.png")

@@ -87,6 +87,9 @@ def command_height(args) -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(out, z_um=result.z_um, sigma_um=result.sigma_um, confidence=result.confidence)
     summary = {"output": str(out), **height_summary(result)}
+    if args.png:
+        plot_height_map(result, Path(args.png))
+        summary["png"] = args.png
     if args.json:
         print(json.dumps(summary))
     else:
@@ -96,6 +99,35 @@ def command_height(args) -> int:
             f"{100 * summary['valid_fraction']:.1f} % valid, median sigma {summary['median_sigma_um']:.3f} µm"
         )
     return 0
+
+
+def plot_height_map(result: HeightMap, path: Path) -> None:
+    """Heights as a colour map shaded by a hillshade, with a colour bar in µm and axes in µm."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import LightSource, Normalize
+
+    z = np.ma.masked_invalid(result.z_um)
+    low, high = np.nanpercentile(result.z_um, [0.5, 99.5]) if z.count() else (0.0, 1.0)
+    norm = Normalize(low, high)
+    rows, cols = z.shape
+    extent = (0, cols * result.pixel_size_um, rows * result.pixel_size_um, 0)
+    shaded = LightSource(azdeg=315, altdeg=45).shade(
+        z.filled(np.nanmedian(result.z_um) if z.count() else 0), cmap=plt.get_cmap("viridis"), norm=norm,
+        blend_mode="soft", vert_exag=1.0 / result.pixel_size_um, dx=1, dy=1,
+    )
+    shaded[np.ma.getmaskarray(z)] = (0.5, 0.5, 0.5, 1.0)
+    figure, axes = plt.subplots(figsize=(7, 6), layout="constrained")
+    axes.imshow(shaded, extent=extent)
+    axes.set_xlabel("x (µm)")
+    axes.set_ylabel("y (µm)")
+    bar = figure.colorbar(plt.cm.ScalarMappable(norm=norm, cmap="viridis"), ax=axes, shrink=0.8)
+    bar.set_label("height (µm)")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(path, dpi=110)
+    plt.close(figure)
 
 
 def height_summary(result: HeightMap) -> dict:
@@ -322,6 +354,7 @@ def build_parser() -> argparse.ArgumentParser:
     height.add_argument("-o", "--output", required=True, help="output .npz with z_um, sigma_um, confidence")
     height.add_argument("--server", help="HOST:PORT of a Fractoscope server (default: FRACTO_SERVER, else in-process)")
     height.add_argument("--json", action="store_true", help="print a JSON summary instead of text")
+    height.add_argument("--png", help="also write a picture: height colour map with hillshade and colour bar in µm")
     height.set_defaults(run=command_height)
 
     mesh = commands.add_parser("mesh", help="GLB levels of detail of a height map")
