@@ -153,3 +153,29 @@ def test_height_png_is_a_picture(pair_files, tmp_path):
         colours = np.asarray(picture.convert("RGB"))
     assert picture.width > 400 and len(np.unique(colours.reshape(-1, 3), axis=0)) > 1000  # a shaded colour map, not blank
     assert json.loads(done.stdout)["png"] == str(tmp_path / "h.png")
+
+
+def test_demo_serves_until_stopped_and_then_exits_cleanly(tmp_path):
+    import signal
+    import time
+    import urllib.request
+
+    process = subprocess.Popen(
+        [FRACTO, "demo", "--data", str(tmp_path / "data"), "--shared-data", str(tmp_path / "none"), "--port", "0", "--http-port", "0"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    try:
+        url = None
+        deadline = time.monotonic() + 240
+        while url is None and time.monotonic() < deadline:
+            line = process.stdout.readline()
+            if line.startswith("viewer: "):
+                url = line.split()[1]
+        assert url, process.stderr.read() if process.poll() is not None else "no viewer URL"
+        with urllib.request.urlopen(url) as page:
+            assert b"3d-tiles-renderer" in page.read()
+        process.send_signal(signal.SIGTERM)
+        assert process.wait(timeout=30) == 0
+    finally:
+        if process.poll() is None:
+            process.kill()

@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import signal
 import sys
 import threading
 from collections.abc import Iterator
@@ -205,14 +206,16 @@ def command_demo(args) -> int:
         with embedded_server(data, host=args.host, port=args.port) as address, FractoscopeClient(address) as client:
             specimens = run_demo(client, data, shared_data=Path(args.shared_data), console=console)
             url = f"http://{args.host}:{http.server_port}/viewer/?specimen={specimens[0]}"
-            console.print(f"viewer: [bold]{url}[/bold]")
-            console.print(f"gRPC:   {address}   (e.g. fracto roughness {specimens[0]} --server {address})")
-            console.print(f"data:   {data.resolve()}")
+            console.print(f"viewer: [bold]{url}[/bold]", soft_wrap=True)
+            console.print(f"gRPC:   {address}   (e.g. fracto roughness {specimens[0]} --server {address})", soft_wrap=True)
+            console.print(f"data:   {data.resolve()}", soft_wrap=True)
             if not args.exit:
                 console.print("serving until Ctrl-C")
-                threading.Event().wait()
-    except KeyboardInterrupt:
-        console.print("stopped")
+                stop = threading.Event()
+                for signum in (signal.SIGINT, signal.SIGTERM):
+                    signal.signal(signum, lambda *_: stop.set())
+                stop.wait()
+                console.print("stopping")
     finally:
         http.shutdown()
     return 0
