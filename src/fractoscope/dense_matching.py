@@ -97,11 +97,13 @@ def _match_strip(left, right, window_px, max_disparity_px, min_confidence, max_l
     levels = _level_count(left.shape, max_disparity_px, window_px)
     left_pyramid, right_pyramid = _pyramid(left_f, levels), _pyramid(right_f, levels)
     coarse_radius = int(np.ceil(max_disparity_px / 2 ** (levels - 1))) + 1
-    # The two directions are independent; OpenCV and numpy release the GIL, so they overlap.
+    # The two directions are independent; OpenCV and numpy release the GIL, so they overlap. The
+    # backward direction serves the consistency check and the average below, for which its
+    # parabola fit at full resolution is precise enough without the extra sub-pixel pass.
     finest_left_stats = _window_stats(left_f, window_px)  # also tells textureless windows below
     with ThreadPoolExecutor(max_workers=2) as pool:
         forward_job = pool.submit(_coarse_to_fine, left_pyramid, right_pyramid, window_px, coarse_radius, finest_left_stats)
-        backward_job = pool.submit(_coarse_to_fine, right_pyramid, left_pyramid, window_px, coarse_radius)
+        backward_job = pool.submit(_coarse_to_fine, right_pyramid, left_pyramid, window_px, coarse_radius, subpixel_iterations=0)
         forward, backward = forward_job.result(), backward_job.result().disparity
     report(0.8, "matched both ways")
     del left_pyramid, right_pyramid
@@ -126,7 +128,9 @@ def _match_strip(left, right, window_px, max_disparity_px, min_confidence, max_l
     return disparity, confidence, sigma_px
 
 
-def _coarse_to_fine(left_pyramid, right_pyramid, window_px, coarse_radius, finest_left_stats=None) -> _Refinement:
+def _coarse_to_fine(
+    left_pyramid, right_pyramid, window_px, coarse_radius, finest_left_stats=None, subpixel_iterations=_SUBPIXEL_ITERATIONS
+) -> _Refinement:
     """Full search at the coarsest level, ±2 px residual searches on warped images at the
     intermediate levels, ±1 px at full resolution, then sub-pixel iterations. The window
     statistics of the full-resolution left image are computed here unless given."""
@@ -141,7 +145,7 @@ def _coarse_to_fine(left_pyramid, right_pyramid, window_px, coarse_radius, fines
         radius = coarse_radius if level == levels - 1 else (2 if level > 0 else 1)
         refined = _refine(left_level, left_stats, right_level, disparity, window_px, radius)
         disparity = _clean_for_upsampling(refined.disparity, refined.score) if level > 0 else refined.disparity
-    for _ in range(_SUBPIXEL_ITERATIONS):
+    for _ in range(subpixel_iterations):
         refined = _refine(left_pyramid[0], left_stats, right_pyramid[0], refined.disparity, window_px, 1)
     return refined
 
