@@ -1,0 +1,109 @@
+"""Heights from a tilt series, and the tilt angles themselves, by parallel projection.
+
+A surface point at position x and height z (pixels) appears in view i at u_i = x·cos t_i +
+z·sin t_i + o_i, o_i being the view's unknown offset (stage shift, axis position). In terms of
+where it appears in the reference view r, u = u_r, its disparity to view i is
+d_i = u·a_i + z·b_i + o_i with a_i = cos t_i / cos t_r − 1 and b_i = sin(t_i − t_r) / cos t_r
+(for two views this is the general pair formula). With three or more views the tilt differences
+are observable: the z terms fix the ratios of the b_i, the u terms (through cos t) their size.
+Only differences are: turning every view by one angle turns the (x, z) frame, so the reference
+keeps its nominal tilt.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares
+
+
+@dataclass(frozen=True)
+class TiltEstimate:
+    """Estimated tilts (degrees, one per view, the reference's as given), their one-sigma
+    uncertainty (degrees, 0 for the reference), per-view offsets (px, 0 for the reference) and
+    the RMS reprojection residual (px)."""
+
+    tilt_deg: np.ndarray
+    sigma_deg: np.ndarray
+    offsets_px: np.ndarray
+    residual_px: float
+
+
+def coefficients(tilt_deg, *, reference: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """(a_i, b_i) per view: disparity d_i = u·a_i + z·b_i + o_i (both 0 for the reference)."""
+    angles = np.radians(np.asarray(tilt_deg, np.float64))
+    cos_reference = np.cos(angles[reference])
+    return np.cos(angles) / cos_reference - 1.0, np.sin(angles - angles[reference]) / cos_reference
+
+
+def heights_px(x_px: np.ndarray, disparities_px: np.ndarray, tilt_deg, *, reference: int = 0, offsets_px=None) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares heights (px) of points seen at `x_px` in the reference (any shape, from the
+    tilt axis) from the disparities of every other view to the reference (views first:
+    (N, *shape), the reference's row ignored; NaN = unmatched), and the RMS residual per point
+    (px; NaN with fewer than two matched views)."""
+    a, b = coefficients(tilt_deg, reference=reference)
+    offsets = np.zeros(len(a)) if offsets_px is None else np.asarray(offsets_px, np.float64)
+    numerator = np.zeros(np.shape(x_px))
+    denominator = np.zeros(np.shape(x_px))
+    rests = []
+    for view in range(len(a)):
+        if view == reference:
+            continue
+        delta_sin = b[view]
+        rest = disparities_px[view] - x_px * a[view] - offsets[view]
+        known = np.isfinite(rest)
+        numerator += np.where(known, delta_sin * rest, 0.0)
+        denominator += np.where(known, delta_sin**2, 0.0)
+        rests.append((delta_sin, rest))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        z = np.where(denominator > 0, numerator / denominator, np.nan)
+        squares = sum(np.where(np.isfinite(rest), (rest - delta_sin * z) ** 2, 0.0) for delta_sin, rest in rests)
+        counts = sum(np.isfinite(rest).astype(int) for _, rest in rests)
+        residual = np.where(counts >= 2, np.sqrt(squares / np.maximum(counts, 1)), np.nan)
+    return z, residual
+
+
+def estimate_tilts(x_px: np.ndarray, disparities_px: np.ndarray, nominal_tilt_deg, *, reference: int = 0) -> TiltEstimate:
+    """Tilts of every view but the reference that minimize the reprojection residual of points
+    matched in all views: x_px (M,) where they appear in the reference, disparities_px (N, M) with
+    the reference's row ignored.
+    Starts from the nominal tilts. Offsets drop out by centring x and each view's disparities
+    (heights are relative), and are recovered afterwards for heights_px."""
+    nominal = np.asarray(nominal_tilt_deg, np.float64)
+    views = len(nominal)
+    if views < 3:
+        raise ValueError("tilt angles are observable from three or more views only")
+    others = [view for view in range(views) if view != reference]
+    known = np.all(np.isfinite(disparities_px[others]), axis=0)
+    if known.sum() < 100:
+        raise ValueError(f"only {known.sum()} points are matched in every view; at least 100 are needed")
+    x_mean = float(x_px[known].mean())
+    d_mean = disparities_px[:, known].mean(axis=1)
+    x = x_px[known] - x_mean
+    d = disparities_px[:, known] - d_mean[:, None]
+
+    def with_others(values) -> np.ndarray:
+        tilts = nominal.copy()
+        tilts[others] = values
+        return tilts
+
+    def residuals(values):
+        tilts = with_others(values)
+        z, _ = heights_px(x, d, tilts, reference=reference)
+        a, b = coefficients(tilts, reference=reference)
+        return np.concatenate([d[view] - x * a[view] - z * b[view] for view in others])
+
+    fit = least_squares(residuals, nominal[others], method="lm")
+    tilts = with_others(fit.x)
+    # Variable projection: the heights are solved inside, so the Jacobian covers the tilts alone.
+    dof = max(fit.fun.size - fit.x.size - x.size, 1)
+    variance = float(fit.fun @ fit.fun) / dof
+    sigma_deg = np.zeros(views)
+    try:
+        sigma_deg[others] = np.sqrt(np.clip(np.diag(np.linalg.inv(fit.jac.T @ fit.jac)) * variance, 0, None))
+    except np.linalg.LinAlgError:
+        sigma_deg[others] = np.inf
+    offsets = d_mean - x_mean * coefficients(tilts, reference=reference)[0]
+    offsets[reference] = 0.0
+    return TiltEstimate(tilts, sigma_deg, offsets, float(np.sqrt(np.mean(fit.fun**2))))
