@@ -50,7 +50,7 @@ def test_height_map_of_images_larger_than_four_mib_with_progress(client):
     "case, field",
     [
         ("mismatched sizes", "images[1]"),
-        ("equal tilts", "images[].tilt_deg"),
+        ("equal tilts", "images[1].tilt_deg"),
         ("missing tilt", "images[0].tilt_deg"),
         ("unreadable image", "images[0].image"),
         ("one image", "images"),

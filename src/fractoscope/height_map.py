@@ -8,11 +8,12 @@ formula, uncertainty, and the way back onto the first image's grid as stored.
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from fractoscope import alignment, dense_matching, stereo_geometry
+from fractoscope import alignment, dense_matching, stereo_geometry, tilt_series
 from fractoscope.errors import InvalidInputError
 from fractoscope.sem_image import SemImage
 
@@ -26,6 +27,7 @@ class MatchingOptions:
     min_confidence: float = 0.5
     max_lr_difference_px: float = 1.0
     tilt_uncertainty_deg: float = 0.5
+    calibrate_tilt: bool = False
 
 
 @dataclass(frozen=True)
@@ -54,102 +56,136 @@ def compute_height_map(
     options: MatchingOptions = MatchingOptions(),
     progress: dense_matching.ProgressCallback | None = None,
 ) -> HeightMapResult:
-    """Heights of the surface seen in `first`, from `first` and `second` taken at two stage tilts.
+    """Heights of the surface seen in `first`, from `first` and `second` taken at two stage tilts
+    (the two-view case of `compute_series_height_map`). Explicit `tilt_deg` entries and
+    `pixel_size_um` override what the files say."""
+    return compute_series_height_map(
+        [first, second], tilt_deg=tilt_deg, pixel_size_um=pixel_size_um, tilt_axis_deg=tilt_axis_deg, options=options, progress=progress
+    )
 
-    Explicit `tilt_deg` entries and `pixel_size_um` override what the files say.
-    """
+
+def compute_series_height_map(
+    images: Sequence[SemImage],
+    *,
+    tilt_deg: Sequence[float | None] | None = None,
+    pixel_size_um: float | None = None,
+    tilt_axis_deg: float = 90.0,
+    options: MatchingOptions = MatchingOptions(),
+    progress: dense_matching.ProgressCallback | None = None,
+) -> HeightMapResult:
+    """Heights of the surface seen in `images[0]` from a tilt series (two or more views about one
+    axis): every view is aligned to and densely matched with the first, and each pixel's height is
+    the least-squares solution over all views that matched it. With `options.calibrate_tilt` and
+    three or more views the tilts of all but the first are estimated from the images first
+    (see tilt_series). Explicit `tilt_deg` entries and `pixel_size_um` override the files."""
     started = time.perf_counter()
     report_progress = progress or (lambda fraction, message: None)
-    tilts = _resolve_tilts(first, second, tilt_deg)
-    pixel_size = _resolve_pixel_size(first, pixel_size_um)
-    _validate(first, second, tilt_axis_deg, options)
+    if len(images) < 2:
+        raise InvalidInputError("images", f"at least two images are needed, got {len(images)}")
+    if options.calibrate_tilt and len(images) < 3:
+        raise InvalidInputError("parameters.calibrate_tilt", "tilt calibration needs three or more images")
+    given = list(tilt_deg) if tilt_deg is not None else [None] * len(images)
+    if len(given) != len(images):
+        raise InvalidInputError("images[].tilt_deg", f"{len(given)} tilts for {len(images)} images")
+    nominal = [_resolve_tilt(image, explicit, index) for index, (image, explicit) in enumerate(zip(images, given))]
+    for index in range(1, len(images)):
+        stereo_geometry.validate_tilts((nominal[0], nominal[index]), field=f"images[{index}].tilt_deg")
+    pixel_size = _resolve_pixel_size(images[0], pixel_size_um)
+    for index in range(1, len(images)):
+        _validate(images[0], images[index], tilt_axis_deg, options, index=index)
 
-    bar_rows = max(first.data_bar_rows, second.data_bar_rows)
-    usable_rows = first.pixels.shape[0] - bar_rows
-    first_image = first.pixels[:usable_rows].astype(np.float32)
-    second_image = second.pixels[:usable_rows].astype(np.float32)
-
-    to_rectified, canvas = alignment.rotation_to_vertical_axis(first_image.shape, tilt_axis_deg)
+    bar_rows = max(image.data_bar_rows for image in images)
+    usable_rows = images[0].pixels.shape[0] - bar_rows
+    views = [image.pixels[:usable_rows].astype(np.float32) for image in images]
+    to_rectified, canvas = alignment.rotation_to_vertical_axis(views[0].shape, tilt_axis_deg)
     rotated = abs(tilt_axis_deg - 90.0) > 1e-9
+    outside = np.zeros(views[0].shape, bool)
     if rotated:
-        first_image = alignment.apply_affine(first_image, to_rectified, canvas, fill=np.nan)
-        second_image = alignment.apply_affine(second_image, to_rectified, canvas, fill=np.nan)
-        outside = np.isnan(first_image) | np.isnan(second_image)
-        fill = float(np.nanmean(first_image))
-        first_image, second_image = np.nan_to_num(first_image, nan=fill), np.nan_to_num(second_image, nan=fill)
-    report_progress(0.05, "aligning the pair")
+        views = [alignment.apply_affine(view, to_rectified, canvas, fill=np.nan) for view in views]
+        outside = np.any([np.isnan(view) for view in views], axis=0)
+        fill = float(np.nanmean(views[0]))
+        views = [np.nan_to_num(view, nan=fill) for view in views]
 
-    placement = alignment.estimate_alignment(first_image, second_image)
-    second_on_first = alignment.apply_affine(
-        second_image, alignment.second_to_first_matrix(placement, first_image.shape), first_image.shape, inverse=True
-    )
-    max_disparity = options.max_disparity_px
-    if max_disparity is None:
-        spread = placement.parallax_spread_px if np.isfinite(placement.parallax_spread_px) else first_image.shape[1] / 8
-        max_disparity = int(np.ceil(1.5 * spread + 8))
+    disparities = [np.zeros(views[0].shape, np.float32)]
+    sigmas, confidences, placements = [], [], []
+    for index in range(1, len(views)):
+        def matching_progress(fraction: float, message: str, index=index) -> None:
+            report_progress(0.05 + 0.8 * (index - 1 + fraction) / (len(views) - 1), f"view {index}: {message}")
 
-    def matching_progress(fraction: float, message: str) -> None:
-        report_progress(0.1 + 0.8 * fraction, message)
+        report_progress(0.05 + 0.8 * (index - 1) / (len(views) - 1), f"view {index}: aligning")
+        placement = alignment.estimate_alignment(views[0], views[index])
+        on_first = alignment.apply_affine(
+            views[index], alignment.second_to_first_matrix(placement, views[0].shape), views[0].shape, inverse=True
+        )
+        spread = placement.parallax_spread_px if np.isfinite(placement.parallax_spread_px) else views[0].shape[1] / 8
+        matched = dense_matching.match_disparity(
+            views[0], on_first, window_px=options.window_px,
+            max_disparity_px=options.max_disparity_px or int(np.ceil(1.5 * spread + 8)),
+            min_confidence=options.min_confidence, max_lr_difference_px=options.max_lr_difference_px,
+            progress=matching_progress,
+        )
+        disparities.append(matched.disparity_px + placement.shift_parallel_px)
+        sigmas.append(matched.sigma_px)
+        confidences.append(matched.confidence)
+        placements.append(placement)
+    disparities = np.stack(disparities)
+    x1_px = np.broadcast_to(np.arange(views[0].shape[1], dtype=np.float64)[None, :] - (views[0].shape[1] - 1) / 2.0, views[0].shape)
 
-    matched = dense_matching.match_disparity(
-        first_image,
-        second_on_first,
-        window_px=options.window_px,
-        max_disparity_px=max_disparity,
-        min_confidence=options.min_confidence,
-        max_lr_difference_px=options.max_lr_difference_px,
-        progress=matching_progress,
-    )
+    tilts, offsets, calibration = np.array(nominal), None, {}
+    if options.calibrate_tilt:
+        report_progress(0.87, "calibrating tilts")
+        sample = (slice(None, None, 4), slice(None, None, 4))  # sparse points: neighbours' errors correlate
+        estimate = tilt_series.estimate_tilts(x1_px[sample].ravel(), disparities[(slice(None), *sample)].reshape(len(views), -1), nominal)
+        tilts, offsets = estimate.tilt_deg, estimate.offsets_px
+        calibration = {"tilt_deg_nominal": list(nominal), "tilt_sigma_deg": estimate.sigma_deg.tolist(), "tilt_residual_px": estimate.residual_px}
     report_progress(0.92, "heights")
-    disparity = matched.disparity_px + placement.shift_parallel_px
-    x1_px = np.arange(first_image.shape[1], dtype=np.float64)[None, :] - (first_image.shape[1] - 1) / 2.0
-    z_um = stereo_geometry.heights_um(x1_px, disparity, tilt_deg=tilts, pixel_size_um=pixel_size)
-    sigma_um = stereo_geometry.height_sigma_um(
-        z_um,
-        matched.sigma_px,
-        tilt_deg=tilts,
-        pixel_size_um=pixel_size,
-        tilt_uncertainty_deg=options.tilt_uncertainty_deg,
-    )
-    confidence = matched.confidence
+    z_px, _ = tilt_series.heights_px(x1_px, disparities, tilts, offsets_px=offsets)
+    z_um = (z_px * pixel_size).astype(np.float32)
+    _, b = tilt_series.coefficients(tilts)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        information = sum(np.where(np.isfinite(sigma), (b[index + 1] / sigma) ** 2, 0.0) for index, sigma in enumerate(sigmas))
+        disparity_sigma_um = pixel_size / np.sqrt(information)
+    widest = (float(tilts[0]), float(tilts[np.argmax(np.abs(b))]))
+    tilt_uncertainty = max(calibration["tilt_sigma_deg"]) if calibration else options.tilt_uncertainty_deg
+    relative = stereo_geometry.relative_height_error_from_tilt(tilt_deg=widest, tilt_uncertainty_deg=tilt_uncertainty)
+    finite = np.isfinite(z_um)
+    reference_um = float(np.median(z_um[finite])) if finite.any() else 0.0
+    sigma_um = np.where(finite, np.hypot(disparity_sigma_um, relative * np.abs(z_um - reference_um)), np.nan).astype(np.float32)
+    confidence = np.nanmax(np.stack(confidences), axis=0)
     if rotated:
         z_um[outside] = np.nan
-        back = (first.pixels.shape[0] - bar_rows, first.pixels.shape[1])
+        back = (images[0].pixels.shape[0] - bar_rows, images[0].pixels.shape[1])
         z_um, sigma_um, confidence = (
             alignment.apply_affine(values.astype(np.float32), to_rectified, back, inverse=True, fill=np.nan)
             for values in (z_um, sigma_um, confidence)
         )
     z_um, sigma_um, confidence = (_pad_rows(values, bar_rows) for values in (z_um, sigma_um, confidence))
     valid = np.isfinite(z_um)
+    first_placement = placements[0]
     report = {
-        "tilt_deg": list(tilts),
+        "tilt_deg": [float(t) for t in tilts],
         "tilt_axis_deg": float(tilt_axis_deg),
         "pixel_size_um": pixel_size,
-        "shift_parallel_px": placement.shift_parallel_px,
-        "shift_across_px": placement.shift_across_px,
-        "rotation_deg": placement.rotation_deg,
-        "residual_vertical_parallax_px": placement.residual_vertical_parallax_px,
+        "shift_parallel_px": first_placement.shift_parallel_px,
+        "shift_across_px": first_placement.shift_across_px,
+        "rotation_deg": first_placement.rotation_deg,
+        "residual_vertical_parallax_px": max(p.residual_vertical_parallax_px for p in placements),
         "valid_fraction": float(valid.mean()),
-        "min_disparity_px": float(np.nanmin(disparity)) if np.isfinite(disparity).any() else float("nan"),
-        "max_disparity_px": float(np.nanmax(disparity)) if np.isfinite(disparity).any() else float("nan"),
+        "min_disparity_px": float(np.nanmin(disparities[1])) if np.isfinite(disparities[1]).any() else float("nan"),
+        "max_disparity_px": float(np.nanmax(disparities[1])) if np.isfinite(disparities[1]).any() else float("nan"),
         "data_bar_rows": int(bar_rows),
         "elapsed_s": time.perf_counter() - started,
+        **calibration,
     }
     report_progress(1.0, "done")
     return HeightMapResult(z_um, sigma_um, np.nan_to_num(confidence).astype(np.float32), report)
 
 
-def _resolve_tilts(first: SemImage, second: SemImage, tilt_deg) -> tuple[float, float]:
-    resolved = []
-    for index, (explicit, image) in enumerate(zip(tilt_deg, (first, second))):
-        value = explicit if explicit is not None else image.tilt_deg
-        if value is None:
-            raise InvalidInputError(
-                f"images[{index}].tilt_deg", "no tilt given and the image file carries no stage tilt metadata"
-            )
-        resolved.append(float(value))
-    stereo_geometry.validate_tilts(tuple(resolved), field="images[].tilt_deg")
-    return resolved[0], resolved[1]
+def _resolve_tilt(image: SemImage, explicit: float | None, index: int) -> float:
+    value = explicit if explicit is not None else image.tilt_deg
+    if value is None:
+        raise InvalidInputError(f"images[{index}].tilt_deg", "no tilt given and the image file carries no stage tilt metadata")
+    return float(value)
 
 
 def _resolve_pixel_size(first: SemImage, pixel_size_um: float | None) -> float:
@@ -159,10 +195,10 @@ def _resolve_pixel_size(first: SemImage, pixel_size_um: float | None) -> float:
     return stereo_geometry.validate_pixel_size_um(value)
 
 
-def _validate(first: SemImage, second: SemImage, tilt_axis_deg: float, options: MatchingOptions) -> None:
+def _validate(first: SemImage, second: SemImage, tilt_axis_deg: float, options: MatchingOptions, *, index: int = 1) -> None:
     if first.pixels.shape != second.pixels.shape:
         raise InvalidInputError(
-            "images[1]", f"size {second.pixels.shape[::-1]} differs from the first image's {first.pixels.shape[::-1]}"
+            f"images[{index}]", f"size {second.pixels.shape[::-1]} differs from the first image's {first.pixels.shape[::-1]}"
         )
     if not np.isfinite(tilt_axis_deg):
         raise InvalidInputError("tilt_axis_deg", f"must be finite, got {tilt_axis_deg}")
