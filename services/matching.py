@@ -6,7 +6,7 @@ import logging
 
 from fractoscope import wire
 from fractoscope.errors import InvalidInputError
-from fractoscope.height_map import MatchingOptions, compute_height_map
+from fractoscope.height_map import MatchingOptions, compute_series_height_map
 from fractoscope.sem_image import read_sem_image
 from fractoscope.services.errors import abort_with_error
 from fractoscope.services.progress import stream_progress
@@ -24,6 +24,7 @@ def options_from_message(parameters: matching_pb2.MatchingParameters) -> Matchin
         min_confidence=parameters.min_confidence or defaults.min_confidence,
         max_lr_difference_px=parameters.max_lr_difference_px or defaults.max_lr_difference_px,
         tilt_uncertainty_deg=parameters.tilt_uncertainty_deg or defaults.tilt_uncertainty_deg,
+        calibrate_tilt=parameters.calibrate_tilt,
     )
 
 
@@ -32,16 +33,15 @@ class MatchingServicer(matching_pb2_grpc.MatchingServiceServicer):
 
     def ComputeHeightMap(self, request, context):
         try:
-            if len(request.images) != 2:
-                raise InvalidInputError("images", f"exactly two images are needed, got {len(request.images)}")
+            if len(request.images) < 2:
+                raise InvalidInputError("images", f"at least two images are needed, got {len(request.images)}")
             images = [read_sem_image(item.image.content, field=f"images[{i}].image") for i, item in enumerate(request.images)]
             tilts = tuple(item.tilt_deg if item.HasField("tilt_deg") else None for item in request.images)
             options = options_from_message(request.parameters)
 
             def work(progress):
-                return compute_height_map(
-                    images[0],
-                    images[1],
+                return compute_series_height_map(
+                    images,
                     tilt_deg=tilts,
                     pixel_size_um=request.pixel_size_um if request.HasField("pixel_size_um") else None,
                     tilt_axis_deg=request.tilt_axis_deg if request.HasField("tilt_axis_deg") else 90.0,

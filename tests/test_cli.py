@@ -179,3 +179,23 @@ def test_demo_serves_until_stopped_and_then_exits_cleanly(tmp_path):
     finally:
         if process.poll() is None:
             process.kill()
+
+
+def test_height_of_a_tilt_series_with_calibrated_tilts(tmp_path):
+    from fractoscope import synthetic
+
+    surface = synthetic.self_affine_surface((320, 320), hurst=0.8, rms_um=2.5, seed=9)
+    images, _ = synthetic.render_tilt_series(surface, pixel_size_um=0.1, tilt_deg=(-5.0, 0.0, 5.0), output_shape=(256, 256), seed=9)
+    paths = []
+    for index, image in enumerate(images):
+        paths.append(tmp_path / f"view_{index}.tif")
+        tifffile.imwrite(paths[-1], image)
+    done = _run("height", *paths, "--tilt", -5, 0.4, 5.4, "--pixel-size-um", 0.1, "--calibrate-tilt", "-o", tmp_path / "h.npz")
+    assert done.returncode == 0, done.stderr
+    assert "tilts estimated" in done.stdout
+    with np.load(tmp_path / "h.npz") as arrays:
+        estimated = arrays["tilt_deg_estimated"]
+        assert arrays["z_um"].shape == (256, 256)
+    assert estimated[0] == -5.0 and np.abs(np.diff(estimated) - 5.0).max() < 0.2
+    too_few = _run("height", *paths[:2], "--calibrate-tilt", "-o", tmp_path / "x.npz")
+    assert too_few.returncode == 2 and "three or more" in too_few.stderr

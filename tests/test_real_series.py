@@ -45,3 +45,32 @@ def test_grain_stands_above_the_substrate_and_pairs_agree_within_five_percent(pa
 def test_substrate_is_flat(pairs):
     for height, residual, _ in pairs.values():
         assert np.median(np.abs(residual)) < 0.02 * height
+
+
+@pytest.fixture(scope="module")
+def calibrated(pollen_series):
+    from fractoscope.height_map import MatchingOptions, compute_series_height_map
+
+    results = {}
+    for views in [(2, 3, 4), (1, 3, 5)]:
+        images = [read_sem_image((pollen_series / f"pot_0{i}.tif").read_bytes()) for i in views]
+        results[views] = compute_series_height_map(images, options=MatchingOptions(calibrate_tilt=True))
+    return results
+
+
+def _grain_height(z):
+    rows, cols = np.indices(z.shape)
+    distance = np.hypot(rows - GRAIN_CENTRE_PX[0], cols - GRAIN_CENTRE_PX[1])
+    substrate = (distance > SUBSTRATE_FROM_PX) & np.isfinite(z)
+    return np.nanpercentile(np.where(distance < GRAIN_TOP_RADIUS_PX, z, np.nan), 99) - np.median(z[substrate])
+
+
+def test_calibrated_tilt_series_agree_on_tilt_steps_and_heights(calibrated):
+    narrow, wide = calibrated[(2, 3, 4)], calibrated[(1, 3, 5)]
+    assert narrow.report["tilt_deg_nominal"] == [-3.0, 0.0, 3.0]
+    # Both series see one stage: the estimated tilt per nominal degree agrees.
+    per_degree_narrow = np.diff(narrow.report["tilt_deg"]) / 3.0
+    per_degree_wide = np.diff(wide.report["tilt_deg"]) / 6.0
+    assert np.allclose(per_degree_narrow, per_degree_wide.mean(), rtol=0.03)
+    heights = _grain_height(narrow.z_um), _grain_height(wide.z_um)
+    assert abs(heights[0] - heights[1]) / heights[1] < 0.03

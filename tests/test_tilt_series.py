@@ -41,3 +41,38 @@ def test_two_views_cannot_be_calibrated():
     _, _, seen_first, disparities = _views(np.array([-5.0, 5.0]))
     with pytest.raises(ValueError, match="three or more"):
         tilt_series.estimate_tilts(seen_first, disparities, (-5.0, 5.0))
+
+
+def test_three_synthetic_sem_views_with_wrong_nominal_tilts():
+    """-5/0/+5 degree views of a known surface; the nominal tilts are off by up to 0.5 degree."""
+    from fractoscope import synthetic
+    from fractoscope.height_map import MatchingOptions, compute_series_height_map
+    from fractoscope.sem_image import SemImage
+
+    true = (-5.0, 0.0, 5.0)
+    surface = synthetic.self_affine_surface((704, 704), hurst=0.8, rms_um=2.5, seed=5)
+    images, truth = synthetic.render_tilt_series(surface, pixel_size_um=0.1, tilt_deg=true, output_shape=(640, 640), seed=5)
+    views = [SemImage(image, None, 0.1, 0) for image in images]
+    nominal = (-5.0, 0.5, 5.5)  # both tilt steps read 10 % large, as a stage readout may
+    wrong = compute_series_height_map(views, tilt_deg=nominal)
+    calibrated = compute_series_height_map(views, tilt_deg=nominal, options=MatchingOptions(calibrate_tilt=True))
+
+    report = calibrated.report
+    assert np.abs(np.diff(report["tilt_deg"]) - np.diff(true)).max() < 0.05
+    assert report["tilt_deg_nominal"] == list(nominal) and max(report["tilt_sigma_deg"]) < 0.05
+
+    def scale_and_rms_percent(z_um):
+        known = np.isfinite(z_um)
+        rows, cols = np.nonzero(known)
+        design = np.column_stack([truth[known], rows, cols, np.ones(known.sum())])
+        fit, *_ = np.linalg.lstsq(design, z_um[known], rcond=None)
+        design_plane = design[:, 1:]
+        error = z_um[known] - truth[known]
+        error -= design_plane @ np.linalg.lstsq(design_plane, error, rcond=None)[0]  # the frame's tilt is unobservable
+        return fit[0], 100 * np.sqrt(np.mean(error**2)) / np.ptp(truth)
+
+    wrong_scale, _ = scale_and_rms_percent(wrong.z_um)
+    scale, rms_percent = scale_and_rms_percent(calibrated.z_um)
+    assert abs(wrong_scale - 1) > 0.05  # the nominal tilts make every height ~6 % wrong
+    assert abs(scale - 1) < 0.01
+    assert rms_percent < 1.5

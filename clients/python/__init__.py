@@ -103,12 +103,17 @@ class FractoscopeClient:
         pixel_size_um: float | None = None,
         tilt_axis_deg: float | None = None,
         parameters: matching_pb2.MatchingParameters | None = None,
+        calibrate_tilt: bool = False,
         on_progress: ProgressCallback | None = None,
         request_id: str = "",
     ) -> HeightMap:
-        """Heights from images (paths or file bytes), reference first; tilts and pixel size default
-        to the files' metadata."""
+        """Heights from a pair or tilt series of images (paths or file bytes), reference first;
+        tilts and pixel size default to the files' metadata. With `calibrate_tilt` (three or more
+        images) the tilts are estimated from the images; the report then holds them in `tilt_deg`
+        with `tilt_deg_nominal`, `tilt_sigma_deg` and `tilt_residual_px`."""
         request = matching_pb2.ComputeHeightMapRequest(request_id=request_id, parameters=parameters)
+        if calibrate_tilt:
+            request.parameters.calibrate_tilt = True
         for index, image in enumerate(images):
             content = image if isinstance(image, bytes) else Path(image).read_bytes()
             name = "" if isinstance(image, bytes) else Path(image).name

@@ -70,13 +70,20 @@ def _existing_file(text: str) -> Path:
 
 
 def compute_height(client: FractoscopeClient, args, quiet: bool) -> HeightMap:
-    paths = [_existing_file(args.left), _existing_file(args.right)]
+    if len(args.images) < 2:
+        raise UsageError("give at least two images (a stereo pair or a tilt series)")
+    if args.tilt is not None and len(args.tilt) != len(args.images):
+        raise UsageError(f"--tilt needs one angle per image: {len(args.images)} images, {len(args.tilt)} tilts")
+    if args.calibrate_tilt and len(args.images) < 3:
+        raise UsageError("--calibrate-tilt needs three or more images")
+    paths = [_existing_file(image) for image in args.images]
     with progress_bar("matching", enabled=not quiet and _err.is_terminal) as advance:
         return client.compute_height_map(
             paths,
             tilt_deg=args.tilt,
             pixel_size_um=args.pixel_size_um,
             tilt_axis_deg=args.tilt_axis_deg,
+            calibrate_tilt=args.calibrate_tilt,
             on_progress=advance,
         )
 
@@ -86,7 +93,10 @@ def command_height(args) -> int:
         result = compute_height(client, args, quiet=args.json)
     out = Path(args.output)
     out.parent.mkdir(parents=True, exist_ok=True)
-    np.savez_compressed(out, z_um=result.z_um, sigma_um=result.sigma_um, confidence=result.confidence)
+    arrays = {"z_um": result.z_um, "sigma_um": result.sigma_um, "confidence": result.confidence}
+    if args.calibrate_tilt:
+        arrays["tilt_deg_estimated"] = np.array(result.report["tilt_deg"])
+    np.savez_compressed(out, **arrays)
     summary = {"output": str(out), **height_summary(result)}
     if args.png:
         plot_height_map(result, Path(args.png))
@@ -99,6 +109,11 @@ def command_height(args) -> int:
             f"heights {summary['z_min_um']:.3f} to {summary['z_max_um']:.3f} µm, "
             f"{100 * summary['valid_fraction']:.1f} % valid, median sigma {summary['median_sigma_um']:.3f} µm"
         )
+        if args.calibrate_tilt:
+            report = result.report
+            estimated = ", ".join(f"{t:+.3f} ± {s:.3f}" for t, s in zip(report["tilt_deg"], report["tilt_sigma_deg"]))
+            nominal = ", ".join(f"{t:+.2f}" for t in report["tilt_deg_nominal"])
+            print(f"tilts estimated {estimated} ° (nominal {nominal}; residual {report['tilt_residual_px']:.3f} px)")
     return 0
 
 
@@ -348,10 +363,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="fracto", description="Calibrated 3D fracture surfaces from SEM stereo pairs.")
     commands = parser.add_subparsers(dest="command", required=True)
 
-    height = commands.add_parser("height", help="height map of a stereo pair")
-    height.add_argument("left", help="reference image (TIFF or PNG); heights use its pixel grid")
-    height.add_argument("right", help="second image of the pair")
-    height.add_argument("--tilt", nargs=2, type=float, metavar=("T1", "T2"), help="stage tilts in degrees (default: metadata)")
+    height = commands.add_parser("height", help="height map of a stereo pair or a tilt series")
+    height.add_argument("images", nargs="+", metavar="IMAGE",
+                        help="the reference image (TIFF or PNG; heights use its pixel grid), then the other views")
+    height.add_argument("--tilt", nargs="+", type=float, metavar="T", help="stage tilts in degrees, one per image (default: metadata)")
+    height.add_argument("--calibrate-tilt", action="store_true",
+                        help="estimate the tilts from three or more images (the given or metadata tilts are the start)")
     height.add_argument("--pixel-size-um", type=float, help="pixel size in µm (default: metadata)")
     height.add_argument("--tilt-axis-deg", type=float, help="tilt axis direction in the image, degrees (default 90: vertical)")
     height.add_argument("-o", "--output", required=True, help="output .npz with z_um, sigma_um, confidence")

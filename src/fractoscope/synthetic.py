@@ -283,3 +283,24 @@ def render_multiscale_specimen(
     shrink = 1.0 - np.cos(np.radians(tilt_deg[0]))
     origin_col += ((canvas[1] - 1) / 2 - centre_col) * shrink
     return MultiscaleSpecimen(overview, roi, pixel_size_um, pixel_size_um / zoom, (float(origin_col), float(origin_row)), tilt_deg)
+
+
+def render_tilt_series(
+    z_um: np.ndarray,
+    *,
+    pixel_size_um: float,
+    tilt_deg: tuple[float, ...],
+    output_shape: tuple[int, int],
+    noise_fraction: float = 0.02,
+    seed: int = 0,
+) -> tuple[list[np.ndarray], np.ndarray]:
+    """Views of `z_um` at every tilt about a vertical axis (centre crops of `output_shape`), and the
+    truth: heights seen at each pixel of the first view, µm."""
+    views = [
+        render_sem_view(z_um, pixel_size_um=pixel_size_um, tilt_deg=t, noise_fraction=noise_fraction, seed=seed + i)
+        for i, t in enumerate(tilt_deg)
+    ]
+    rows, cols = z_um.shape
+    top, left = (rows - output_shape[0]) // 2, (cols - output_shape[1]) // 2
+    crop = (slice(top, top + output_shape[0]), slice(left, left + output_shape[1]))
+    return [view.image[crop] for view in views], views[0].z_seen_um[crop]
