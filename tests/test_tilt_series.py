@@ -76,3 +76,18 @@ def test_three_synthetic_sem_views_with_wrong_nominal_tilts():
     assert abs(wrong_scale - 1) > 0.05  # the nominal tilts make every height ~6 % wrong
     assert abs(scale - 1) < 0.01
     assert rms_percent < 1.5
+
+
+@pytest.mark.parametrize("true_axis_deg, given_axis_deg, warned", [(60.0, 60.0, False), (60.0, 64.0, True), (90.0, 87.0, True)])
+def test_tilt_axis_is_estimated_from_the_parallax_and_a_wrong_one_is_flagged(true_axis_deg, given_axis_deg, warned):
+    from conftest import fracture_pair
+    from fractoscope.height_map import compute_height_map
+    from fractoscope.sem_image import SemImage
+
+    pair = fracture_pair(tilt_axis_deg=true_axis_deg, seed=2)
+    result = compute_height_map(
+        SemImage(pair.first, None, None, 0), SemImage(pair.second, None, None, 0),
+        tilt_deg=(-5, 5), pixel_size_um=0.1, tilt_axis_deg=given_axis_deg,
+    )
+    assert result.report["tilt_axis_deg_estimated"] == pytest.approx(true_axis_deg, abs=1.0)
+    assert bool(result.report["warnings"]) == warned

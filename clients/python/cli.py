@@ -91,6 +91,8 @@ def compute_height(client: FractoscopeClient, args, quiet: bool) -> HeightMap:
 def command_height(args) -> int:
     with connected(args.server) as client:
         result = compute_height(client, args, quiet=args.json)
+    for warning in result.report.get("warnings", []):
+        print(f"warning: {warning}", file=sys.stderr)
     out = Path(args.output)
     out.parent.mkdir(parents=True, exist_ok=True)
     arrays = {"z_um": result.z_um, "sigma_um": result.sigma_um, "confidence": result.confidence}

@@ -31,6 +31,7 @@ class Alignment:
     parallax_spread_px: float
     matched_features: int
     scale: float = 1.0
+    parallax_direction_deg: float = float("nan")
 
 
 _NO_ALIGNMENT = Alignment(0.0, 0.0, 0.0, float("nan"), float("nan"), 0)
@@ -103,6 +104,7 @@ def estimate_alignment(
     parallax = parallax[np.abs(parallax - np.median(parallax)) < 8.0 * spread]
     low, median, high = np.percentile(parallax, [2, 50, 98])
     return Alignment(
+        parallax_direction_deg=_parallax_direction_deg(points2[inliers] - points1[inliers]),
         shift_parallel_px=float(median),
         shift_across_px=float(shift_across),
         rotation_deg=float(np.degrees(rotation)),
@@ -111,6 +113,19 @@ def estimate_alignment(
         matched_features=int(inliers.sum()),
         scale=float(magnification),
     )
+
+
+def _parallax_direction_deg(displacements: np.ndarray) -> float:
+    """Direction along which feature displacements vary (the parallax), degrees from the column
+    axis counter-clockwise as displayed, in (-90, 90]: 0 when the tilt axis is vertical as assumed."""
+    deviations = displacements - np.median(displacements, axis=0)
+    deviations = deviations[np.hypot(*deviations.T) < 8 * max(np.median(np.hypot(*deviations.T)), 0.1)]
+    if len(deviations) < 8:
+        return float("nan")
+    eigenvalues, eigenvectors = np.linalg.eigh(np.cov(deviations.T))
+    col, row = eigenvectors[:, np.argmax(eigenvalues)]
+    angle = np.degrees(np.arctan2(-row, col))  # rows grow downwards
+    return float((angle + 90.0) % 180.0 - 90.0)
 
 
 def second_to_first_matrix(alignment: Alignment, shape: tuple[int, int]) -> np.ndarray:

@@ -19,6 +19,9 @@ from fractoscope.errors import InvalidInputError
 from fractoscope.sem_image import SemImage
 
 
+AXIS_WARNING_DEG = 2.0
+
+
 @dataclass(frozen=True)
 class MatchingOptions:
     """Tuning of the matcher; see `dense_matching.match_disparity` for the meaning of each."""
@@ -168,6 +171,14 @@ def compute_series_height_map(
     z_um, sigma_um, confidence = (_pad_rows(values, bar_rows) for values in (z_um, sigma_um, confidence))
     valid = np.isfinite(z_um)
     first_placement = placements[0]
+    directions = [p.parallax_direction_deg for p in placements if np.isfinite(p.parallax_direction_deg)]
+    axis_estimated = float(tilt_axis_deg + np.median(directions)) if directions else float("nan")
+    warnings = []
+    if directions and abs(axis_estimated - tilt_axis_deg) > AXIS_WARNING_DEG:
+        warnings.append(
+            f"the parallax points to a tilt axis at {axis_estimated:.1f} degrees, {abs(axis_estimated - tilt_axis_deg):.1f} "
+            f"from the {tilt_axis_deg:g} used; heights may be wrong (give --tilt-axis-deg)"
+        )
     report = {
         "tilt_deg": [float(t) for t in tilts],
         "tilt_axis_deg": float(tilt_axis_deg),
@@ -182,6 +193,8 @@ def compute_series_height_map(
         "max_disparity_px": float(np.nanmax(disparities[1])) if np.isfinite(disparities[1]).any() else float("nan"),
         "data_bar_rows": int(bar_rows),
         "elapsed_s": time.perf_counter() - started,
+        "tilt_axis_deg_estimated": axis_estimated,
+        "warnings": warnings,
         **calibration,
     }
     report_progress(1.0, "done")

@@ -51,6 +51,6 @@ def report_to_message(report: dict) -> matching_pb2.MatchingReport:
 def message_to_report(message: matching_pb2.MatchingReport) -> dict:
     """A MatchingReport message to a plain dict (lists for repeated fields)."""
     report = {key: getattr(message, key) for key in REPORT_FIELDS}
-    for key in ("tilt_deg", "tilt_deg_nominal", "tilt_sigma_deg"):
+    for key in ("tilt_deg", "tilt_deg_nominal", "tilt_sigma_deg", "warnings"):
         report[key] = list(report[key])
     return report
