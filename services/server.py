@@ -3,7 +3,8 @@
 Configuration comes from flags, each with an environment variable as its default:
 FRACTO_ADDRESS (listen address), FRACTO_MAX_MESSAGE_MB (largest message either way),
 FRACTO_WORKERS (concurrent calls), FRACTO_LOG_LEVEL, FRACTO_DATA_DIR (where specimens are kept),
-FRACTO_SERVICES_ADDRESS (matching and meshing for the tile service; default: this server),
+FRACTO_MATCHING_ADDRESS and FRACTO_MESHING_ADDRESS (the services the tile service calls; default:
+this server),
 FRACTO_HTTP_ADDRESS (host:port of the plain-HTTP tile endpoint; empty = off).
 """
 
@@ -47,11 +48,12 @@ def create_server(
     max_message_mb: int = DEFAULT_MAX_MESSAGE_MB,
     workers: int = 8,
     data_dir: str | Path = DEFAULT_DATA_DIR,
-    services_address: str | None = None,
+    matching_address: str | None = None,
+    meshing_address: str | None = None,
 ) -> tuple[grpc.Server, int]:
     """A server with the named services, health and reflection, bound to `address`; returns it
     (not started) with the bound port. The tile service keeps specimens under `data_dir` and calls
-    matching and meshing at `services_address` (default: this server on loopback)."""
+    matching and meshing at their addresses (default: this server on loopback)."""
     server = grpc.server(futures.ThreadPoolExecutor(max_workers=workers), options=message_size_options(max_message_mb))
     health_servicer = health.HealthServicer()
     health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
@@ -61,7 +63,7 @@ def create_server(
             raise ValueError(f"unknown service {name!r}; known: {', '.join(_SERVICES)}")
         descriptor, add = _SERVICES[name]
         if name == "tiles":
-            tile_servicer = TileServicer(SpecimenStore(Path(data_dir)), services_address=services_address)
+            tile_servicer = TileServicer(SpecimenStore(Path(data_dir)), matching_address=matching_address, meshing_address=meshing_address)
             add(tile_servicer, server)
         else:
             add(MatchingServicer() if name == "matching" else MeshingServicer(), server)
@@ -72,8 +74,9 @@ def create_server(
     port = server.add_insecure_port(address)
     if port == 0:
         raise RuntimeError(f"cannot bind {address}")
-    if "tiles" in services and services_address is None:
-        tile_servicer.services_address = f"127.0.0.1:{port}"
+    if "tiles" in services:
+        tile_servicer.matching_address = matching_address or f"127.0.0.1:{port}"
+        tile_servicer.meshing_address = meshing_address or f"127.0.0.1:{port}"
     return server, port
 
 
@@ -101,7 +104,8 @@ def configure_logging(level: str) -> None:
     logging.basicConfig(level=level.upper(), handlers=[handler], force=True)
 
 
-def main(argv: list[str] | None = None) -> None:
+def build_parser() -> argparse.ArgumentParser:
+    """fracto-server's flags, each defaulting to its environment variable."""
     parser = argparse.ArgumentParser(prog="fracto-server", description="Serve Fractoscope's gRPC services.")
     parser.add_argument("--address", default=os.environ.get("FRACTO_ADDRESS", "[::]:50051"))
     parser.add_argument("--services", default=os.environ.get("FRACTO_SERVICES", ",".join(_SERVICES)),
@@ -110,17 +114,24 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--workers", type=int, default=int(os.environ.get("FRACTO_WORKERS", "8")))
     parser.add_argument("--log-level", default=os.environ.get("FRACTO_LOG_LEVEL", "INFO"))
     parser.add_argument("--data", default=os.environ.get("FRACTO_DATA_DIR", DEFAULT_DATA_DIR), help="specimen directory")
-    parser.add_argument("--services-address", default=os.environ.get("FRACTO_SERVICES_ADDRESS") or None,
-                        help="matching and meshing server for the tile service (default: this one)")
+    parser.add_argument("--matching-address", default=os.environ.get("FRACTO_MATCHING_ADDRESS") or None,
+                        help="matching service for the tile service, e.g. dns:///matching:50051 (default: this server)")
+    parser.add_argument("--meshing-address", default=os.environ.get("FRACTO_MESHING_ADDRESS") or None,
+                        help="meshing service for the tile service (default: this server)")
     parser.add_argument("--http-address", default=os.environ.get("FRACTO_HTTP_ADDRESS", "0.0.0.0:8080"),
                         help="host:port of the HTTP tile endpoint; empty = off")
     parser.add_argument("--grace-s", type=float, default=30.0, help="seconds in-flight calls get on SIGTERM")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = build_parser()
     args = parser.parse_args(argv)
     configure_logging(args.log_level)
     services = tuple(name.strip() for name in args.services.split(",") if name.strip())
     server, port = create_server(
         args.address, services=services, max_message_mb=args.max_message_mb, workers=args.workers,
-        data_dir=args.data, services_address=args.services_address,
+        data_dir=args.data, matching_address=args.matching_address, meshing_address=args.meshing_address,
     )
     server.start()
     log = logging.getLogger("fractoscope.server")

@@ -15,6 +15,7 @@ import hashlib
 import json
 import logging
 import math
+import os
 import re
 import threading
 from functools import partial
@@ -37,11 +38,10 @@ _TYPES = {
     ".js": "text/javascript", ".css": "text/css", ".svg": "image/svg+xml",
 }
 _REPOSITORY = Path(__file__).resolve().parents[1]
-WEB_ROOT = _REPOSITORY / "clients" / "web"
-VENDOR_ROOTS = {
-    "three": _REPOSITORY / "node_modules" / "three",
-    "3d-tiles-renderer": _REPOSITORY / "node_modules" / "3d-tiles-renderer",
-}
+# From a checkout these are the repository's; an installed image says where via the environment.
+WEB_ROOT = Path(os.environ.get("FRACTO_WEB_ROOT", _REPOSITORY / "clients" / "web"))
+_VENDOR = Path(os.environ.get("FRACTO_VENDOR_ROOT", _REPOSITORY / "node_modules"))
+VENDOR_ROOTS = {"three": _VENDOR / "three", "3d-tiles-renderer": _VENDOR / "3d-tiles-renderer"}
 _STATIC = re.compile(r"^/(?P<area>viewer|vendor)/(?P<path>[A-Za-z0-9_./-]*)$")
 _API = re.compile(r"^/api/specimens(?:/(?P<specimen>[A-Za-z0-9_-]{1,64})(?:/(?P<query>profile|roughness))?)?$")
 

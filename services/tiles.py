@@ -23,12 +23,17 @@ _ZOOM_KINDS = {tileset.OPTICAL: tiles_pb2.ZOOM_KIND_OPTICAL, tileset.DIGITAL: ti
 
 class TileServicer(tiles_pb2_grpc.TileServiceServicer):
     """Thin wrappers over reconstruction, the specimen store and the analysis modules. Matching and
-    meshing run on the services at `services_address` (set once the server knows its own port when
-    they run in the same process)."""
+    meshing run on the services at `matching_address` and `meshing_address` (gRPC targets; a
+    `dns:///` name of several replicas is balanced round-robin); None means this server, filled in
+    once it knows its port. Every call to them has a deadline of `call_timeout_s`."""
 
-    def __init__(self, store: SpecimenStore, *, services_address: str | None = None, call_timeout_s: float = 1800.0):
+    def __init__(
+        self, store: SpecimenStore, *, matching_address: str | None = None, meshing_address: str | None = None,
+        call_timeout_s: float = 1800.0,
+    ):
         self.store = store
-        self.services_address = services_address
+        self.matching_address = matching_address
+        self.meshing_address = meshing_address
         self.call_timeout_s = call_timeout_s
 
     def ReconstructSpecimen(self, request, context):
@@ -43,13 +48,16 @@ class TileServicer(tiles_pb2_grpc.TileServiceServicer):
             specs = {spec.id: (index, spec) for index, spec in enumerate(request.rois)}
 
             def work(progress):
-                with FractoscopeClient(self.services_address, timeout_s=self.call_timeout_s) as client:
+                with (
+                    FractoscopeClient(self.matching_address, timeout_s=self.call_timeout_s) as matching,
+                    FractoscopeClient(self.meshing_address, timeout_s=self.call_timeout_s) as meshing,
+                ):
                     def measure(roi: RoiRequest) -> MeasuredHeights:
                         index, spec = specs[roi.id]
-                        return _measure(client, spec, index, request.request_id)
+                        return _measure(matching, spec, index, request.request_id)
 
                     def mesh_tile(z_um, texture, cell_um, origin_um) -> bytes:
-                        tiles, _ = client.build_mesh(z_um, texture, pixel_size_um=cell_um, origin_um=origin_um, level_count=1)
+                        tiles, _ = meshing.build_mesh(z_um, texture, pixel_size_um=cell_um, origin_um=origin_um, level_count=1)
                         return tiles[0].glb
 
                     return reconstruct_specimen(

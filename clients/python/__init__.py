@@ -76,11 +76,28 @@ _ROUGHNESS_NAMES = {
 }
 
 
+# Every call of the API is idempotent (reconstructions per request id), so calls that fail with
+# UNAVAILABLE (a replica restarting) are retried with backoff; several resolved addresses (a
+# `dns:///` name of replicas) are used round-robin.
+_SERVICE_CONFIG = json.dumps({
+    "loadBalancingConfig": [{"round_robin": {}}],
+    "methodConfig": [{
+        "name": [{"service": f"fractoscope.v1.{name}"} for name in ("MatchingService", "MeshingService", "TileService")],
+        "retryPolicy": {
+            "maxAttempts": 4, "initialBackoff": "0.2s", "maxBackoff": "2s", "backoffMultiplier": 2,
+            "retryableStatusCodes": ["UNAVAILABLE"],
+        },
+    }],
+})
+
+
 class FractoscopeClient:
     """Typed methods over one channel to a Fractoscope server."""
 
     def __init__(self, address: str, *, max_message_mb: int = DEFAULT_MAX_MESSAGE_MB, timeout_s: float | None = 3600.0):
-        self._channel = grpc.insecure_channel(address, options=message_size_options(max_message_mb))
+        self._channel = grpc.insecure_channel(
+            address, options=message_size_options(max_message_mb) + [("grpc.service_config", _SERVICE_CONFIG), ("grpc.enable_retries", 1)]
+        )
         self._matching = matching_pb2_grpc.MatchingServiceStub(self._channel)
         self._meshing = meshing_pb2_grpc.MeshingServiceStub(self._channel)
         self._tiles = tiles_pb2_grpc.TileServiceStub(self._channel)

@@ -1,0 +1,108 @@
+"""Deployment files, checked against what the server accepts, and the services split into three
+processes on loopback as the compose file and the Kubernetes manifests run them."""
+
+from __future__ import annotations
+
+import os
+import shlex
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+
+from fractoscope.client import FractoscopeClient
+from fractoscope.client.demo import write_multiscale_specimen
+from fractoscope.client.manifest import load_manifest
+from fractoscope.services.server import _SERVICES, build_parser
+
+DEPLOY = Path(__file__).resolve().parents[1] / "deploy"
+
+
+def _k8s_documents() -> list[dict]:
+    kustomization = yaml.safe_load((DEPLOY / "k8s" / "kustomization.yaml").read_text())
+    documents = []
+    for resource in kustomization["resources"]:
+        documents += [d for d in yaml.safe_load_all((DEPLOY / "k8s" / resource).read_text()) if d]
+    return documents
+
+
+def test_kubernetes_deployments_are_probed_limited_and_unprivileged():
+    documents = _k8s_documents()
+    deployments = [d for d in documents if d["kind"] == "Deployment"]
+    services = {d["metadata"]["name"]: d for d in documents if d["kind"] == "Service"}
+    assert {d["metadata"]["name"] for d in deployments} == set(_SERVICES)
+    for deployment in deployments:
+        pod = deployment["spec"]["template"]["spec"]
+        assert pod["securityContext"]["runAsNonRoot"] is True
+        (container,) = pod["containers"]
+        assert container["image"] == "fractoscope"
+        assert container["securityContext"]["readOnlyRootFilesystem"] is True
+        assert container["readinessProbe"]["grpc"]["port"] == 50051
+        assert {"grpc": 50051} == {p["name"]: p["containerPort"] for p in container["ports"] if p["name"] == "grpc"}
+        assert container["resources"]["requests"]["cpu"] and container["resources"]["limits"]["memory"]
+        args = build_parser().parse_args(container["args"])  # the real server accepts them
+        assert args.services == deployment["metadata"]["name"]
+        for variable in container.get("env", []):
+            if variable["name"].endswith("_ADDRESS"):
+                host = variable["value"].removeprefix("dns:///").split(".")[0]
+                assert host in services and services[host]["spec"].get("clusterIP") == "None"  # headless: round-robin
+        selector = services[deployment["metadata"]["name"]]["spec"]["selector"]
+        assert selector.items() <= deployment["spec"]["template"]["metadata"]["labels"].items()
+    assert next(d for d in deployments if d["metadata"]["name"] == "matching")["spec"]["replicas"] >= 2
+
+
+def test_compose_and_image_run_the_server_as_a_user():
+    compose = yaml.safe_load((DEPLOY / "compose.yaml").read_text())
+    assert set(compose["services"]) == set(_SERVICES)
+    for name, service in compose["services"].items():
+        args = build_parser().parse_args(service["command"])
+        assert args.services == name
+    dockerfile = (DEPLOY / "Dockerfile").read_text()
+    assert dockerfile.count("\nFROM ") + dockerfile.startswith("FROM ") >= 2  # multi-stage
+    assert "\nUSER 10001" in dockerfile and 'ENTRYPOINT ["fracto-server"]' in dockerfile
+
+
+def _free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+def _healthy(address: str) -> bool:
+    return subprocess.run([sys.executable, "-m", "fractoscope.services.healthcheck", address], capture_output=True).returncode == 0
+
+
+def test_three_processes_build_a_specimen_and_answer_health_checks(tmp_path):
+    ports = {name: _free_port() for name in _SERVICES}
+    commands = {
+        "matching": ["--services", "matching", "--http-address", ""],
+        "meshing": ["--services", "meshing", "--http-address", ""],
+        "tiles": ["--services", "tiles", "--http-address", "", "--data", str(tmp_path / "data"),
+                  "--matching-address", f"dns:///127.0.0.1:{ports['matching']}", "--meshing-address", f"127.0.0.1:{ports['meshing']}"],
+    }
+    environment = {**os.environ, "GRPC_VERBOSITY": "ERROR"}
+    processes = [
+        subprocess.Popen([sys.executable, "-m", "fractoscope.services.server", "--address", f"127.0.0.1:{ports[name]}", *args],
+                         env=environment, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        for name, args in commands.items()
+    ]
+    try:
+        deadline = time.monotonic() + 60
+        while not all(_healthy(f"127.0.0.1:{port}") for port in ports.values()):
+            assert time.monotonic() < deadline, "servers did not become healthy: " + shlex.join(map(str, commands))
+            time.sleep(0.5)
+        write_multiscale_specimen(tmp_path / "input")
+        specimen_id, rois = load_manifest(tmp_path / "input" / "manifest.json")
+        with FractoscopeClient(f"127.0.0.1:{ports['tiles']}", timeout_s=300) as client:
+            summary = client.reconstruct_specimen(specimen_id, rois)
+        assert [roi["id"] for roi in summary["rois"]] == ["overview", "zoom"]
+        assert not _healthy(f"127.0.0.1:{_free_port()}")
+    finally:
+        for process in processes:
+            process.terminate()
+        for process in processes:
+            assert process.wait(timeout=60) == 0  # SIGTERM: graceful stop
