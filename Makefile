@@ -16,7 +16,7 @@ PORT ?= 8080
 GRPC_PORT ?= 50051
 CHROMIUM := /usr/bin/chromium
 
-.PHONY: install proto run test bench lint clean
+.PHONY: install proto run test bench load lint clean
 
 ## install: create .venv with every dependency, generate the gRPC stubs, install the JS tools
 install: $(STAMP) $(NODE_STAMP)
@@ -63,6 +63,10 @@ bench: install
 	$(BIN)/python -m benchmarks.matching --out bench-results
 	$(BIN)/python -m benchmarks.meshing --out bench-results
 	$(BIN)/python -m benchmarks.serving --out bench-results
+
+## load: tiles over gRPC and HTTP and profile queries at concurrency 50 for 60 s each, into bench-results/load.json
+load: install
+	$(BIN)/python -m benchmarks.serving --out bench-results --name load --concurrency 50 --duration-s 60
 
 lint: install
 	$(BIN)/python -m compileall -q src services clients tests

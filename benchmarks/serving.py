@@ -1,7 +1,9 @@
-"""`make bench` (serving): tile requests over gRPC and over HTTP, and profile queries, each at
-concurrency 32 on loopback against a `fracto-server` process holding the multi-scale demo specimen.
+"""`make bench` (serving) and `make load`: tile requests over gRPC and over HTTP, and profile
+queries, each at a fixed concurrency (32 for the bench, 50 for 60 s for the load test) on loopback
+against a `fracto-server` process holding the multi-scale demo specimen, with the server's
+resident memory before and after each phase.
 
-Writes bench-results/serving.json and prints a table. The load comes from Python threads in this
+Writes bench-results/NAME.json (serving or load) and prints a table. The load comes from Python threads in this
 process (one channel or keep-alive connection per worker), so the figures are a floor set partly
 by the load generator itself.
 """
@@ -78,6 +80,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--out", default="bench-results")
     parser.add_argument("--duration-s", type=float, default=DURATION_S)
+    parser.add_argument("--concurrency", type=int, default=CONCURRENCY)
+    parser.add_argument("--name", default="serving", help="results file name (without .json)")
     args = parser.parse_args()
     work = Path(tempfile.mkdtemp(prefix="fracto-bench-"))
     write_multiscale_specimen(work / "input")
@@ -97,8 +101,8 @@ def main() -> None:
             reconstruct_s = time.perf_counter() - started
             tileset = client.get_tileset(specimen_id)
         uris = _uris(tileset["root"])
-        clients = [FractoscopeClient(address, timeout_s=30) for _ in range(CONCURRENCY)]
-        connections = [http.client.HTTPConnection("127.0.0.1", http_port, timeout=30) for _ in range(CONCURRENCY)]
+        clients = [FractoscopeClient(address, timeout_s=30) for _ in range(args.concurrency)]
+        connections = [http.client.HTTPConnection("127.0.0.1", http_port, timeout=30) for _ in range(args.concurrency)]
         rng = np.random.default_rng(0)
         lines = [((float(x0), float(y0)), (float(x1), float(y1))) for x0, y0, x1, y1 in rng.uniform(0, 511, size=(256, 4))]
 
@@ -116,14 +120,11 @@ def main() -> None:
         def profile(worker: int, index: int) -> None:
             clients[worker].profile(specimen_id, list(lines[(worker * 11 + index) % len(lines)]))
 
-        results = {
-            "reconstruct_s": reconstruct_s,
-            "tiles": len(uris),
-            "grpc_get_tile": load(grpc_tile, concurrency=CONCURRENCY, duration_s=args.duration_s),
-            "http_get_tile": load(http_tile, concurrency=CONCURRENCY, duration_s=args.duration_s),
-            "grpc_profile": load(profile, concurrency=CONCURRENCY, duration_s=args.duration_s),
-            "cpu_count": os.cpu_count(),
-        }
+        results = {"reconstruct_s": reconstruct_s, "tiles": len(uris), "cpu_count": os.cpu_count()}
+        for name, worker in (("grpc_get_tile", grpc_tile), ("http_get_tile", http_tile), ("grpc_profile", profile)):
+            before_mb = _rss_mb(server.pid)
+            results[name] = load(worker, concurrency=args.concurrency, duration_s=args.duration_s)
+            results[name].update(server_rss_before_mb=before_mb, server_rss_after_mb=_rss_mb(server.pid))
         for client in clients:
             client.close()
     finally:
@@ -131,12 +132,14 @@ def main() -> None:
         server.wait(timeout=30)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "serving.json").write_text(json.dumps(results, indent=1))
+    (out / f"{args.name}.json").write_text(json.dumps(results, indent=1))
     print(f"specimen: {results['tiles']} tiles, reconstructed in {reconstruct_s:.1f} s")
-    print(f"{'query':16} {'req/s':>8} {'p50 ms':>8} {'p99 ms':>8} {'errors':>7}")
+    print(f"concurrency {args.concurrency}, {args.duration_s:g} s per query")
+    print(f"{'query':16} {'req/s':>8} {'p50 ms':>8} {'p99 ms':>8} {'errors':>7} {'server MB before/after':>24}")
     for name in ("grpc_get_tile", "http_get_tile", "grpc_profile"):
         row = results[name]
-        print(f"{name:16} {row['requests_per_s']:8.0f} {row['p50_ms']:8.2f} {row['p99_ms']:8.2f} {row['errors']:7d}")
+        memory = f"{row['server_rss_before_mb']:.0f} / {row['server_rss_after_mb']:.0f}"
+        print(f"{name:16} {row['requests_per_s']:8.0f} {row['p50_ms']:8.2f} {row['p99_ms']:8.2f} {row['errors']:7d} {memory:>24}")
 
 
 def _wait_until_serving(client: FractoscopeClient, timeout_s: float = 60.0) -> None:
@@ -149,6 +152,14 @@ def _wait_until_serving(client: FractoscopeClient, timeout_s: float = 60.0) -> N
             if time.monotonic() > deadline:
                 raise
             time.sleep(0.2)
+
+
+def _rss_mb(pid: int) -> float:
+    """Resident memory of a process, MB (Linux /proc)."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    return float("nan")
 
 
 def _uris(node: dict) -> list[str]:
