@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import io
 import logging
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -21,6 +22,8 @@ from fractoscope.errors import InvalidInputError
 # them would only repeat that on the server's stderr.
 logging.getLogger("tifffile").setLevel(logging.CRITICAL)
 
+# Largest image accepted, pixels: a small file may declare a huge image (a decompression bomb).
+MAX_IMAGE_PIXELS = int(os.environ.get("FRACTO_MAX_IMAGE_PIXELS", 16384 * 16384))
 _LENGTH_TO_UM = {"pm": 1e-6, "nm": 1e-3, "µm": 1.0, "um": 1.0, "μm": 1.0, "mm": 1e3, "m": 1e6}
 
 
@@ -65,9 +68,12 @@ def read_sem_image(content: bytes, *, field: str = "image") -> SemImage:
 def _read_png(content: bytes, field: str) -> np.ndarray:
     try:
         with Image.open(io.BytesIO(content)) as picture:
+            _check_size(picture.size[::-1], field)
             if picture.mode in ("RGB", "RGBA", "P", "LA"):
                 picture = picture.convert("L")
             pixels = np.asarray(picture)
+    except InvalidInputError:
+        raise
     except Exception as exc:  # Pillow raises many types for corrupt files
         raise InvalidInputError(field, f"unreadable PNG, corrupt or truncated ({type(exc).__name__}: {exc})") from None
     return _as_grey_integer(pixels, field)
@@ -77,6 +83,7 @@ def _read_tiff(content: bytes, field: str):
     try:
         with tifffile.TiffFile(io.BytesIO(content)) as tiff:
             page = tiff.pages.first
+            _check_size(page.shape[:2], field)
             pixels = page.asarray()
             if page.photometric == tifffile.PHOTOMETRIC.PALETTE and page.colormap is not None:
                 pixels = _palette_to_grey(pixels, page.colormap)
@@ -95,6 +102,12 @@ def _read_tiff(content: bytes, field: str):
         bar_rows = pixels.shape[0] - image_rows if image_rows and 0 < image_rows < pixels.shape[0] else None
         return pixels, tilt_deg, pixel_size_um, bar_rows
     return pixels, None, None, None
+
+
+def _check_size(shape, field: str) -> None:
+    rows, cols = (int(v) for v in shape[:2])
+    if rows * cols > MAX_IMAGE_PIXELS:
+        raise InvalidInputError(field, f"{cols}x{rows} pixels is larger than the limit of {MAX_IMAGE_PIXELS} (FRACTO_MAX_IMAGE_PIXELS)")
 
 
 def _palette_to_grey(indices: np.ndarray, colormap: np.ndarray) -> np.ndarray:

@@ -1,0 +1,114 @@
+"""Fuzzing: random requests and damaged image files get a clear status, never a crash or a hang."""
+
+from __future__ import annotations
+
+import io
+
+import grpc
+import numpy as np
+import pytest
+import tifffile
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from fractoscope.client import ClientError
+from fractoscope.errors import InvalidInputError
+from fractoscope.sem_image import read_sem_image
+from fractoscope.v1 import common_pb2, matching_pb2, tiles_pb2
+
+FUZZ = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+EXPECTED = {grpc.StatusCode.INVALID_ARGUMENT, grpc.StatusCode.NOT_FOUND, grpc.StatusCode.FAILED_PRECONDITION}
+
+
+def _valid_tiff() -> bytes:
+    buffer = io.BytesIO()
+    tifffile.imwrite(buffer, (np.arange(64 * 64) % 251).astype(np.uint8).reshape(64, 64), compression="zlib")
+    return buffer.getvalue()
+
+
+@FUZZ
+@given(data=st.data())
+def test_damaged_image_files_are_rejected_cleanly(data):
+    original = _valid_tiff()
+    kind = data.draw(st.sampled_from(["truncate", "flip", "random"]))
+    if kind == "truncate":
+        content = original[: data.draw(st.integers(0, len(original) - 1))]
+    elif kind == "flip":
+        damaged = bytearray(original)
+        for index in data.draw(st.lists(st.integers(0, len(original) - 1), min_size=1, max_size=20)):
+            damaged[index] ^= data.draw(st.integers(1, 255))
+        content = bytes(damaged)
+    else:
+        content = data.draw(st.sampled_from([b"II*\x00", b"\x89PNG\r\n\x1a\n", b""])) + data.draw(st.binary(max_size=2000))
+    try:
+        image = read_sem_image(content)
+    except InvalidInputError as error:
+        assert error.field == "image" and str(error)
+    else:
+        assert image.pixels.ndim == 2  # a flip that left a readable image
+
+
+def test_a_huge_declared_image_is_refused_before_decoding(monkeypatch):
+    from fractoscope import sem_image
+
+    monkeypatch.setattr(sem_image, "MAX_IMAGE_PIXELS", 1000)
+    with pytest.raises(InvalidInputError, match="larger than the limit"):
+        read_sem_image(_valid_tiff())
+
+
+finite_or_not = st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.sampled_from([0.0, -1.0, 1e300, float("nan")]))
+
+
+@FUZZ
+@given(
+    tilts=st.lists(finite_or_not, min_size=0, max_size=4),
+    pixel_size=finite_or_not,
+    axis=finite_or_not,
+    window=st.integers(-5, 300),
+    confidence=finite_or_not,
+    images=st.integers(0, 4),
+)
+def test_random_matching_requests_get_a_status_naming_the_problem(client, tilts, pixel_size, axis, window, confidence, images):
+    image = _valid_tiff()
+    request_images = [matching_pb2.TiltImage(image=common_pb2.ImageFile(content=image)) for _ in range(images)]
+    for item, tilt in zip(request_images, tilts):
+        item.tilt_deg = tilt
+    request = matching_pb2.ComputeHeightMapRequest(
+        images=request_images, pixel_size_um=pixel_size, tilt_axis_deg=axis,
+        parameters=matching_pb2.MatchingParameters(window_px=window, min_confidence=confidence),
+    )
+    try:
+        for _ in client._matching.ComputeHeightMap(request, timeout=60):
+            pass
+    except grpc.RpcError as error:
+        assert error.code() in EXPECTED, (error.code(), error.details())
+        assert error.details()
+
+
+@FUZZ
+@given(
+    specimen=st.text(max_size=80),
+    uri=st.text(max_size=80),
+    coordinates=st.lists(finite_or_not, min_size=4, max_size=4),
+    magnification=finite_or_not,
+)
+def test_random_tile_queries_get_a_status_naming_the_problem(client, specimen, uri, coordinates, magnification):
+    calls = [
+        lambda: client.get_tile(specimen, uri),
+        lambda: client.zoom(specimen, tuple(coordinates), magnification=magnification),
+        lambda: client.profile(specimen, [tuple(coordinates[:2]), tuple(coordinates[2:])], magnification=magnification),
+        lambda: client.roughness(specimen, region_um=tuple(coordinates)),
+    ]
+    for call in calls:
+        with pytest.raises(ClientError) as caught:  # no specimens exist on this server
+            call()
+        assert caught.value.code in EXPECTED and str(caught.value)
+
+
+def test_path_tricks_in_roi_ids_are_refused(client):
+    pair = [matching_pb2.TiltImage(image=common_pb2.ImageFile(content=_valid_tiff()))] * 2
+    request = tiles_pb2.ReconstructSpecimenRequest(specimen_id="x", rois=[tiles_pb2.RoiSpec(id="a/b", images=pair)])
+    with pytest.raises(grpc.RpcError) as caught:
+        for _ in client._tiles.ReconstructSpecimen(request, timeout=30):
+            pass
+    assert caught.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "rois[0].id" in caught.value.details()
