@@ -9,7 +9,7 @@ from google.protobuf import any_pb2
 from google.rpc import code_pb2, error_details_pb2, status_pb2
 from grpc_status import rpc_status
 
-from fractoscope.errors import CancelledError, FractoscopeError, InvalidInputError, NotFoundError
+from fractoscope.errors import CancelledError, FractoscopeError, InvalidInputError, NotFoundError, UnavailableError
 
 _log = logging.getLogger("fractoscope.services")
 
@@ -23,6 +23,8 @@ def abort_with_error(context: grpc.ServicerContext, error: Exception) -> None:
         status = status_pb2.Status(code=code_pb2.INVALID_ARGUMENT, message=str(error), details=[detail])
     elif isinstance(error, NotFoundError):
         status = status_pb2.Status(code=code_pb2.NOT_FOUND, message=str(error))
+    elif isinstance(error, UnavailableError):
+        status = status_pb2.Status(code=code_pb2.UNAVAILABLE, message=str(error))
     elif isinstance(error, CancelledError):
         status = status_pb2.Status(code=code_pb2.CANCELLED, message="cancelled by the client")
     elif isinstance(error, FractoscopeError):

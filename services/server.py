@@ -63,7 +63,9 @@ def create_server(
             raise ValueError(f"unknown service {name!r}; known: {', '.join(_SERVICES)}")
         descriptor, add = _SERVICES[name]
         if name == "tiles":
-            tile_servicer = TileServicer(SpecimenStore(Path(data_dir)), matching_address=matching_address, meshing_address=meshing_address)
+            store = SpecimenStore(Path(data_dir))
+            store.discard_unfinished()  # this server is the store's one writer
+            tile_servicer = TileServicer(store, matching_address=matching_address, meshing_address=meshing_address)
             add(tile_servicer, server)
         else:
             add(MatchingServicer() if name == "matching" else MeshingServicer(), server)

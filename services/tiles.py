@@ -5,10 +5,11 @@ from __future__ import annotations
 import logging
 import math
 
+import grpc
 
 from fractoscope import specimen_queries, tileset, wire
 from fractoscope.client import ClientError, FractoscopeClient
-from fractoscope.errors import InvalidInputError
+from fractoscope.errors import InvalidInputError, UnavailableError
 from fractoscope.reconstruction import MeasuredHeights, RoiRequest, reconstruct_specimen
 from fractoscope.services.errors import abort_with_error
 from fractoscope.services.progress import stream_progress
@@ -60,10 +61,15 @@ class TileServicer(tiles_pb2_grpc.TileServiceServicer):
                         tiles, _ = meshing.build_mesh(z_um, texture, pixel_size_um=cell_um, origin_um=origin_um, level_count=1)
                         return tiles[0].glb
 
-                    return reconstruct_specimen(
-                        specimen_id, rois, measure=measure, mesh_tile=mesh_tile, store=self.store,
-                        request_id=request.request_id, progress=progress,
-                    )
+                    try:
+                        return reconstruct_specimen(
+                            specimen_id, rois, measure=measure, mesh_tile=mesh_tile, store=self.store,
+                            request_id=request.request_id, progress=progress,
+                        )
+                    except ClientError as error:
+                        if error.code in (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.DEADLINE_EXCEEDED):
+                            raise UnavailableError(f"a service the reconstruction needs failed ({error}); nothing was stored, retry") from None
+                        raise
 
             for event in stream_progress(context, work):
                 if isinstance(event, common_pb2.Progress):

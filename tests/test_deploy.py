@@ -4,17 +4,16 @@ processes on loopback as the compose file and the Kubernetes manifests run them.
 from __future__ import annotations
 
 import os
-import shlex
 import socket
 import subprocess
 import sys
 import time
 from pathlib import Path
 
-import pytest
+import grpc
 import yaml
 
-from fractoscope.client import FractoscopeClient
+from fractoscope.client import ClientError, FractoscopeClient
 from fractoscope.client.demo import write_multiscale_specimen
 from fractoscope.client.manifest import load_manifest
 from fractoscope.services.server import _SERVICES, build_parser
@@ -76,33 +75,104 @@ def _healthy(address: str) -> bool:
     return subprocess.run([sys.executable, "-m", "fractoscope.services.healthcheck", address], capture_output=True).returncode == 0
 
 
-def test_three_processes_build_a_specimen_and_answer_health_checks(tmp_path):
-    ports = {name: _free_port() for name in _SERVICES}
-    commands = {
-        "matching": ["--services", "matching", "--http-address", ""],
-        "meshing": ["--services", "meshing", "--http-address", ""],
-        "tiles": ["--services", "tiles", "--http-address", "", "--data", str(tmp_path / "data"),
-                  "--matching-address", f"dns:///127.0.0.1:{ports['matching']}", "--meshing-address", f"127.0.0.1:{ports['meshing']}"],
-    }
-    environment = {**os.environ, "GRPC_VERBOSITY": "ERROR"}
-    processes = [
-        subprocess.Popen([sys.executable, "-m", "fractoscope.services.server", "--address", f"127.0.0.1:{ports[name]}", *args],
-                         env=environment, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-        for name, args in commands.items()
-    ]
-    try:
-        deadline = time.monotonic() + 60
-        while not all(_healthy(f"127.0.0.1:{port}") for port in ports.values()):
-            assert time.monotonic() < deadline, "servers did not become healthy: " + shlex.join(map(str, commands))
+class Stack:
+    """The three services as separate `fracto-server` processes on loopback, as deployed."""
+
+    def __init__(self, data: Path):
+        self.ports = {name: _free_port() for name in _SERVICES}
+        self.commands = {
+            "matching": ["--services", "matching", "--http-address", ""],
+            "meshing": ["--services", "meshing", "--http-address", ""],
+            "tiles": ["--services", "tiles", "--http-address", "", "--data", str(data),
+                      "--matching-address", f"dns:///127.0.0.1:{self.ports['matching']}",
+                      "--meshing-address", f"127.0.0.1:{self.ports['meshing']}"],
+        }
+        self.processes = {name: self._start(name) for name in _SERVICES}
+        self.wait_until_healthy()
+
+    def _start(self, name: str) -> subprocess.Popen:
+        return subprocess.Popen(
+            [sys.executable, "-m", "fractoscope.services.server", "--address", f"127.0.0.1:{self.ports[name]}", *self.commands[name]],
+            env={**os.environ, "GRPC_VERBOSITY": "ERROR"}, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+        )
+
+    def wait_until_healthy(self, timeout_s: float = 60) -> None:
+        deadline = time.monotonic() + timeout_s
+        while not all(_healthy(f"127.0.0.1:{port}") for port in self.ports.values()):
+            assert time.monotonic() < deadline, "servers did not become healthy"
             time.sleep(0.5)
+
+    def kill(self, name: str) -> None:
+        self.processes[name].kill()
+        self.processes[name].wait()
+
+    def restart(self, name: str) -> None:
+        self.processes[name] = self._start(name)
+        self.wait_until_healthy()
+
+    def stop(self) -> list[int]:
+        for process in self.processes.values():
+            process.terminate()
+        return [process.wait(timeout=60) for process in self.processes.values()]
+
+
+def test_three_processes_build_a_specimen_and_answer_health_checks(tmp_path):
+    stack = Stack(tmp_path / "data")
+    try:
         write_multiscale_specimen(tmp_path / "input")
         specimen_id, rois = load_manifest(tmp_path / "input" / "manifest.json")
-        with FractoscopeClient(f"127.0.0.1:{ports['tiles']}", timeout_s=300) as client:
+        with FractoscopeClient(f"127.0.0.1:{stack.ports['tiles']}", timeout_s=300) as client:
             summary = client.reconstruct_specimen(specimen_id, rois)
         assert [roi["id"] for roi in summary["rois"]] == ["overview", "zoom"]
         assert not _healthy(f"127.0.0.1:{_free_port()}")
     finally:
-        for process in processes:
-            process.terminate()
-        for process in processes:
-            assert process.wait(timeout=60) == 0  # SIGTERM: graceful stop
+        assert stack.stop() == [0, 0, 0]  # SIGTERM: graceful stop
+
+
+def test_a_service_killed_mid_reconstruction_leaves_nothing_half_written(tmp_path):
+    """Meshing dies while tiles are being meshed: the call fails as retryable (UNAVAILABLE), no
+    specimen appears, and the same request after a restart completes it."""
+    import threading
+
+    stack = Stack(tmp_path / "data")
+    write_multiscale_specimen(tmp_path / "input")
+    specimen_id, rois = load_manifest(tmp_path / "input" / "manifest.json")
+    specimens = tmp_path / "data" / "specimens"
+    try:
+        with FractoscopeClient(f"127.0.0.1:{stack.ports['tiles']}", timeout_s=300) as client:
+            meshing_started = threading.Event()
+
+            def watch(fraction: float, message: str) -> None:
+                if message.startswith("tile"):
+                    meshing_started.set()
+
+            outcome = {}
+
+            def build() -> None:
+                try:
+                    outcome["summary"] = client.reconstruct_specimen(specimen_id, rois, request_id="job-1", on_progress=watch)
+                except ClientError as error:
+                    outcome["error"] = error
+
+            worker = threading.Thread(target=build)
+            worker.start()
+            assert meshing_started.wait(120)
+            stack.kill("meshing")
+            worker.join(120)
+            assert "error" in outcome, "the build should have failed with meshing gone"
+            assert outcome["error"].code == grpc.StatusCode.UNAVAILABLE and "retry" in str(outcome["error"])
+            assert client.list_specimens() == [] and not (specimens / specimen_id).exists()
+            assert not list(specimens.glob(".staging-*"))  # the failed build cleaned up after itself
+
+            stack.restart("meshing")
+            summary = client.reconstruct_specimen(specimen_id, rois, request_id="job-1")
+            tileset = client.get_tileset(specimen_id)
+        uris = []
+        nodes = [tileset["root"]]
+        while nodes:
+            node = nodes.pop()
+            uris.append(node["content"]["uri"])
+            nodes += node.get("children", [])
+        assert summary["id"] == specimen_id and all((specimens / specimen_id / uri).is_file() for uri in uris)
+    finally:
+        stack.stop()

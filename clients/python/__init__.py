@@ -76,13 +76,15 @@ _ROUGHNESS_NAMES = {
 }
 
 
-# Every call of the API is idempotent (reconstructions per request id), so calls that fail with
-# UNAVAILABLE (a replica restarting) are retried with backoff; several resolved addresses (a
-# `dns:///` name of replicas) are used round-robin.
+# The unary calls are idempotent reads, so those that fail with UNAVAILABLE (a replica
+# restarting) are retried with backoff. Streaming calls are not: a retried stream whose server died
+# mid-way can wait forever, and their callers retry whole requests (reconstructions per request
+# id). Several resolved addresses (a `dns:///` name of replicas) are used round-robin.
+_RETRIED_METHODS = ("GetSpecimen", "ListSpecimens", "GetTileset", "GetTile", "Zoom", "GetProfile", "GetRoughness")
 _SERVICE_CONFIG = json.dumps({
     "loadBalancingConfig": [{"round_robin": {}}],
     "methodConfig": [{
-        "name": [{"service": f"fractoscope.v1.{name}"} for name in ("MatchingService", "MeshingService", "TileService")],
+        "name": [{"service": "fractoscope.v1.TileService", "method": method} for method in _RETRIED_METHODS],
         "retryPolicy": {
             "maxAttempts": 4, "initialBackoff": "0.2s", "maxBackoff": "2s", "backoffMultiplier": 2,
             "retryableStatusCodes": ["UNAVAILABLE"],

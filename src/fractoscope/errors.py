@@ -20,3 +20,7 @@ class NotFoundError(FractoscopeError, LookupError):
 
 class CancelledError(FractoscopeError):
     """The caller went away; long computations stop at their next progress report."""
+
+
+class UnavailableError(FractoscopeError):
+    """A service this one depends on cannot be reached; the request can be retried later."""

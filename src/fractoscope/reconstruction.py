@@ -113,18 +113,26 @@ def reconstruct_specimen(
 
     surface = FusedSurface(list(placed.values()))
     layout = QuadtreeLayout.covering(surface)
-    with store.writing(specimen_id) as staging, ThreadPoolExecutor(max_workers=2) as meshers:
-        pending = []
+    with store.writing(specimen_id) as staging:
+        meshers = ThreadPoolExecutor(max_workers=2)
+        pending, failures = [], []
 
         def emit(key: TileKey, z_um, texture, cell_um, origin_um) -> None:
-            pending.append((key, meshers.submit(mesh_tile, z_um, texture, cell_um, origin_um)))
+            if failures:  # fail fast: a mesher that cannot be reached will not come back mid-build
+                raise failures[0]
+            job = meshers.submit(mesh_tile, z_um, texture, cell_um, origin_um)
+            job.add_done_callback(lambda done: done.exception() and failures.append(done.exception()))
+            pending.append((key, job))
             report(0.65 + 0.3 * (1 - 0.5 ** (len(pending) / 16)), f"tile {key.uri}")
 
-        records = build_tiles(surface, layout, emit)
-        for key, glb in pending:
-            path = staging / key.uri
-            path.parent.mkdir(parents=True, exist_ok=True)
-            path.write_bytes(glb.result())
+        try:
+            records = build_tiles(surface, layout, emit)
+            for key, glb in pending:
+                path = staging / key.uri
+                path.parent.mkdir(parents=True, exist_ok=True)
+                path.write_bytes(glb.result())
+        finally:
+            meshers.shutdown(wait=True, cancel_futures=True)
         for roi in placed.values():
             write_roi_arrays(staging, roi)
         (staging / "tileset.json").write_text(json.dumps(tileset_json(layout, records)))

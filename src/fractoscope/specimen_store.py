@@ -122,6 +122,14 @@ class SpecimenStore:
         self._cache: dict[str, tuple[float, Specimen]] = {}
         self._lock = threading.Lock()
 
+    def discard_unfinished(self) -> int:
+        """Removes what builds of a killed process left behind (no reader ever sees it); only the
+        one writer may call this, when it starts. Returns how many were removed."""
+        leftovers = list(self.root.glob(".staging-*")) + list(self.root.glob(".retired-*"))
+        for leftover in leftovers:
+            shutil.rmtree(leftover, ignore_errors=True)
+        return len(leftovers)
+
     def ids(self) -> list[str]:
         return sorted(p.name for p in self.root.iterdir() if p.is_dir() and _ID.fullmatch(p.name) and (p / "specimen.json").is_file())
 
