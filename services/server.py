@@ -5,7 +5,8 @@ FRACTO_ADDRESS (listen address), FRACTO_MAX_MESSAGE_MB (largest message either w
 FRACTO_WORKERS (concurrent calls), FRACTO_LOG_LEVEL, FRACTO_DATA_DIR (where specimens are kept),
 FRACTO_MATCHING_ADDRESS and FRACTO_MESHING_ADDRESS (the services the tile service calls; default:
 this server),
-FRACTO_HTTP_ADDRESS (host:port of the plain-HTTP tile endpoint; empty = off).
+FRACTO_HTTP_ADDRESS (host:port of the plain-HTTP tile endpoint; empty = off), FRACTO_TOKENS
+(bearer tokens, see auth; none = open), FRACTO_TLS_CERT and FRACTO_TLS_KEY (serve TLS).
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ import grpc
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
 
+from fractoscope.services.auth import AuthInterceptor, TokenTable
 from fractoscope.services.limits import DEFAULT_MAX_MESSAGE_MB, message_size_options
 from fractoscope.services.matching import MatchingServicer
 from fractoscope.services.meshing import MeshingServicer
@@ -50,11 +52,18 @@ def create_server(
     data_dir: str | Path = DEFAULT_DATA_DIR,
     matching_address: str | None = None,
     meshing_address: str | None = None,
+    tokens: TokenTable | None = None,
+    tls_cert_path: str | None = None,
+    tls_key_path: str | None = None,
 ) -> tuple[grpc.Server, int]:
     """A server with the named services, health and reflection, bound to `address`; returns it
     (not started) with the bound port. The tile service keeps specimens under `data_dir` and calls
-    matching and meshing at their addresses (default: this server on loopback)."""
-    server = grpc.server(futures.ThreadPoolExecutor(max_workers=workers), options=message_size_options(max_message_mb))
+    matching and meshing at their addresses (default: this server on loopback). With `tokens`,
+    calls need a bearer token (see auth); with a certificate and key, the port speaks TLS."""
+    interceptors = [AuthInterceptor(tokens)] if tokens is not None and tokens.enabled else []
+    server = grpc.server(
+        futures.ThreadPoolExecutor(max_workers=workers), options=message_size_options(max_message_mb), interceptors=interceptors
+    )
     health_servicer = health.HealthServicer()
     health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
     names = [reflection.SERVICE_NAME, health.SERVICE_NAME]
@@ -73,7 +82,11 @@ def create_server(
         health_servicer.set(descriptor.full_name, health_pb2.HealthCheckResponse.SERVING)
     health_servicer.set("", health_pb2.HealthCheckResponse.SERVING)
     reflection.enable_server_reflection(names, server)
-    port = server.add_insecure_port(address)
+    if tls_cert_path and tls_key_path:
+        credentials = grpc.ssl_server_credentials([(Path(tls_key_path).read_bytes(), Path(tls_cert_path).read_bytes())])
+        port = server.add_secure_port(address, credentials)
+    else:
+        port = server.add_insecure_port(address)
     if port == 0:
         raise RuntimeError(f"cannot bind {address}")
     if "tiles" in services:
@@ -122,6 +135,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help="meshing service for the tile service (default: this server)")
     parser.add_argument("--http-address", default=os.environ.get("FRACTO_HTTP_ADDRESS", "0.0.0.0:8080"),
                         help="host:port of the HTTP tile endpoint; empty = off")
+    parser.add_argument("--tls-cert", default=os.environ.get("FRACTO_TLS_CERT") or None, help="PEM certificate: serve TLS")
+    parser.add_argument("--tls-key", default=os.environ.get("FRACTO_TLS_KEY") or None, help="PEM private key of --tls-cert")
     parser.add_argument("--grace-s", type=float, default=30.0, help="seconds in-flight calls get on SIGTERM")
     return parser
 
@@ -130,17 +145,19 @@ def main(argv: list[str] | None = None) -> None:
     parser = build_parser()
     args = parser.parse_args(argv)
     configure_logging(args.log_level)
+    tokens = TokenTable.from_environment()
     services = tuple(name.strip() for name in args.services.split(",") if name.strip())
     server, port = create_server(
         args.address, services=services, max_message_mb=args.max_message_mb, workers=args.workers,
         data_dir=args.data, matching_address=args.matching_address, meshing_address=args.meshing_address,
+        tokens=tokens, tls_cert_path=args.tls_cert, tls_key_path=args.tls_key,
     )
     server.start()
     log = logging.getLogger("fractoscope.server")
     log.info(f"serving {', '.join(services)} on port {port}")
     if "tiles" in services and args.http_address:
         host, _, http_port = args.http_address.rpartition(":")
-        http = start_http_server(SpecimenStore(Path(args.data)), host or "0.0.0.0", int(http_port))
+        http = start_http_server(SpecimenStore(Path(args.data)), host or "0.0.0.0", int(http_port), tokens=tokens)
         log.info(f"serving tilesets over HTTP on port {http.server_port}")
     stopped = threading.Event()
 

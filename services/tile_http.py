@@ -28,6 +28,7 @@ from google.protobuf import json_format
 
 from fractoscope import specimen_queries
 from fractoscope.errors import FractoscopeError, InvalidInputError, NotFoundError
+from fractoscope.services.auth import TokenTable
 from fractoscope.services.tiles import specimen_message
 from fractoscope.specimen_store import SpecimenStore
 
@@ -79,9 +80,10 @@ class _TileHandler(BaseHTTPRequestHandler):
     server_version = "fractoscope"
     protocol_version = "HTTP/1.1"
 
-    def __init__(self, *args, store: SpecimenStore, cache: _BodyCache, **kwargs):
+    def __init__(self, *args, store: SpecimenStore, cache: _BodyCache, tokens: TokenTable, **kwargs):
         self.store = store
         self.cache = cache
+        self.tokens = tokens
         super().__init__(*args, **kwargs)
 
     def log_message(self, format, *args):
@@ -113,6 +115,11 @@ class _TileHandler(BaseHTTPRequestHandler):
             self.send_header("Content-Length", "0")
             self.end_headers()
             return
+        if self.tokens.enabled and not path.startswith(("/viewer/", "/vendor/")):
+            offered = self.headers.get("Authorization") or ("Bearer " + parse_qs(url.query).get("token", [""])[0])
+            if self.tokens.grant(offered) is None:
+                self._send_plain(HTTPStatus.UNAUTHORIZED, b"a valid bearer token is required\n", with_body)
+                return
         if (api := _API.match(path)) is not None:
             self._serve_api(api["specimen"], api["query"], parse_qs(url.query), with_body)
             return
@@ -249,15 +256,16 @@ def _numbers(arguments: dict, name: str, count: int, default: list[float] | None
     return values
 
 
-def create_http_server(store: SpecimenStore, host: str = "127.0.0.1", port: int = 0) -> ThreadingHTTPServer:
-    """An HTTP server for the store's tilesets (not started: call serve_forever in a thread)."""
-    server = ThreadingHTTPServer((host, port), partial(_TileHandler, store=store, cache=_BodyCache()))
+def create_http_server(store: SpecimenStore, host: str = "127.0.0.1", port: int = 0, *, tokens: TokenTable | None = None) -> ThreadingHTTPServer:
+    """An HTTP server for the store's tilesets (not started: call serve_forever in a thread); with
+    `tokens`, everything but the viewer's static files needs a bearer token (any access)."""
+    server = ThreadingHTTPServer((host, port), partial(_TileHandler, store=store, cache=_BodyCache(), tokens=tokens or TokenTable({})))
     server.daemon_threads = True
     return server
 
 
-def start_http_server(store: SpecimenStore, host: str = "127.0.0.1", port: int = 0) -> ThreadingHTTPServer:
+def start_http_server(store: SpecimenStore, host: str = "127.0.0.1", port: int = 0, *, tokens: TokenTable | None = None) -> ThreadingHTTPServer:
     """Creates the HTTP server and serves it from a daemon thread; `server.server_port` is its port."""
-    server = create_http_server(store, host, port)
+    server = create_http_server(store, host, port, tokens=tokens)
     threading.Thread(target=server.serve_forever, name="fractoscope-http", daemon=True).start()
     return server

@@ -96,10 +96,27 @@ _SERVICE_CONFIG = json.dumps({
 class FractoscopeClient:
     """Typed methods over one channel to a Fractoscope server."""
 
-    def __init__(self, address: str, *, max_message_mb: int = DEFAULT_MAX_MESSAGE_MB, timeout_s: float | None = 3600.0):
-        self._channel = grpc.insecure_channel(
-            address, options=message_size_options(max_message_mb) + [("grpc.service_config", _SERVICE_CONFIG), ("grpc.enable_retries", 1)]
-        )
+    def __init__(
+        self,
+        address: str,
+        *,
+        max_message_mb: int = DEFAULT_MAX_MESSAGE_MB,
+        timeout_s: float | None = 3600.0,
+        token: str | None = None,
+        tls_ca_path: str | None = None,
+    ):
+        """`token` (default FRACTO_TOKEN) is sent as a bearer token; `tls_ca_path` (default
+        FRACTO_TLS_CA) switches to TLS, trusting that PEM certificate authority."""
+        options = message_size_options(max_message_mb) + [("grpc.service_config", _SERVICE_CONFIG), ("grpc.enable_retries", 1)]
+        tls_ca_path = tls_ca_path or os.environ.get("FRACTO_TLS_CA") or None
+        if tls_ca_path:
+            credentials = grpc.ssl_channel_credentials(root_certificates=Path(tls_ca_path).read_bytes())
+            channel = grpc.secure_channel(address, credentials, options=options)
+        else:
+            channel = grpc.insecure_channel(address, options=options)
+        token = token or os.environ.get("FRACTO_TOKEN") or None
+        self._channel = grpc.intercept_channel(channel, _BearerToken(token)) if token else channel
+        self._raw_channel = channel
         self._matching = matching_pb2_grpc.MatchingServiceStub(self._channel)
         self._meshing = meshing_pb2_grpc.MeshingServiceStub(self._channel)
         self._tiles = tiles_pb2_grpc.TileServiceStub(self._channel)
@@ -112,7 +129,7 @@ class FractoscopeClient:
         self.close()
 
     def close(self) -> None:
-        self._channel.close()
+        self._raw_channel.close()
 
     def compute_height_map(
         self,
@@ -298,6 +315,35 @@ class FractoscopeClient:
             response = self._tiles.GetRoughness(request, timeout=self._timeout_s)
         values = json_format.MessageToDict(response, preserving_proto_field_name=True, always_print_fields_with_no_presence=True)
         return {_ROUGHNESS_NAMES.get(key, key): value for key, value in values.items()}
+
+
+class _BearerToken(grpc.UnaryUnaryClientInterceptor, grpc.UnaryStreamClientInterceptor):
+    """Adds `authorization: Bearer TOKEN` to every call."""
+
+    def __init__(self, token: str):
+        self._metadata = ("authorization", f"Bearer {token}")
+
+    def _with_token(self, details):
+        metadata = list(details.metadata or []) + [self._metadata]
+        return details._replace(metadata=metadata) if hasattr(details, "_replace") else _CallDetails(
+            details.method, details.timeout, metadata, details.credentials, details.wait_for_ready, details.compression
+        )
+
+    def intercept_unary_unary(self, continuation, details, request):
+        return continuation(self._with_token(details), request)
+
+    def intercept_unary_stream(self, continuation, details, request):
+        return continuation(self._with_token(details), request)
+
+
+@dataclass(frozen=True)
+class _CallDetails(grpc.ClientCallDetails):
+    method: str
+    timeout: float | None
+    metadata: list | None
+    credentials: object
+    wait_for_ready: bool | None
+    compression: object
 
 
 def _region(region_um: Region) -> tiles_pb2.RegionUm:

@@ -6,6 +6,10 @@ import { OrbitControls } from "three/addons/controls/OrbitControls.js";
 import { TilesRenderer } from "3d-tiles-renderer";
 
 const METRES_PER_UM = 1e-6;
+// A server with tokens gets one through the page's URL (?token=...): sent with every request.
+const token = new URLSearchParams(location.search).get("token");
+const authorization = token ? { Authorization: `Bearer ${token}` } : {};
+const api = (path) => fetch(path, { headers: authorization });
 const view = document.getElementById("view");
 const status = { loaded: 0, failed: 0, tilesetLoaded: false, downloading: 0, visible: 0 };
 window.viewer = { status, profile: null, roughness: null };
@@ -86,6 +90,7 @@ function open(id) {
   specimenId = id;
   Object.assign(status, { loaded: 0, failed: 0, tilesetLoaded: false });
   tiles = new TilesRenderer(`/specimens/${id}/tileset.json`);
+  tiles.fetchOptions.headers = authorization;
   tiles.errorTarget = 4;
   tiles.setCamera(camera);
   tiles.setResolutionFromRenderer(camera, renderer);
@@ -172,7 +177,7 @@ function plotProfile(result) {
 
 async function measureProfile(start, end) {
   const query = `from=${start.x_um},${start.y_um}&to=${end.x_um},${end.y_um}`;
-  const response = await fetch(`/api/specimens/${specimenId}/profile?${query}`);
+  const response = await api(`/api/specimens/${specimenId}/profile?${query}`);
   const result = await response.json();
   window.viewer.profile = result;
   if (!response.ok) {
@@ -192,7 +197,7 @@ async function measureRoughness() {
   const halfWidth = halfHeight * camera.aspect;
   const [cx, cy] = [controls.target.x / METRES_PER_UM, -controls.target.y / METRES_PER_UM];
   const [hx, hy] = [halfWidth / METRES_PER_UM, halfHeight / METRES_PER_UM];
-  const response = await fetch(`/api/specimens/${specimenId}/roughness?region=${cx - hx},${cy - hy},${cx + hx},${cy + hy}`);
+  const response = await api(`/api/specimens/${specimenId}/roughness?region=${cx - hx},${cy - hy},${cx + hx},${cy + hy}`);
   const result = await response.json();
   window.viewer.roughness = result;
   document.getElementById("roughness-stats").textContent = response.ok
@@ -227,7 +232,7 @@ document.querySelectorAll("input[name=colouring]").forEach((input) =>
 document.getElementById("zoom-kinds").addEventListener("change", (event) => { shadeZoom = event.target.checked; restyle(); });
 document.getElementById("specimen").addEventListener("change", (event) => open(event.target.value));
 
-const specimens = await (await fetch("/api/specimens")).json();
+const specimens = await (await api("/api/specimens")).json();
 const chooser = document.getElementById("specimen");
 for (const specimen of specimens) chooser.add(new Option(`${specimen.id} (${specimen.rois.length} ROI)`, specimen.id));
 const wanted = new URLSearchParams(location.search).get("specimen");
