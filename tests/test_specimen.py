@@ -248,19 +248,24 @@ def test_http_endpoint_serves_tiles_with_cors_etag_and_gzip(built):
         http.shutdown()
 
 
-def test_tileset_loads_in_3d_tiles_renderer_in_headless_chromium(built, tmp_path):
-    _, _, data, _ = built
+def _in_chromium(script: str, data: Path, path: str, screenshot: Path) -> dict:
+    """Runs tests/js/SCRIPT against `path` on an HTTP endpoint serving `data`; its JSON result."""
     http = start_http_server(SpecimenStore(data))
-    script = Path(__file__).resolve().parent / "js" / "load_tileset.mjs"
+    runner = Path(__file__).resolve().parent / "js" / script
     try:
         done = subprocess.run(
-            ["node", str(script), f"http://127.0.0.1:{http.server_port}/specimens/synthetic/tileset.json", str(tmp_path / "view.png")],
-            capture_output=True, text=True, timeout=180, cwd=script.parents[2],
+            ["node", str(runner), f"http://127.0.0.1:{http.server_port}{path}", str(screenshot)],
+            capture_output=True, text=True, timeout=240, cwd=runner.parents[2],
         )
     finally:
         http.shutdown()
     assert done.returncode == 0, done.stderr[-2000:]
-    result = json.loads(done.stdout.splitlines()[-1])
+    return json.loads(done.stdout.splitlines()[-1])
+
+
+def test_tileset_loads_in_3d_tiles_renderer_in_headless_chromium(built, tmp_path):
+    _, _, data, _ = built
+    result = _in_chromium("load_tileset.mjs", data, "/specimens/synthetic/tileset.json", tmp_path / "view.png")
     assert result["tilesetLoaded"] and not result["failed"] and not result["errors"], result
     assert result["loaded"] >= 5  # the root and refining levels streamed in
     assert result["litFraction"] > 0.3  # the textured surface fills much of the view
@@ -270,17 +275,7 @@ def test_web_viewer_streams_tiles_and_measures_a_profile(built, tmp_path):
     """The viewer page, served by the tile endpoint, in headless Chromium: tiles requested and
     drawn, the profile tool (two clicks) and the roughness panel return numbers."""
     _, _, data, _ = built
-    http = start_http_server(SpecimenStore(data))
-    script = Path(__file__).resolve().parent / "js" / "check_viewer.mjs"
-    try:
-        done = subprocess.run(
-            ["node", str(script), f"http://127.0.0.1:{http.server_port}/viewer/?specimen=synthetic", str(tmp_path / "viewer.png")],
-            capture_output=True, text=True, timeout=240, cwd=script.parents[2],
-        )
-    finally:
-        http.shutdown()
-    assert done.returncode == 0, done.stderr[-2000:]
-    result = json.loads(done.stdout.splitlines()[-1])
+    result = _in_chromium("check_viewer.mjs", data, "/viewer/?specimen=synthetic", tmp_path / "viewer.png")
     assert not result["errors"] and result["status"]["failed"] == 0, result
     assert result["tileRequests"] >= 5 and result["status"]["loaded"] >= 5
     assert result["litFraction"] > 0.2

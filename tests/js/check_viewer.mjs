@@ -2,13 +2,10 @@
 // measures a profile by clicking two points and the roughness of the view, and prints one JSON
 // line with what happened. Usage: node check_viewer.mjs VIEWER_URL SCREENSHOT.png
 import { writeFile } from "node:fs/promises";
-import { chromium } from "playwright-core";
+import { launchChromium, litFraction } from "./browser.mjs";
 
 const [viewerUrl, screenshotPath] = process.argv.slice(2);
-const browser = await chromium.launch({
-  executablePath: process.env.CHROMIUM ?? "/usr/bin/chromium",
-  args: ["--headless", "--no-sandbox", "--disable-gpu", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"],
-});
+const browser = await launchChromium();
 const result = { errors: [], tileRequests: 0 };
 try {
   const page = await browser.newPage({ viewport: { width: 1100, height: 700 } });
@@ -40,17 +37,7 @@ try {
   await page.check("#zoom-kinds");
   await page.evaluate(() => new Promise((resolve) => requestAnimationFrame(() => requestAnimationFrame(resolve))));
   await writeFile(screenshotPath, await page.screenshot({ timeout: 60000 }));
-  result.litFraction = await page.evaluate(() => {
-    const canvas = document.querySelector("#view canvas");
-    const copy = document.createElement("canvas");
-    copy.width = canvas.width; copy.height = canvas.height;
-    const context = copy.getContext("2d");
-    context.drawImage(canvas, 0, 0);
-    const pixels = context.getImageData(0, 0, copy.width, copy.height).data;
-    let lit = 0;
-    for (let i = 0; i < pixels.length; i += 4) if (Math.abs(pixels[i] - 17) + Math.abs(pixels[i + 1] - 17) + Math.abs(pixels[i + 2] - 17) > 30) lit++;
-    return lit / (pixels.length / 4);
-  });
+  result.litFraction = await litFraction(page, "#view canvas", [17, 17, 17]);  // the scene's background
 } finally {
   await browser.close();
 }

@@ -4,7 +4,7 @@
 import { createServer } from "node:http";
 import { readFile, writeFile } from "node:fs/promises";
 import { extname, join, normalize } from "node:path";
-import { chromium } from "playwright-core";
+import { launchChromium, litFraction } from "./browser.mjs";
 
 const [tilesetUrl, screenshotPath] = process.argv.slice(2);
 const root = join(import.meta.dirname, "..", "..");
@@ -79,10 +79,7 @@ const server = createServer(async (request, response) => {
 });
 await new Promise((resolve) => server.listen(0, "127.0.0.1", resolve));
 
-const browser = await chromium.launch({
-  executablePath: process.env.CHROMIUM ?? "/usr/bin/chromium",
-  args: ["--headless", "--no-sandbox", "--disable-gpu", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"],
-});
+const browser = await launchChromium();
 const result = { errors: [] };
 try {
   const tab = await browser.newPage();
@@ -100,18 +97,7 @@ try {
   await tab.evaluate(() => { window.status3d.stop = true; });
   await tab.waitForTimeout(200);
   await writeFile(screenshotPath, await tab.screenshot({ clip: { x: 0, y: 0, width: 512, height: 512 }, timeout: 60000 }));
-  // Share of canvas pixels that are not background (black), read back from WebGL.
-  result.litFraction = await tab.evaluate(() => {
-    const canvas = document.querySelector("canvas");
-    const copy = document.createElement("canvas");
-    copy.width = canvas.width; copy.height = canvas.height;
-    const context = copy.getContext("2d");
-    context.drawImage(canvas, 0, 0);
-    const pixels = context.getImageData(0, 0, copy.width, copy.height).data;
-    let lit = 0;
-    for (let i = 0; i < pixels.length; i += 4) if (pixels[i] + pixels[i + 1] + pixels[i + 2] > 30) lit++;
-    return lit / (pixels.length / 4);
-  });
+  result.litFraction = await litFraction(tab, "canvas", [0, 0, 0]);  // black background
 } finally {
   await browser.close();
   server.close();
