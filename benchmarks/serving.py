@@ -28,6 +28,7 @@ import numpy as np
 from fractoscope.client import FractoscopeClient
 from fractoscope.client.demo import write_multiscale_specimen
 from fractoscope.client.manifest import load_manifest
+from fractoscope.tileset import content_uris
 
 CONCURRENCY = 32
 DURATION_S = 10.0
@@ -100,7 +101,7 @@ def main() -> None:
             client.reconstruct_specimen(specimen_id, rois)
             reconstruct_s = time.perf_counter() - started
             tileset = client.get_tileset(specimen_id)
-        uris = _uris(tileset["root"])
+        uris = content_uris(tileset)
         clients = [FractoscopeClient(address, timeout_s=30) for _ in range(args.concurrency)]
         connections = [http.client.HTTPConnection("127.0.0.1", http_port, timeout=30) for _ in range(args.concurrency)]
         rng = np.random.default_rng(0)
@@ -161,9 +162,6 @@ def _rss_mb(pid: int) -> float:
             return int(line.split()[1]) / 1024
     return float("nan")
 
-
-def _uris(node: dict) -> list[str]:
-    return [node["content"]["uri"]] + [uri for child in node.get("children", []) for uri in _uris(child)]
 
 
 if __name__ == "__main__":

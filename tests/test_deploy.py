@@ -17,6 +17,7 @@ from fractoscope.client import ClientError, FractoscopeClient
 from fractoscope.client.demo import write_multiscale_specimen
 from fractoscope.client.manifest import load_manifest
 from fractoscope.services.server import _SERVICES, build_parser
+from fractoscope.tileset import content_uris
 
 DEPLOY = Path(__file__).resolve().parents[1] / "deploy"
 
@@ -167,12 +168,7 @@ def test_a_service_killed_mid_reconstruction_leaves_nothing_half_written(tmp_pat
             stack.restart("meshing")
             summary = client.reconstruct_specimen(specimen_id, rois, request_id="job-1")
             tileset = client.get_tileset(specimen_id)
-        uris = []
-        nodes = [tileset["root"]]
-        while nodes:
-            node = nodes.pop()
-            uris.append(node["content"]["uri"])
-            nodes += node.get("children", [])
+        uris = content_uris(tileset)
         assert summary["id"] == specimen_id and all((specimens / specimen_id / uri).is_file() for uri in uris)
     finally:
         stack.stop()

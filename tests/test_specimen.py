@@ -23,6 +23,7 @@ from fractoscope.client.manifest import load_manifest
 from fractoscope.services.server import create_server
 from fractoscope.services.tile_http import start_http_server
 from fractoscope.specimen_store import SpecimenStore
+from fractoscope.tileset import content_uris
 
 OVERVIEW_MAG, ZOOM_MAG = MULTISCALE_MAGNIFICATIONS
 
@@ -122,10 +123,10 @@ def _sa(z: np.ndarray) -> float:
     return float(np.mean(np.abs(z.ravel() - plane)))
 
 
-def _nodes(node: dict, depth: int = 0):
-    yield node, depth
+def _nodes(node: dict):
+    yield node
     for child in node.get("children", []):
-        yield from _nodes(child, depth + 1)
+        yield from _nodes(child)
 
 
 def test_tileset_is_a_refining_quadtree_with_tile_metadata(built):
@@ -136,7 +137,7 @@ def test_tileset_is_a_refining_quadtree_with_tile_metadata(built):
     assert root["content"]["uri"] and root["refine"] == "REPLACE"
     assert tileset["geometricError"] >= root["geometricError"] > 0
     kinds = {}
-    for node, _ in _nodes(root):
+    for node in _nodes(root):
         assert node["metadata"]["class"] == "tile"
         properties = node["metadata"]["properties"]
         kinds.setdefault(properties["zoom"], set()).add(properties["roi"])
@@ -150,7 +151,7 @@ def test_tileset_is_a_refining_quadtree_with_tile_metadata(built):
 
 def test_every_tile_is_valid_gltf(built, tmp_path):
     _, client, _, _ = built
-    uris = [node["content"]["uri"] for node, _ in _nodes(client.get_tileset("synthetic")["root"])]
+    uris = content_uris(client.get_tileset("synthetic"))
     reports = validate_glbs([client.get_tile("synthetic", uri) for uri in uris], tmp_path)
     assert all(report["errors"] == 0 for report in reports), [r for r in reports if r["errors"]][:2]
 

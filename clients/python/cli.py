@@ -21,6 +21,7 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
 from fractoscope.client import ClientError, FractoscopeClient, HeightMap, embedded_server, server_address
 from fractoscope.errors import InvalidInputError
+from fractoscope.tileset import content_uris
 
 EXIT_FAILURE, EXIT_BAD_INPUT, EXIT_UNAVAILABLE, EXIT_NOT_FOUND = 1, 2, 3, 4
 _EXIT_CODES = {
@@ -343,14 +344,7 @@ def command_tiles(args) -> int:
     out = Path(args.output)
     with connected(args.server, args.data) as client:
         tileset = client.get_tileset(args.specimen)
-        uris = []
-
-        def collect(node):
-            uris.append(node["content"]["uri"])
-            for child in node.get("children", []):
-                collect(child)
-
-        collect(tileset["root"])
+        uris = content_uris(tileset)
         out.mkdir(parents=True, exist_ok=True)
         (out / "tileset.json").write_text(json.dumps(tileset))
         for uri in uris:

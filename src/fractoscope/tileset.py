@@ -240,6 +240,16 @@ def tileset_json(layout: QuadtreeLayout, records: dict[TileKey, TileRecord]) -> 
     }
 
 
+def content_uris(tileset: dict) -> list[str]:
+    """Every tile content URI a tileset.json (parsed) names, root first, depth first."""
+    uris, nodes = [], [tileset["root"]]
+    while nodes:
+        node = nodes.pop()
+        uris.append(node["content"]["uri"])
+        nodes += reversed(node.get("children", []))
+    return uris
+
+
 def tiles_in_region(
     layout: QuadtreeLayout, records: dict[TileKey, TileRecord], region_um: tuple[float, float, float, float], *, cell_um: float
 ) -> list[tuple[TileRecord, bool]]:
