@@ -9,7 +9,8 @@ import grpc
 
 from fractoscope import specimen_queries, tileset, wire
 from fractoscope.client import ClientError, FractoscopeClient
-from fractoscope.errors import InvalidInputError, UnavailableError
+from fractoscope.errors import InvalidInputError, NotFoundError, UnavailableError
+from fractoscope.gltf_tile import METRES_PER_UM
 from fractoscope.reconstruction import MeasuredHeights, RoiRequest, reconstruct_specimen
 from fractoscope.services.errors import abort_with_error
 from fractoscope.services.progress import stream_progress
@@ -163,7 +164,10 @@ class TileServicer(tiles_pb2_grpc.TileServiceServicer):
             abort_with_error(context, error)
 
     def _existing(self, specimen_id: str) -> Specimen | None:
-        return self.store.load(specimen_id) if specimen_id in self.store.ids() else None
+        try:
+            return self.store.load(specimen_id)
+        except NotFoundError:
+            return None
 
 
 def specimen_message(specimen: Specimen) -> tiles_pb2.Specimen:
@@ -189,7 +193,7 @@ def tile_message(specimen: Specimen, record: TileRecord, *, with_content: bool, 
         roi=record.roi,
         magnification=record.magnification,
         zoom=zoom,
-        geometric_error_m=record.geometric_error_um * 1e-6,
+        geometric_error_m=record.geometric_error_um * METRES_PER_UM,
     )
 
 

@@ -324,26 +324,14 @@ class _BearerToken(grpc.UnaryUnaryClientInterceptor, grpc.UnaryStreamClientInter
         self._metadata = ("authorization", f"Bearer {token}")
 
     def _with_token(self, details):
-        metadata = list(details.metadata or []) + [self._metadata]
-        return details._replace(metadata=metadata) if hasattr(details, "_replace") else _CallDetails(
-            details.method, details.timeout, metadata, details.credentials, details.wait_for_ready, details.compression
-        )
+        # grpc passes its call details as a namedtuple.
+        return details._replace(metadata=list(details.metadata or []) + [self._metadata])
 
     def intercept_unary_unary(self, continuation, details, request):
         return continuation(self._with_token(details), request)
 
     def intercept_unary_stream(self, continuation, details, request):
         return continuation(self._with_token(details), request)
-
-
-@dataclass(frozen=True)
-class _CallDetails(grpc.ClientCallDetails):
-    method: str
-    timeout: float | None
-    metadata: list | None
-    credentials: object
-    wait_for_ready: bool | None
-    compression: object
 
 
 def _region(region_um: Region) -> tiles_pb2.RegionUm:

@@ -110,6 +110,9 @@ def compute_series_height_map(
         fill = float(np.nanmean(views[0]))
         views = [np.nan_to_num(view, nan=fill) for view in views]
 
+    # Reference columns from the tilt axis (the image centre), pixels.
+    columns_px = np.arange(views[0].shape[1], dtype=np.float64) - (views[0].shape[1] - 1) / 2.0
+    x1_px = np.broadcast_to(columns_px[None, :], views[0].shape)
     disparities = [np.zeros(views[0].shape, np.float32)]
     sigmas, confidences, placements = [], [], []
     for index in range(1, len(views)):
@@ -131,14 +134,12 @@ def compute_series_height_map(
         # A magnification error ε the alignment left makes disparities err by ε·x: measured on the
         # matched images, it is taken out here rather than by matching again.
         epsilon = alignment.residual_magnification(views[0], on_first, matched.disparity_px)
-        x_from_centre = np.arange(views[0].shape[1], dtype=np.float32)[None, :] - (views[0].shape[1] - 1) / 2.0
-        disparities.append(matched.disparity_px + placement.shift_parallel_px - epsilon * x_from_centre)
+        disparities.append(matched.disparity_px + placement.shift_parallel_px - (epsilon * columns_px).astype(np.float32))
         placement = dataclasses.replace(placement, scale=placement.scale * (1.0 + epsilon))
         sigmas.append(matched.sigma_px)
         confidences.append(matched.confidence)
         placements.append(placement)
     disparities = np.stack(disparities)
-    x1_px = np.broadcast_to(np.arange(views[0].shape[1], dtype=np.float64)[None, :] - (views[0].shape[1] - 1) / 2.0, views[0].shape)
 
     tilts, offsets, calibration = np.array(nominal), None, {}
     if options.calibrate_tilt:
