@@ -28,23 +28,29 @@ def register_child(
     normalized cross-correlation after averaging the child to the parent's pixel size (which
     also makes brightness and contrast differences irrelevant); sub-pixel by a parabola through the
     peak and its neighbours."""
-    parent_image, child_image = parent_image.astype(np.float32), child_image.astype(np.float32)
     scale = child_pixel_size_um / parent_pixel_size_um
     rows, cols = child_image.shape
-    small_size = (max(round(cols * scale), 1), max(round(rows * scale), 1))
-    if small_size[0] < 8 or small_size[1] < 8:
+    if min(round(cols * scale), round(rows * scale)) < 8:
         raise InvalidInputError("rois.center_um", "the ROI covers fewer than 8 x 8 parent pixels; give its centre")
-    if small_size[0] > parent_image.shape[1] or small_size[1] > parent_image.shape[0]:
+    if round(cols * scale) > parent_image.shape[1] or round(rows * scale) > parent_image.shape[0]:
         raise InvalidInputError("rois.pixel_size_um", "the ROI would be larger than its parent")
-    small = cv2.resize(child_image.astype(np.float32), small_size, interpolation=cv2.INTER_AREA)
+    small, achieved = _at_parent_scale(child_image, scale)
     scores = cv2.matchTemplate(parent_image.astype(np.float32), small, cv2.TM_CCOEFF_NORMED)
     _, best, _, (col, row) = cv2.minMaxLoc(scores)
     col_f = col + _parabola_peak(scores[row, col - 1 : col + 2]) if 0 < col < scores.shape[1] - 1 else float(col)
     row_f = row + _parabola_peak(scores[row - 1 : row + 2, col]) if 0 < row < scores.shape[0] - 1 else float(row)
     # Small pixel k is centred on child coordinate (k + 0.5) / s - 0.5, so child pixel 0 sits at
     # small coordinate 0.5 s - 0.5 for the achieved scale s.
-    achieved = (small_size[0] / cols, small_size[1] / rows)
     return Registration((col_f + 0.5 * achieved[0] - 0.5, row_f + 0.5 * achieved[1] - 0.5), float(best))
+
+
+def _at_parent_scale(child_image: np.ndarray, scale: float) -> tuple[np.ndarray, tuple[float, float]]:
+    """The child image area-averaged by `scale` (child over parent pixel size), float32, and the
+    scale achieved along (cols, rows) after rounding to whole pixels."""
+    rows, cols = child_image.shape
+    size = (max(round(cols * scale), 1), max(round(rows * scale), 1))
+    small = cv2.resize(child_image.astype(np.float32), size, interpolation=cv2.INTER_AREA)
+    return small, (size[0] / cols, size[1] / rows)
 
 
 def _parabola_peak(values: np.ndarray) -> float:
@@ -114,11 +120,8 @@ def apply_height_alignment(z_um: np.ndarray, alignment: HeightAlignment, *, pixe
 def match_texture(parent: PlacedRoi, child: PlacedRoi) -> np.ndarray:
     """The child's texture with gain and offset that give it its parent's mean and spread on the
     overlap (both seen at the parent's pixel size), uint8."""
-    scale = child.pixel_size_um / parent.pixel_size_um
-    rows, cols = child.texture.shape
-    small = cv2.resize(child.texture.astype(np.float32), (max(round(cols * scale), 1), max(round(rows * scale), 1)), interpolation=cv2.INTER_AREA)
+    small, achieved = _at_parent_scale(child.texture, child.pixel_size_um / parent.pixel_size_um)
     small_rows, small_cols = np.indices(small.shape)
-    achieved = (small.shape[1] / cols, small.shape[0] / rows)
     x_um = child.origin_um[0] + ((small_cols + 0.5) / achieved[0] - 0.5) * child.pixel_size_um
     y_um = child.origin_um[1] + ((small_rows + 0.5) / achieved[1] - 0.5) * child.pixel_size_um
     parent_texture = cv2.remap(
