@@ -113,14 +113,21 @@ class Specimen:
         return (self.directory / self.tile_record(uri).key.uri).read_bytes()
 
 
+_CACHES: dict[Path, dict[str, tuple[float, "Specimen"]]] = {}
+_CACHES_LOCK = threading.Lock()
+
+
 class SpecimenStore:
     """The specimens under `root/specimens`, cached in memory once read."""
 
     def __init__(self, root: Path):
         self.root = Path(root) / "specimens"
         self.root.mkdir(parents=True, exist_ok=True)
-        self._cache: dict[str, tuple[float, Specimen]] = {}
-        self._lock = threading.Lock()
+        # Stores of one directory in one process (the gRPC service and the HTTP endpoint) share
+        # what they have loaded, so a specimen's surface is read and held once.
+        with _CACHES_LOCK:
+            self._cache: dict[str, tuple[float, Specimen]] = _CACHES.setdefault(self.root.resolve(), {})
+        self._lock = _CACHES_LOCK
 
     def discard_unfinished(self) -> int:
         """Removes what builds of a killed process left behind (no reader ever sees it); only the
