@@ -112,3 +112,11 @@ def test_path_tricks_in_roi_ids_are_refused(client):
         for _ in client._tiles.ReconstructSpecimen(request, timeout=30):
             pass
     assert caught.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "rois[0].id" in caught.value.details()
+
+
+def test_a_tiff_that_decodes_to_no_pixels_is_refused():
+    """Found by the fuzzer: one flipped byte gives a TIFF page of zero size."""
+    damaged = bytearray(_valid_tiff())
+    damaged[43] ^= 1
+    with pytest.raises(InvalidInputError, match="image"):
+        read_sem_image(bytes(damaged))

@@ -118,6 +118,8 @@ def _palette_to_grey(indices: np.ndarray, colormap: np.ndarray) -> np.ndarray:
 
 
 def _as_grey_integer(pixels: np.ndarray, field: str) -> np.ndarray:
+    if pixels.size == 0:
+        raise InvalidInputError(field, f"the image has no pixels (shape {pixels.shape})")
     if pixels.ndim == 3 and pixels.shape[-1] in (3, 4):
         pixels = pixels[..., :3].mean(axis=-1)
     if pixels.dtype in (np.uint8, np.uint16):
