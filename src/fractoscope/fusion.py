@@ -37,10 +37,15 @@ class PlacedRoi:
 
     @property
     def extent_um(self) -> tuple[float, float, float, float]:
-        """(x_min, y_min, x_max, y_max) of the pixel centres, µm."""
-        rows, cols = self.z_um.shape
-        x0, y0 = self.origin_um
-        return x0, y0, x0 + (cols - 1) * self.pixel_size_um, y0 + (rows - 1) * self.pixel_size_um
+        return footprint_um(self.origin_um, self.z_um.shape, self.pixel_size_um)
+
+
+def footprint_um(origin_um: tuple[float, float], shape: tuple[int, int], pixel_size_um: float) -> tuple[float, float, float, float]:
+    """(x_min, y_min, x_max, y_max) of the pixel centres of a (rows, cols) grid whose pixel (0, 0)
+    lies at `origin_um` (x, y), µm."""
+    rows, cols = shape
+    x0, y0 = origin_um
+    return x0, y0, x0 + (cols - 1) * pixel_size_um, y0 + (rows - 1) * pixel_size_um
 
 
 @dataclass(frozen=True)

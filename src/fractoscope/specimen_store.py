@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from fractoscope.errors import InvalidInputError, NotFoundError
-from fractoscope.fusion import FusedSurface, PlacedRoi, overlaps
+from fractoscope.fusion import FusedSurface, PlacedRoi, footprint_um, overlaps
 from fractoscope.tileset import QuadtreeLayout, TileKey, TileRecord
 
 _ID = re.compile(r"[A-Za-z0-9_-]{1,64}")
@@ -50,9 +50,7 @@ class RoiEntry:
 
     @property
     def region_um(self) -> tuple[float, float, float, float]:
-        rows, cols = self.shape
-        x0, y0 = self.origin_um
-        return x0, y0, x0 + (cols - 1) * self.pixel_size_um, y0 + (rows - 1) * self.pixel_size_um
+        return footprint_um(self.origin_um, self.shape, self.pixel_size_um)
 
 
 class Specimen:
