@@ -15,6 +15,12 @@ DATA ?= ./data
 PORT ?= 8080
 GRPC_PORT ?= 50051
 CHROMIUM := /usr/bin/chromium
+# Go tools for validating the Kubernetes manifests, built from the Go module proxy, and the
+# Kubernetes API's JSON schemas for them (deploy/kubernetes_schemas.py).
+TOOLS := .tools
+KUBECONFORM := $(TOOLS)/bin/kubeconform
+KUSTOMIZE := $(TOOLS)/bin/kustomize
+KUBE_SCHEMAS := $(TOOLS)/kubernetes-schemas/.written
 
 .PHONY: install proto run test bench load lint clean
 
@@ -54,8 +60,18 @@ $(CHROMIUM):
 	if [ "$$(id -u)" = 0 ]; then SUDO=; else SUDO=sudo; fi; \
 	$$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq --no-install-recommends chromium >/dev/null
 
+$(KUBECONFORM):
+	GOBIN=$(abspath $(TOOLS)/bin) go install github.com/yannh/kubeconform/cmd/kubeconform@v0.6.7
+
+$(KUSTOMIZE):
+	GOBIN=$(abspath $(TOOLS)/bin) go install sigs.k8s.io/kustomize/kustomize/v5@v5.5.0
+
+$(KUBE_SCHEMAS): deploy/kubernetes_schemas.py
+	$(PYTHON) deploy/kubernetes_schemas.py $(dir $@) --version v1.31.0
+	touch $@
+
 ## test: the whole test suite
-test: install $(CHROMIUM)
+test: install $(CHROMIUM) $(KUBECONFORM) $(KUSTOMIZE) $(KUBE_SCHEMAS)
 	$(BIN)/python -m pytest -q
 
 ## bench: speed, memory and accuracy figures, written to bench-results/
@@ -72,4 +88,4 @@ lint: install
 	$(BIN)/python -m compileall -q src services clients tests
 
 clean:
-	rm -rf $(VENV) $(GEN_DIR) build *.egg-info node_modules
+	rm -rf $(VENV) $(GEN_DIR) build *.egg-info node_modules $(TOOLS)

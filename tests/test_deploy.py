@@ -19,7 +19,9 @@ from fractoscope.client.manifest import load_manifest
 from fractoscope.services.server import _SERVICES, build_parser
 from fractoscope.tileset import content_uris
 
-DEPLOY = Path(__file__).resolve().parents[1] / "deploy"
+ROOT = Path(__file__).resolve().parents[1]
+DEPLOY = ROOT / "deploy"
+TOOLS = ROOT / ".tools"  # installed by `make test`
 
 
 def _k8s_documents() -> list[dict]:
@@ -53,6 +55,40 @@ def test_kubernetes_deployments_are_probed_limited_and_unprivileged():
         selector = services[deployment["metadata"]["name"]]["spec"]["selector"]
         assert selector.items() <= deployment["spec"]["template"]["metadata"]["labels"].items()
     assert next(d for d in deployments if d["metadata"]["name"] == "matching")["spec"]["replicas"] >= 2
+
+
+def _kubeconform(manifests: str) -> subprocess.CompletedProcess:
+    schemas = TOOLS / "kubernetes-schemas"
+    assert (TOOLS / "bin" / "kubeconform").exists() and schemas.exists(), "run `make test`: it builds the validators"
+    command = [str(TOOLS / "bin" / "kubeconform"), "-strict", "-summary",
+               "-schema-location", f"{schemas}/{{{{ .ResourceKind }}}}{{{{ .KindSuffix }}}}.json", "-"]
+    return subprocess.run(command, input=manifests, capture_output=True, text=True, timeout=60)
+
+
+def _kustomize_build() -> str:
+    built = subprocess.run([str(TOOLS / "bin" / "kustomize"), "build", str(DEPLOY / "k8s")],
+                           capture_output=True, text=True, timeout=60)
+    assert built.returncode == 0, built.stderr
+    return built.stdout
+
+
+def test_kubernetes_manifests_are_valid_against_the_api_schemas():
+    """`kubectl apply -k deploy/k8s` as kustomize renders it, checked by kubeconform against the
+    Kubernetes 1.31 API with unknown fields refused."""
+    manifests = _kustomize_build()
+    result = _kubeconform(manifests)
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "Valid: 8, Invalid: 0, Errors: 0, Skipped: 0" in result.stdout
+    assert manifests.count("namespace: fractoscope") >= 7 and "image: fractoscope:0.1.0" in manifests
+
+
+def test_kubeconform_refuses_a_misspelt_field_and_a_wrong_type():
+    manifests = _kustomize_build()
+    for broken in (manifests.replace("readOnlyRootFilesystem", "readOnlyRootFilesytem"),
+                   manifests.replace("replicas: 3", "replicas: three")):
+        assert broken != manifests
+        result = _kubeconform(broken)
+        assert result.returncode != 0 and "Invalid: 0" not in result.stdout, result.stdout
 
 
 def test_compose_and_image_run_the_server_as_a_user():
