@@ -79,6 +79,7 @@ bench: install
 	$(BIN)/python -m benchmarks.matching --out bench-results
 	$(BIN)/python -m benchmarks.meshing --out bench-results
 	$(BIN)/python -m benchmarks.serving --out bench-results
+	$(BIN)/python -m benchmarks.scale_out --out bench-results --one-cpu-per-replica --peers 1 2
 
 ## load: tiles over gRPC and HTTP and profile queries at concurrency 50 for 60 s each, into bench-results/load.json
 load: install

@@ -4,7 +4,9 @@ Configuration comes from flags, each with an environment variable as its default
 FRACTO_ADDRESS (listen address), FRACTO_MAX_MESSAGE_MB (largest message either way),
 FRACTO_WORKERS (concurrent calls), FRACTO_LOG_LEVEL, FRACTO_DATA_DIR (where specimens are kept),
 FRACTO_MATCHING_ADDRESS and FRACTO_MESHING_ADDRESS (the services the tile service calls; default:
-this server),
+this server), FRACTO_STRIP_PEERS (matching replicas that match the strips of large pairs, e.g. the
+headless Service of the matching Deployment; empty = match here), FRACTO_STRIP_PIXELS and
+FRACTO_STRIP_IN_FLIGHT,
 FRACTO_HTTP_ADDRESS (host:port of the plain-HTTP tile endpoint; empty = off), FRACTO_TOKENS
 (bearer tokens, see auth; none = open), FRACTO_TLS_CERT and FRACTO_TLS_KEY (serve TLS).
 """
@@ -55,11 +57,16 @@ def create_server(
     tokens: TokenTable | None = None,
     tls_cert_path: str | None = None,
     tls_key_path: str | None = None,
+    strip_peers: str | None = None,
+    strip_pixels: int = 2_000_000,
+    strip_in_flight: int = 4,
 ) -> tuple[grpc.Server, int]:
     """A server with the named services, health and reflection, bound to `address`; returns it
     (not started) with the bound port. The tile service keeps specimens under `data_dir` and calls
     matching and meshing at their addresses (default: this server on loopback). With `tokens`,
-    calls need a bearer token (see auth); with a certificate and key, the port speaks TLS."""
+    calls need a bearer token (see auth); with a certificate and key, the port speaks TLS. The
+    matching service farms strips of about `strip_pixels` out to `strip_peers` when given,
+    `strip_in_flight` at a time."""
     interceptors = [AuthInterceptor(tokens)] if tokens is not None and tokens.enabled else []
     server = grpc.server(
         futures.ThreadPoolExecutor(max_workers=workers), options=message_size_options(max_message_mb), interceptors=interceptors
@@ -77,7 +84,9 @@ def create_server(
             tile_servicer = TileServicer(store, matching_address=matching_address, meshing_address=meshing_address)
             add(tile_servicer, server)
         else:
-            add(MatchingServicer() if name == "matching" else MeshingServicer(), server)
+            matching = MatchingServicer(
+                strip_peers=strip_peers, strip_pixels=strip_pixels, strip_in_flight=strip_in_flight, coordinator_slots=max(1, workers // 2))
+            add(matching if name == "matching" else MeshingServicer(), server)
         names.append(descriptor.full_name)
         health_servicer.set(descriptor.full_name, health_pb2.HealthCheckResponse.SERVING)
     health_servicer.set("", health_pb2.HealthCheckResponse.SERVING)
@@ -133,6 +142,13 @@ def build_parser() -> argparse.ArgumentParser:
                         help="matching service for the tile service, e.g. dns:///matching:50051 (default: this server)")
     parser.add_argument("--meshing-address", default=os.environ.get("FRACTO_MESHING_ADDRESS") or None,
                         help="meshing service for the tile service (default: this server)")
+    parser.add_argument("--strip-peers", default=os.environ.get("FRACTO_STRIP_PEERS") or None,
+                        help="matching replicas that match strips of large pairs in parallel, e.g. "
+                             "dns:///matching:50051 or ipv4:10.0.0.1:50051,10.0.0.2:50051 (default: match here)")
+    parser.add_argument("--strip-pixels", type=int, default=int(os.environ.get("FRACTO_STRIP_PIXELS", "2000000")),
+                        help="pixels per strip of dense matching")
+    parser.add_argument("--strip-in-flight", type=int, default=int(os.environ.get("FRACTO_STRIP_IN_FLIGHT", "4")),
+                        help="strips sent to the peers at a time (about the number of matching replicas)")
     parser.add_argument("--http-address", default=os.environ.get("FRACTO_HTTP_ADDRESS", "0.0.0.0:8080"),
                         help="host:port of the HTTP tile endpoint; empty = off")
     parser.add_argument("--tls-cert", default=os.environ.get("FRACTO_TLS_CERT") or None, help="PEM certificate: serve TLS")
@@ -151,6 +167,7 @@ def main(argv: list[str] | None = None) -> None:
         args.address, services=services, max_message_mb=args.max_message_mb, workers=args.workers,
         data_dir=args.data, matching_address=args.matching_address, meshing_address=args.meshing_address,
         tokens=tokens, tls_cert_path=args.tls_cert, tls_key_path=args.tls_key,
+        strip_peers=args.strip_peers, strip_pixels=args.strip_pixels, strip_in_flight=args.strip_in_flight,
     )
     server.start()
     log = logging.getLogger("fractoscope.server")

@@ -11,11 +11,16 @@ import time
 from pathlib import Path
 
 import grpc
+import numpy as np
+import tifffile
 import yaml
 
+from conftest import fracture_pair
 from fractoscope.client import ClientError, FractoscopeClient
 from fractoscope.client.demo import write_multiscale_specimen
 from fractoscope.client.manifest import load_manifest
+from fractoscope.height_map import MatchingOptions, compute_series_height_map
+from fractoscope.sem_image import read_sem_image
 from fractoscope.services.server import _SERVICES, build_parser
 from fractoscope.tileset import content_uris
 
@@ -49,7 +54,7 @@ def test_kubernetes_deployments_are_probed_limited_and_unprivileged():
         args = build_parser().parse_args(container["args"])  # the real server accepts them
         assert args.services == deployment["metadata"]["name"]
         for variable in container.get("env", []):
-            if variable["name"].endswith("_ADDRESS"):
+            if variable["name"].endswith(("_ADDRESS", "_PEERS")):
                 host = variable["value"].removeprefix("dns:///").split(".")[0]
                 assert host in services and services[host]["spec"].get("clusterIP") == "None"  # headless: round-robin
         selector = services[deployment["metadata"]["name"]]["spec"]["selector"]
@@ -112,15 +117,29 @@ def _healthy(address: str) -> bool:
     return subprocess.run([sys.executable, "-m", "fractoscope.services.healthcheck", address], capture_output=True).returncode == 0
 
 
+def _start_server(port: int, *args: str) -> subprocess.Popen:
+    return subprocess.Popen(
+        [sys.executable, "-m", "fractoscope.services.server", "--address", f"127.0.0.1:{port}", "--http-address", "", *args],
+        env={**os.environ, "GRPC_VERBOSITY": "ERROR"}, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )
+
+
+def _wait_until_healthy(ports, timeout_s: float = 60) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not all(_healthy(f"127.0.0.1:{port}") for port in ports):
+        assert time.monotonic() < deadline, "servers did not become healthy"
+        time.sleep(0.5)
+
+
 class Stack:
     """The three services as separate `fracto-server` processes on loopback, as deployed."""
 
     def __init__(self, data: Path):
         self.ports = {name: _free_port() for name in _SERVICES}
         self.commands = {
-            "matching": ["--services", "matching", "--http-address", ""],
-            "meshing": ["--services", "meshing", "--http-address", ""],
-            "tiles": ["--services", "tiles", "--http-address", "", "--data", str(data),
+            "matching": ["--services", "matching"],
+            "meshing": ["--services", "meshing"],
+            "tiles": ["--services", "tiles", "--data", str(data),
                       "--matching-address", f"dns:///127.0.0.1:{self.ports['matching']}",
                       "--meshing-address", f"127.0.0.1:{self.ports['meshing']}"],
         }
@@ -128,16 +147,10 @@ class Stack:
         self.wait_until_healthy()
 
     def _start(self, name: str) -> subprocess.Popen:
-        return subprocess.Popen(
-            [sys.executable, "-m", "fractoscope.services.server", "--address", f"127.0.0.1:{self.ports[name]}", *self.commands[name]],
-            env={**os.environ, "GRPC_VERBOSITY": "ERROR"}, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-        )
+        return _start_server(self.ports[name], *self.commands[name])
 
-    def wait_until_healthy(self, timeout_s: float = 60) -> None:
-        deadline = time.monotonic() + timeout_s
-        while not all(_healthy(f"127.0.0.1:{port}") for port in self.ports.values()):
-            assert time.monotonic() < deadline, "servers did not become healthy"
-            time.sleep(0.5)
+    def wait_until_healthy(self) -> None:
+        _wait_until_healthy(self.ports.values())
 
     def kill(self, name: str) -> None:
         self.processes[name].kill()
@@ -208,3 +221,72 @@ def test_a_service_killed_mid_reconstruction_leaves_nothing_half_written(tmp_pat
         assert summary["id"] == specimen_id and all((specimens / specimen_id / uri).is_file() for uri in uris)
     finally:
         stack.stop()
+
+
+def test_matching_replicas_share_the_strips_of_a_pair_and_the_stitched_map_is_exact(tmp_path):
+    """A matching process with two strip peers (round-robin over their addresses) farms the strips
+    of a pair out and stitches them: the height map is the one a single process computes, to
+    the bit. With one peer killed, the other matches every strip."""
+    pair = fracture_pair(seed=5)
+    for index, image in enumerate((pair.first, pair.second)):
+        tifffile.imwrite(tmp_path / f"view{index}.tif", image)
+    strip_pixels = 100_000
+    local = compute_series_height_map(
+        [read_sem_image((tmp_path / f"view{index}.tif").read_bytes()) for index in range(2)],
+        tilt_deg=(-5.0, 5.0), pixel_size_um=0.1, options=MatchingOptions(strip_pixels=strip_pixels),
+    )
+    assert local.report["strip_count"] >= 3
+
+    peer_ports = [_free_port(), _free_port()]
+    coordinator_port = _free_port()
+    peers = [_start_server(port, "--services", "matching") for port in peer_ports]
+    coordinator = _start_server(
+        coordinator_port, "--services", "matching", "--strip-pixels", str(strip_pixels),
+        "--strip-peers", "ipv4:" + ",".join(f"127.0.0.1:{port}" for port in peer_ports),
+    )
+    try:
+        _wait_until_healthy([*peer_ports, coordinator_port])
+        with FractoscopeClient(f"127.0.0.1:{coordinator_port}", timeout_s=300) as client:
+            def height_map():
+                return client.compute_height_map([tmp_path / "view0.tif", tmp_path / "view1.tif"], tilt_deg=(-5, 5), pixel_size_um=0.1)
+
+            height_map()  # connects the coordinator to both peers
+            farmed_out = height_map()
+            np.testing.assert_array_equal(farmed_out.z_um, local.z_um)
+            np.testing.assert_array_equal(farmed_out.sigma_um, local.sigma_um)
+            assert farmed_out.report["strip_count"] == local.report["strip_count"]
+            assert len(farmed_out.report["strip_workers"]) == 2
+
+            peers[0].kill()
+            peers[0].wait()
+            survivor = height_map()
+            np.testing.assert_array_equal(survivor.z_um, local.z_um)
+            assert len(survivor.report["strip_workers"]) == 1
+    finally:
+        for process in (*peers, coordinator):
+            process.terminate()
+            process.wait(timeout=60)
+
+
+def test_a_replica_that_is_its_own_strip_peer_never_deadlocks(tmp_path):
+    """Two height maps at once on a two-thread replica whose strip peer is itself: one farms its
+    strips out, the other matches here, and both finish."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from fractoscope.services.server import create_server
+
+    pair = fracture_pair(size_px=384, seed=6)
+    files = [tifffile.imwrite(tmp_path / f"view{index}.tif", image) or tmp_path / f"view{index}.tif"
+             for index, image in enumerate((pair.first, pair.second))]
+    port = _free_port()
+    server, _ = create_server(f"127.0.0.1:{port}", services=("matching",), workers=2,
+                              strip_peers=f"127.0.0.1:{port}", strip_pixels=50_000)
+    server.start()
+    try:
+        with FractoscopeClient(f"127.0.0.1:{port}", timeout_s=120) as client, ThreadPoolExecutor(2) as pool:
+            jobs = [pool.submit(client.compute_height_map, files, tilt_deg=(-5, 5), pixel_size_um=0.1) for _ in range(2)]
+            reports = [job.result().report for job in jobs]
+        assert all(report["strip_count"] >= 3 for report in reports)
+        assert sorted(len(report["strip_workers"]) for report in reports) == [0, 1]  # one farmed out, one here
+    finally:
+        server.stop(grace=None)

@@ -1,5 +1,6 @@
 """The matching service over a real gRPC server on loopback."""
 
+import dataclasses
 import io
 
 import grpc
@@ -11,6 +12,7 @@ from grpc_reflection.v1alpha import reflection_pb2, reflection_pb2_grpc
 
 from conftest import fracture_pair, inner_mask
 from fractoscope.client import ClientError
+from fractoscope.dense_matching import StripTask
 
 
 def _tiff(image) -> bytes:
@@ -79,6 +81,25 @@ def test_bad_requests_get_invalid_argument_naming_the_field(client, case, field)
     assert error.value.code == grpc.StatusCode.INVALID_ARGUMENT
     assert error.value.field == field
     assert "Traceback" not in str(error.value)
+
+
+@pytest.mark.parametrize(
+    "change, field",
+    [
+        (lambda task: dataclasses.replace(task, right=task.right[:-1]), "right"),
+        (lambda task: dataclasses.replace(task, left=np.full_like(task.left, np.nan)), "left"),
+        (lambda task: dataclasses.replace(task, max_disparity_px=0), "parameters.max_disparity_px"),
+        (lambda task: dataclasses.replace(task, window_px=4), "parameters.window_px"),
+    ],
+)
+def test_a_bad_strip_gets_invalid_argument_naming_the_field(client, change, field):
+    pair = fracture_pair(size_px=128)
+    task = StripTask(pair.first.astype(np.float32), pair.second.astype(np.float32), 15, 16, 0.5, 1.0)
+    result, worker = client.match_strip(task)
+    assert np.isfinite(result.disparity_px).mean() > 0.5 and worker
+    with pytest.raises(ClientError) as error:
+        client.match_strip(change(task))
+    assert error.value.code == grpc.StatusCode.INVALID_ARGUMENT and error.value.field == field
 
 
 def test_cancelled_call_stops_the_work_at_its_next_progress_report():

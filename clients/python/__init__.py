@@ -29,6 +29,7 @@ from google.protobuf import json_format
 from grpc_status import rpc_status
 
 from fractoscope import wire
+from fractoscope.dense_matching import DisparityResult, StripTask
 from fractoscope.meshing import EncodedTile
 from fractoscope.services.limits import DEFAULT_MAX_MESSAGE_MB, message_size_options
 from fractoscope.v1 import common_pb2, matching_pb2, matching_pb2_grpc, meshing_pb2, meshing_pb2_grpc, tiles_pb2, tiles_pb2_grpc
@@ -76,7 +77,7 @@ _ROUGHNESS_NAMES = {
 }
 
 
-# The unary calls are idempotent reads, so those that fail with UNAVAILABLE (a replica
+# The unary calls are idempotent (reads, and matching one strip), so those that fail with UNAVAILABLE (a replica
 # restarting) are retried with backoff. Streaming calls are not: a retried stream whose server died
 # mid-way can wait forever, and their callers retry whole requests (reconstructions per request
 # id). Several resolved addresses (a `dns:///` name of replicas) are used round-robin.
@@ -84,7 +85,8 @@ _RETRIED_METHODS = ("GetSpecimen", "ListSpecimens", "GetTileset", "GetTile", "Zo
 _SERVICE_CONFIG = json.dumps({
     "loadBalancingConfig": [{"round_robin": {}}],
     "methodConfig": [{
-        "name": [{"service": "fractoscope.v1.TileService", "method": method} for method in _RETRIED_METHODS],
+        "name": [{"service": "fractoscope.v1.TileService", "method": method} for method in _RETRIED_METHODS]
+        + [{"service": "fractoscope.v1.MatchingService", "method": "MatchStrip"}],
         "retryPolicy": {
             "maxAttempts": 4, "initialBackoff": "0.2s", "maxBackoff": "2s", "backoffMultiplier": 2,
             "retryableStatusCodes": ["UNAVAILABLE"],
@@ -180,6 +182,23 @@ class FractoscopeClient:
             report=wire.message_to_report(final.report),
         )
 
+
+    def match_strip(self, task: StripTask, *, request_id: str = "") -> tuple[DisparityResult, str]:
+        """Dense disparity of one strip of a rectified pair, matched by the server; returns it
+        with the id of the replica that matched it."""
+        request = matching_pb2.MatchStripRequest(
+            left=wire.array_to_raster(task.left),
+            right=wire.array_to_raster(task.right),
+            parameters=matching_pb2.MatchingParameters(
+                window_px=task.window_px, max_disparity_px=task.max_disparity_px,
+                min_confidence=task.min_confidence, max_lr_difference_px=task.max_lr_difference_px,
+            ),
+            request_id=request_id,
+        )
+        with _translated_errors():
+            response = self._matching.MatchStrip(request, timeout=self._timeout_s)
+        arrays = (wire.raster_to_array(raster) for raster in (response.disparity_px, response.confidence, response.sigma_px))
+        return DisparityResult(*arrays), response.worker
 
     def build_mesh(
         self,

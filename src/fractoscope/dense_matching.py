@@ -12,7 +12,7 @@ Convention: disparity d at left pixel (row, col) means it matches right pixel (r
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -39,6 +39,23 @@ class DisparityResult:
     sigma_px: np.ndarray
 
 
+@dataclass(frozen=True)
+class StripTask:
+    """One strip of rows of a rectified pair with the matcher's settings: a complete stereo
+    problem, since parallax runs along rows (see `match_strip`)."""
+
+    left: np.ndarray
+    right: np.ndarray
+    window_px: int
+    max_disparity_px: int
+    min_confidence: float
+    max_lr_difference_px: float
+
+
+# Matches strips, yielding their results in order: `match_strips` here, or peers over the network.
+StripMatcher = Callable[[Iterable[StripTask]], Iterator[DisparityResult]]
+
+
 def match_disparity(
     left: np.ndarray,
     right: np.ndarray,
@@ -48,6 +65,7 @@ def match_disparity(
     min_confidence: float = 0.5,
     max_lr_difference_px: float = 1.0,
     strip_pixels: int = 2_000_000,
+    strip_matcher: StripMatcher | None = None,
     progress: ProgressCallback | None = None,
 ) -> DisparityResult:
     """Matches `left` to `right`, both (rows, cols) grey images of one size, rectified so that
@@ -57,7 +75,10 @@ def match_disparity(
     isolated islands among masked pixels.
 
     Large images are matched in overlapping strips of rows of about `strip_pixels` pixels each,
-    which bounds memory; parallax runs along rows, so a strip is a complete stereo problem."""
+    which bounds memory; parallax runs along rows, so a strip is a complete stereo problem.
+    `strip_matcher` matches them: one after another here by default (`match_strips`), or in
+    parallel elsewhere;
+    the result is the same either way."""
     if left.shape != right.shape or left.ndim != 2:
         raise ValueError(f"left and right must be 2D of one shape, got {left.shape} and {right.shape}")
     if window_px < 3 or window_px % 2 == 0:
@@ -65,34 +86,44 @@ def match_disparity(
     report = progress or (lambda fraction, message: None)
     if max_disparity_px is None:
         max_disparity_px = max(left.shape[1] // 4, 8)
-    rows, cols = left.shape
-    levels = _level_count((min(rows, max(strip_pixels // cols, 1)), cols), max_disparity_px, window_px)
-    overlap = window_px * 2 ** (levels - 1)
-    core_rows = max(strip_pixels // cols - 2 * overlap, 4 * overlap)
-    starts = list(range(0, rows, core_rows))
+    bounds = strip_bounds(left.shape, window_px=window_px, max_disparity_px=max_disparity_px, strip_pixels=strip_pixels)
+    tasks = (
+        StripTask(left[top:bottom], right[top:bottom], window_px, max_disparity_px, min_confidence, max_lr_difference_px)
+        for top, _, _, bottom in bounds
+    )
     disparity = np.empty(left.shape, np.float32)
     confidence = np.empty(left.shape, np.float32)
     sigma_px = np.empty(left.shape, np.float32)
-    for index, start in enumerate(starts):
-        stop = min(start + core_rows, rows)
-        if rows - stop < overlap:  # a thin remainder joins this strip
-            stop = rows
-        top, bottom = max(start - overlap, 0), min(stop + overlap, rows)
-
-        def strip_progress(fraction: float, message: str) -> None:
-            report((index + fraction) / len(starts), message)
-
-        strip = _match_strip(
-            left[top:bottom], right[top:bottom], window_px, max_disparity_px, min_confidence, max_lr_difference_px, strip_progress
-        )
-        for out, values in zip((disparity, confidence, sigma_px), strip):
+    report(0.0, f"matching {len(bounds)} strip{'s' if len(bounds) > 1 else ''}")
+    for index, ((top, start, stop, _), strip) in enumerate(zip(bounds, (strip_matcher or match_strips)(tasks))):
+        for out, values in zip((disparity, confidence, sigma_px), (strip.disparity_px, strip.confidence, strip.sigma_px)):
             out[start:stop] = values[start - top : stop - top]
-        if stop == rows:
-            break
+        report((index + 1) / len(bounds), f"matched strip {index + 1} of {len(bounds)}")
     return DisparityResult(disparity, confidence, sigma_px)
 
 
-def _match_strip(left, right, window_px, max_disparity_px, min_confidence, max_lr_difference_px, report):
+def strip_bounds(shape: tuple[int, int], *, window_px: int, max_disparity_px: int, strip_pixels: int) -> list[tuple[int, int, int, int]]:
+    """Strips of about `strip_pixels` pixels covering `shape` (rows, cols): (top, start, stop,
+    bottom) rows, where rows start:stop are kept from the strip matched on rows top:bottom. The
+    overlap is the support of one window at the coarsest pyramid level, so strips join seamlessly."""
+    rows, cols = shape
+    levels = _level_count((min(rows, max(strip_pixels // cols, 1)), cols), max_disparity_px, window_px)
+    overlap = window_px * 2 ** (levels - 1)
+    core_rows = max(strip_pixels // cols - 2 * overlap, 4 * overlap)
+    bounds = []
+    for start in range(0, rows, core_rows):
+        stop = min(start + core_rows, rows)
+        if rows - stop < overlap:  # a thin remainder joins this strip
+            stop = rows
+        bounds.append((max(start - overlap, 0), start, stop, min(stop + overlap, rows)))
+        if stop == rows:
+            break
+    return bounds
+
+
+def match_strip(task: StripTask) -> DisparityResult:
+    """Dense disparity of one strip (the unit of work that replicas share)."""
+    left, right, window_px, max_disparity_px = task.left, task.right, task.window_px, task.max_disparity_px
     left_f, right_f = _normalized(left), _normalized(right)
     levels = _level_count(left.shape, max_disparity_px, window_px)
     left_pyramid, right_pyramid = _pyramid(left_f, levels), _pyramid(right_f, levels)
@@ -105,7 +136,6 @@ def _match_strip(left, right, window_px, max_disparity_px, min_confidence, max_l
         forward_job = pool.submit(_coarse_to_fine, left_pyramid, right_pyramid, window_px, coarse_radius, finest_left_stats)
         backward_job = pool.submit(_coarse_to_fine, right_pyramid, left_pyramid, window_px, coarse_radius, subpixel_iterations=0)
         forward, backward = forward_job.result(), backward_job.result().disparity
-    report(0.8, "matched both ways")
     del left_pyramid, right_pyramid
     backward_at_match = _sample_along_rows(backward, forward.disparity)
     lr_difference = np.abs(forward.disparity + backward_at_match)
@@ -114,8 +144,8 @@ def _match_strip(left, right, window_px, max_disparity_px, min_confidence, max_l
     del backward, backward_at_match
     score, curvature = forward.score, forward.curvature
     valid = (
-        (score >= min_confidence)
-        & (lr_difference <= max_lr_difference_px)
+        (score >= task.min_confidence)
+        & (lr_difference <= task.max_lr_difference_px)
         & (finest_left_stats.inverse_std < 1e3)  # not a flat, textureless patch
         & _in_bounds(disparity)
         & np.isfinite(disparity)
@@ -125,7 +155,12 @@ def _match_strip(left, right, window_px, max_disparity_px, min_confidence, max_l
     confidence = np.clip(score, 0.0, 1.0).astype(np.float32)
     disparity = np.where(valid, disparity, np.nan).astype(np.float32)
     sigma_px = np.where(valid, sigma_px, np.nan).astype(np.float32)
-    return disparity, confidence, sigma_px
+    return DisparityResult(disparity, confidence, sigma_px)
+
+
+def match_strips(tasks: Iterable[StripTask]) -> Iterator[DisparityResult]:
+    """Matches strips one after another in this process."""
+    return map(match_strip, tasks)
 
 
 def _coarse_to_fine(

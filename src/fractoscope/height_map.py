@@ -32,6 +32,7 @@ class MatchingOptions:
     max_lr_difference_px: float = 1.0
     tilt_uncertainty_deg: float = 0.5
     calibrate_tilt: bool = False
+    strip_pixels: int = 2_000_000
 
 
 @dataclass(frozen=True)
@@ -75,13 +76,16 @@ def compute_series_height_map(
     pixel_size_um: float | None = None,
     tilt_axis_deg: float = 90.0,
     options: MatchingOptions = MatchingOptions(),
+    strip_matcher: dense_matching.StripMatcher | None = None,
     progress: dense_matching.ProgressCallback | None = None,
 ) -> HeightMapResult:
     """Heights of the surface seen in `images[0]` from a tilt series (two or more views about one
     axis): every view is aligned to and densely matched with the first, and each pixel's height is
     the least-squares solution over all views that matched it. With `options.calibrate_tilt` and
     three or more views the tilts of all but the first are estimated from the images first
-    (see tilt_series). Explicit `tilt_deg` entries and `pixel_size_um` override the files."""
+    (see tilt_series). Explicit `tilt_deg` entries and `pixel_size_um` override the files. Dense
+    matching runs in strips of rows (`options.strip_pixels`), matched by `strip_matcher` (default:
+    here, one after another; see dense_matching)."""
     started = time.perf_counter()
     report_progress = progress or (lambda fraction, message: None)
     if len(images) < 2:
@@ -125,12 +129,15 @@ def compute_series_height_map(
             views[index], alignment.second_to_first_matrix(placement, views[0].shape), views[0].shape, inverse=True
         )
         spread = placement.parallax_spread_px if np.isfinite(placement.parallax_spread_px) else views[0].shape[1] / 8
+        max_disparity_px = options.max_disparity_px or int(np.ceil(1.5 * spread + 8))
         matched = dense_matching.match_disparity(
-            views[0], on_first, window_px=options.window_px,
-            max_disparity_px=options.max_disparity_px or int(np.ceil(1.5 * spread + 8)),
+            views[0], on_first, window_px=options.window_px, max_disparity_px=max_disparity_px,
             min_confidence=options.min_confidence, max_lr_difference_px=options.max_lr_difference_px,
-            progress=matching_progress,
+            strip_pixels=options.strip_pixels, strip_matcher=strip_matcher, progress=matching_progress,
         )
+        strip_count = len(dense_matching.strip_bounds(
+            views[0].shape, window_px=options.window_px, max_disparity_px=max_disparity_px, strip_pixels=options.strip_pixels
+        ))
         # A magnification error ε the alignment left makes disparities err by ε·x: measured on the
         # matched images, it is taken out here rather than by matching again.
         epsilon = alignment.residual_magnification(views[0], on_first, matched.disparity_px)
@@ -196,6 +203,7 @@ def compute_series_height_map(
         "elapsed_s": time.perf_counter() - started,
         "tilt_axis_deg_estimated": axis_estimated,
         "warnings": warnings,
+        "strip_count": strip_count,
         **calibration,
     }
     report_progress(1.0, "done")
@@ -223,13 +231,20 @@ def _validate(first: SemImage, second: SemImage, tilt_axis_deg: float, options: 
         )
     if not np.isfinite(tilt_axis_deg):
         raise InvalidInputError("tilt_axis_deg", f"must be finite, got {tilt_axis_deg}")
+    validate_options(options, image_cols=first.pixels.shape[1])
+
+
+def validate_options(options: MatchingOptions, *, image_cols: int) -> None:
+    """Raises InvalidInputError naming the first out-of-range setting (field names as in the API)."""
     if options.window_px < 5 or options.window_px % 2 == 0 or options.window_px > 101:
         raise InvalidInputError("parameters.window_px", f"must be odd, 5 to 101, got {options.window_px}")
     if not 0.0 <= options.min_confidence < 1.0:
         raise InvalidInputError("parameters.min_confidence", f"must be in [0, 1), got {options.min_confidence}")
     if not options.max_lr_difference_px > 0:
         raise InvalidInputError("parameters.max_lr_difference_px", f"must be > 0, got {options.max_lr_difference_px}")
-    if options.max_disparity_px is not None and not 1 <= options.max_disparity_px <= first.pixels.shape[1]:
+    if options.strip_pixels < 1:
+        raise InvalidInputError("strip_pixels", f"must be positive, got {options.strip_pixels}")
+    if options.max_disparity_px is not None and not 1 <= options.max_disparity_px <= image_cols:
         raise InvalidInputError("parameters.max_disparity_px", f"must be 1 to the image width, got {options.max_disparity_px}")
     if not 0.0 <= options.tilt_uncertainty_deg < 45.0:
         raise InvalidInputError("parameters.tilt_uncertainty_deg", f"must be in [0, 45), got {options.tilt_uncertainty_deg}")

@@ -44,6 +44,11 @@ def heights_px(x_px: np.ndarray, disparities_px: np.ndarray, tilt_deg, *, refere
     (px; NaN with fewer than two matched views)."""
     a, b = coefficients(tilt_deg, reference=reference)
     offsets = np.zeros(len(a)) if offsets_px is None else np.asarray(offsets_px, np.float64)
+    others = [view for view in range(len(a)) if view != reference]
+    if len(others) == 1:  # a pair: the one equation solved directly, no residual to speak of
+        (view,) = others
+        z = (disparities_px[view] - x_px * a[view] - offsets[view]) / b[view]
+        return z, np.full(np.shape(x_px), np.nan)
     numerator = np.zeros(np.shape(x_px))
     denominator = np.zeros(np.shape(x_px))
     rests = []
