@@ -160,15 +160,19 @@ def compute_series_height_map(
     z_um = (z_px * pixel_size).astype(np.float32)
     _, b = tilt_series.coefficients(tilts)
     with np.errstate(invalid="ignore", divide="ignore"):
-        information = sum(np.where(np.isfinite(sigma), (b[index + 1] / sigma) ** 2, 0.0) for index, sigma in enumerate(sigmas))
-        disparity_sigma_um = pixel_size / np.sqrt(information)
+        # Information on the height from each view's disparity, 1/px² (none where unmatched).
+        information = sum(np.where(np.isfinite(sigma), (np.float32(b[index + 1]) / sigma) ** 2, np.float32(0)) for index, sigma in enumerate(sigmas))
+        disparity_sigma_um = np.float32(pixel_size) / np.sqrt(information)
     widest = (float(tilts[0]), float(tilts[np.argmax(np.abs(b))]))
     tilt_uncertainty = max(calibration["tilt_sigma_deg"]) if calibration else options.tilt_uncertainty_deg
     relative = stereo_geometry.relative_height_error_from_tilt(tilt_deg=widest, tilt_uncertainty_deg=tilt_uncertainty)
     finite = np.isfinite(z_um)
-    reference_um = float(np.median(z_um[finite])) if finite.any() else 0.0
-    sigma_um = np.where(finite, np.hypot(disparity_sigma_um, relative * np.abs(z_um - reference_um)), np.nan).astype(np.float32)
-    confidence = np.nanmax(np.stack(confidences), axis=0)
+    sample = z_um[::4, ::4]  # the median height, which the tilt error scales from, needs no more
+    sample = sample[np.isfinite(sample)]
+    reference_um = np.float32(np.median(sample)) if sample.size else np.float32(0)
+    sigma_um = np.hypot(disparity_sigma_um, np.float32(relative) * np.abs(z_um - reference_um))
+    sigma_um[~finite] = np.nan
+    confidence = confidences[0] if len(confidences) == 1 else np.nanmax(np.stack(confidences), axis=0)
     if rotated:
         z_um[outside] = np.nan
         back = (images[0].pixels.shape[0] - bar_rows, images[0].pixels.shape[1])
@@ -253,6 +257,6 @@ def validate_options(options: MatchingOptions, *, image_cols: int) -> None:
 def _pad_rows(values: np.ndarray, rows: int) -> np.ndarray:
     """Adds `rows` NaN rows at the bottom, where the data bar was."""
     if rows == 0:
-        return values.astype(np.float32)
+        return values.astype(np.float32, copy=False)
     padding = np.full((rows, values.shape[1]), np.nan, np.float32)
     return np.vstack([values.astype(np.float32), padding])
