@@ -34,6 +34,18 @@ def fracture_pair(
     )
 
 
+def dimple_pair(*, tilt_deg=(-5.0, 5.0), size_px=640, seed=1) -> synthetic.StereoPair:
+    """Ductile dimples (radius ~4 µm, ~3 µm deep, sharp rims) at 0.1 µm/px, 2 % noise."""
+    surface = synthetic.dimple_surface((size_px + 64,) * 2, dimple_radius_px=40, depth_um=3.0, seed=seed)
+    return synthetic.render_stereo_pair(surface, pixel_size_um=0.1, tilt_deg=tilt_deg, output_shape=(size_px, size_px), seed=seed)
+
+
+def cleavage_pair(*, tilt_deg=(-5.0, 5.0), size_px=640, seed=1) -> synthetic.StereoPair:
+    """Cleavage facets (~16 µm grains, 0.5 µm river steps, slopes up to 0.2) at 0.1 µm/px, 2 % noise."""
+    surface = synthetic.cleavage_surface((size_px + 64,) * 2, facet_size_px=160, step_um=0.5, slope_um_per_px=0.02, seed=seed)
+    return synthetic.render_stereo_pair(surface, pixel_size_um=0.1, tilt_deg=tilt_deg, output_shape=(size_px, size_px), seed=seed)
+
+
 def inner_mask(shape, border_px=16) -> np.ndarray:
     mask = np.zeros(shape, bool)
     mask[border_px:-border_px, border_px:-border_px] = True

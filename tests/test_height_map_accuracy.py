@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from conftest import fracture_pair, inner_mask
+from conftest import cleavage_pair, dimple_pair, fracture_pair, inner_mask
 from fractoscope import roughness
 from fractoscope.height_map import MatchingOptions, compute_height_map
 from fractoscope.sem_image import SemImage
@@ -34,6 +34,43 @@ def test_fracture_surface_heights_meet_the_accuracy_targets(tilt_deg):
     assert rms_of_range <= 0.015
     assert abs(sa_relative) <= 0.02
     assert result.z_um.dtype == np.float32 and result.z_um.shape == pair.first.shape
+
+
+def _within(result, pair):
+    """Fractions of valid inner heights within one pixel of disparity of the truth and within
+    three reported sigmas (after the constant offset)."""
+    valid = np.isfinite(result.z_um) & inner_mask(pair.z_seen_um.shape)
+    error = result.z_um[valid] - pair.z_seen_um[valid]
+    error -= np.median(error)
+    one_pixel_um = 0.1 / (2 * np.sin(np.radians(5.0)))
+    return np.mean(np.abs(error) < one_pixel_um), np.mean(np.abs(error) < 3 * result.sigma_um[valid])
+
+
+# The fracture-surface targets (1.5 % RMS, 98 % valid) are not met on the two surfaces below; these
+# tests pin what the matcher achieves (measured: dimples 7.3-8.0 % RMS, 88 % valid; cleavage
+# 2.7-6.0 % RMS, 37-51 % valid) so it cannot silently get worse. See "Accuracy" in the README.
+@pytest.mark.parametrize("tilt_deg", [(-5.0, 5.0), (0.0, 10.0)])
+def test_dimpled_surface_heights_where_rims_and_steep_walls_limit_them(tilt_deg):
+    pair = dimple_pair(tilt_deg=tilt_deg)
+    result = _reconstruct(pair, tilt_deg)
+    valid_fraction, rms_of_range, sa_relative = _errors(result, pair)
+    within_one_pixel, within_three_sigma = _within(result, pair)
+    assert valid_fraction >= 0.85
+    assert rms_of_range <= 0.09
+    assert abs(sa_relative) <= 0.02
+    assert within_one_pixel >= 0.9 and within_three_sigma >= 0.95
+
+
+@pytest.mark.parametrize("tilt_deg", [(-5.0, 5.0), (0.0, 10.0)])
+def test_cleavage_facets_are_masked_where_too_smooth_to_match(tilt_deg):
+    pair = cleavage_pair(tilt_deg=tilt_deg)
+    result = _reconstruct(pair, tilt_deg)
+    valid_fraction, rms_of_range, sa_relative = _errors(result, pair)
+    within_one_pixel, within_three_sigma = _within(result, pair)
+    assert valid_fraction >= 0.33
+    assert rms_of_range <= 0.07
+    assert abs(sa_relative) <= 0.04
+    assert within_one_pixel >= 0.85 and within_three_sigma >= 0.92
 
 
 def test_misaligned_pair_is_aligned_and_reported():
