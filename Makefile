@@ -15,6 +15,8 @@ DATA ?= ./data
 PORT ?= 8080
 GRPC_PORT ?= 50051
 CHROMIUM := /usr/bin/chromium
+WRK := /usr/bin/wrk
+GHZ := .tools/bin/ghz
 # Go tools for validating the Kubernetes manifests, built from the Go module proxy, and the
 # Kubernetes API's JSON schemas for them (deploy/kubernetes_schemas.py).
 TOOLS := .tools
@@ -55,13 +57,17 @@ $(STAMP): pyproject.toml $(GEN) | $(BIN)/python
 run: install
 	$(BIN)/fracto demo --data $(DATA) --http-port $(PORT) --port $(GRPC_PORT)
 
-# Debian's Chromium for the browser test (never a browser downloaded by a test tool).
-$(CHROMIUM):
+# Debian's Chromium for the browser test (never a browser downloaded by a test tool) and wrk, the
+# HTTP load generator of `make load` and `make bench`.
+$(CHROMIUM) $(WRK):
 	if [ "$$(id -u)" = 0 ]; then SUDO=; else SUDO=sudo; fi; \
-	$$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq --no-install-recommends chromium >/dev/null
+	$$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq --no-install-recommends $(notdir $@) >/dev/null
 
 $(KUBECONFORM):
 	GOBIN=$(abspath $(TOOLS)/bin) go install github.com/yannh/kubeconform/cmd/kubeconform@v0.6.7
+
+$(GHZ):
+	GOBIN=$(abspath $(TOOLS)/bin) go install github.com/bojand/ghz/cmd/ghz@v0.120.0
 
 $(KUSTOMIZE):
 	GOBIN=$(abspath $(TOOLS)/bin) go install sigs.k8s.io/kustomize/kustomize/v5@v5.5.0
@@ -75,14 +81,14 @@ test: install $(CHROMIUM) $(KUBECONFORM) $(KUSTOMIZE) $(KUBE_SCHEMAS)
 	$(BIN)/python -m pytest -q
 
 ## bench: speed, memory and accuracy figures, written to bench-results/
-bench: install
+bench: install $(WRK) $(GHZ)
 	$(BIN)/python -m benchmarks.matching --out bench-results
 	$(BIN)/python -m benchmarks.meshing --out bench-results
 	$(BIN)/python -m benchmarks.serving --out bench-results
 	$(BIN)/python -m benchmarks.scale_out --out bench-results --one-cpu-per-replica --peers 1 2
 
-## load: tiles over gRPC and HTTP and profile queries at concurrency 50 for 60 s each, into bench-results/load.json
-load: install
+## load: tiles over HTTP (wrk) and tiles, zooms and profiles over gRPC (ghz) at concurrency 50 for 60 s each, into bench-results/load.json
+load: install $(WRK) $(GHZ)
 	$(BIN)/python -m benchmarks.serving --out bench-results --name load --concurrency 50 --duration-s 60
 
 lint: install

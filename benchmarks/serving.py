@@ -1,26 +1,30 @@
-"""`make bench` (serving) and `make load`: tile requests over gRPC and over HTTP, and profile
-queries, each at a fixed concurrency (32 for the bench, 50 for 60 s for the load test) on loopback
-against a `fracto-server` process holding the multi-scale demo specimen, with the server's
-resident memory before and after each phase.
+"""`make load` (concurrency 50 for 60 s per query) and `make bench` (10 s): a `fracto-server`
+process holding the multi-scale demo specimen, loaded with
 
-Writes bench-results/NAME.json (serving or load) and prints a table. The load comes from Python threads in this
-process (one channel or keep-alive connection per worker), so the figures are a floor set partly
-by the load generator itself.
+- tiles over plain HTTP (what 3D Tiles viewers fetch), by wrk (Debian's package),
+- tiles, zooms and profiles over gRPC, by ghz (built from the Go module proxy into .tools/bin),
+
+each for a fixed time at a fixed number of concurrent requests, round-robin over every tile, 64
+zoom regions and 256 profile lines. Reported per query: requests per second, p50/p99 latency,
+errors, and the server's resident memory sampled every half second.
+
+With two or more CPUs the server runs on the first half and the load generator on the rest, so
+that neither takes the other's CPU time; the figures are then the server's on its share.
+Writes bench-results/NAME.json and prints a table.
 """
 
 from __future__ import annotations
 
 import argparse
-import http.client
 import json
 import os
+import shutil
 import socket
 import subprocess
 import sys
 import tempfile
 import threading
 import time
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -30,8 +34,25 @@ from fractoscope.client.demo import write_multiscale_specimen
 from fractoscope.client.manifest import load_manifest
 from fractoscope.tileset import content_uris
 
-CONCURRENCY = 32
-DURATION_S = 10.0
+ROOT = Path(__file__).resolve().parents[1]
+GHZ = ROOT / ".tools" / "bin" / "ghz"
+TILES_PROTO = "fractoscope/v1/tiles.proto"
+# wrk's script: every connection walks the tile list; at the end one JSON line with the figures.
+WRK_SCRIPT = """
+local paths = {}
+for line in io.lines("%(paths)s") do paths[#paths + 1] = line end
+local counter = 0
+request = function()
+  counter = counter + 1
+  return wrk.format("GET", paths[(counter %% #paths) + 1], {["Accept-Encoding"] = "gzip"})
+end
+done = function(summary, latency, requests)
+  local e = summary.errors
+  io.write(string.format('{"requests": %%d, "duration_us": %%d, "p50_us": %%d, "p99_us": %%d, "errors": %%d}\\n',
+    summary.requests, summary.duration, latency:percentile(50), latency:percentile(99),
+    e.connect + e.read + e.write + e.status + e.timeout))
+end
+"""
 
 
 def free_port() -> int:
@@ -40,107 +61,150 @@ def free_port() -> int:
         return probe.getsockname()[1]
 
 
-def load(worker: Callable[[int, int], None], *, concurrency: int, duration_s: float) -> dict:
-    """Runs `worker(worker_index, request_index)` in a loop on `concurrency` threads for
-    `duration_s`; returns requests per second, latency percentiles (ms) and the error count."""
-    latencies: list[list[float]] = [[] for _ in range(concurrency)]
-    errors = [0] * concurrency
-    deadline = time.perf_counter() + duration_s
+def split_cpus() -> tuple[set[int] | None, set[int] | None]:
+    """CPUs for the server and for the load generator: halves of this process's, or None (share)."""
+    cpus = sorted(os.sched_getaffinity(0))
+    if len(cpus) < 2:
+        return None, None
+    half = len(cpus) // 2
+    return set(cpus[:half]), set(cpus[half:])
 
-    def run(index: int) -> None:
-        count = 0
-        while time.perf_counter() < deadline:
-            started = time.perf_counter()
-            try:
-                worker(index, count)
-                latencies[index].append(time.perf_counter() - started)
-            except Exception:
-                errors[index] += 1
-            count += 1
 
-    threads = [threading.Thread(target=run, args=(i,)) for i in range(concurrency)]
-    started = time.perf_counter()
-    for thread in threads:
-        thread.start()
-    for thread in threads:
-        thread.join()
-    elapsed = time.perf_counter() - started
-    all_ms = np.concatenate([np.array(values) for values in latencies]) * 1000
+def _pinned(cpus: set[int] | None):
+    return None if cpus is None else (lambda: os.sched_setaffinity(0, cpus))
+
+
+class MemorySampler:
+    """Resident memory of a process (MB), sampled every `interval_s` while the block runs."""
+
+    def __init__(self, pid: int, interval_s: float = 0.5):
+        self.pid, self.interval_s, self.samples = pid, interval_s, []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            self.samples.append(_rss_mb(self.pid))
+            self._stop.wait(self.interval_s)
+
+    def __enter__(self) -> MemorySampler:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join()
+        self.samples.append(_rss_mb(self.pid))
+
+    def summary(self) -> dict:
+        return {"first": self.samples[0], "min": min(self.samples), "max": max(self.samples), "last": self.samples[-1]}
+
+
+def http_tiles(base_url: str, paths: list[str], *, concurrency: int, duration_s: float, cpus, scratch: Path) -> dict:
+    (scratch / "paths.txt").write_text("".join(f"{path}\n" for path in paths))
+    script = scratch / "tiles.lua"
+    script.write_text(WRK_SCRIPT % {"paths": scratch / "paths.txt"})
+    threads = max(1, min(len(cpus or [0]), concurrency))
+    command = ["wrk", f"-t{threads}", f"-c{concurrency}", f"-d{duration_s:g}s", "--timeout", "10s", "-s", str(script), base_url]
+    output = subprocess.run(command, capture_output=True, text=True, check=True, preexec_fn=_pinned(cpus)).stdout
+    figures = json.loads(output.strip().splitlines()[-1])
     return {
-        "requests_per_s": len(all_ms) / elapsed,
-        "p50_ms": float(np.percentile(all_ms, 50)),
-        "p99_ms": float(np.percentile(all_ms, 99)),
-        "requests": int(len(all_ms)),
-        "errors": int(sum(errors)),
-        "concurrency": concurrency,
-        "duration_s": elapsed,
+        "requests_per_s": figures["requests"] / (figures["duration_us"] / 1e6),
+        "p50_ms": figures["p50_us"] / 1000, "p99_ms": figures["p99_us"] / 1000,
+        "requests": figures["requests"], "errors": figures["errors"], "tool": "wrk",
+    }
+
+
+def grpc_calls(address: str, method: str, messages: list[dict], *, concurrency: int, duration_s: float, cpus, scratch: Path) -> dict:
+    data = scratch / f"{method}.json"
+    data.write_text(json.dumps(messages))
+    command = [
+        str(GHZ), "--insecure", "--import-paths", str(ROOT / "proto"), "--proto", TILES_PROTO,
+        "--call", f"fractoscope.v1.TileService.{method}", "-D", str(data), "-c", str(concurrency),
+        "-z", f"{duration_s:g}s", "--duration-stop", "wait", "--timeout", "10s", "--format", "json", address,
+    ]
+    if cpus is not None:
+        command[1:1] = ["--cpus", str(len(cpus))]
+    report = json.loads(subprocess.run(command, capture_output=True, text=True, check=True, preexec_fn=_pinned(cpus)).stdout)
+    latency = {entry["percentage"]: entry["latency"] / 1e6 for entry in report["latencyDistribution"] or []}
+    ok = report.get("statusCodeDistribution", {}).get("OK", 0)
+    return {
+        "requests_per_s": report["rps"], "p50_ms": latency.get(50, float("nan")), "p99_ms": latency.get(99, float("nan")),
+        "requests": report["count"], "errors": report["count"] - ok, "tool": "ghz",
     }
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__)
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="bench-results")
-    parser.add_argument("--duration-s", type=float, default=DURATION_S)
-    parser.add_argument("--concurrency", type=int, default=CONCURRENCY)
+    parser.add_argument("--duration-s", type=float, default=10.0)
+    parser.add_argument("--concurrency", type=int, default=50)
     parser.add_argument("--name", default="serving", help="results file name (without .json)")
     args = parser.parse_args()
-    work = Path(tempfile.mkdtemp(prefix="fracto-bench-"))
-    write_multiscale_specimen(work / "input")
+    for tool, path in (("wrk", shutil.which("wrk")), ("ghz", GHZ if GHZ.exists() else None)):
+        if path is None:
+            sys.exit(f"{tool} is missing: `make load` and `make bench` install it")
+    server_cpus, load_cpus = split_cpus()
+    scratch = Path(tempfile.mkdtemp(prefix="fracto-load-"))
+    write_multiscale_specimen(scratch / "input")
     grpc_port, http_port = free_port(), free_port()
     server = subprocess.Popen(
         [sys.executable, "-m", "fractoscope.services.server", "--address", f"127.0.0.1:{grpc_port}",
-         "--http-address", f"127.0.0.1:{http_port}", "--data", str(work / "data"), "--log-level", "WARNING"],
-        env={**os.environ, "GRPC_VERBOSITY": "ERROR"},
+         "--http-address", f"127.0.0.1:{http_port}", "--data", str(scratch / "data"), "--log-level", "WARNING"],
+        env={**os.environ, "GRPC_VERBOSITY": "ERROR"}, preexec_fn=_pinned(server_cpus),
     )
+    address = f"127.0.0.1:{grpc_port}"
     try:
-        address = f"127.0.0.1:{grpc_port}"
         with FractoscopeClient(address, timeout_s=600) as client:
             _wait_until_serving(client)
-            specimen_id, rois = load_manifest(work / "input" / "manifest.json")
+            specimen_id, rois = load_manifest(scratch / "input" / "manifest.json")
             started = time.perf_counter()
             client.reconstruct_specimen(specimen_id, rois)
             reconstruct_s = time.perf_counter() - started
-            tileset = client.get_tileset(specimen_id)
-        uris = content_uris(tileset)
-        clients = [FractoscopeClient(address, timeout_s=30) for _ in range(args.concurrency)]
-        connections = [http.client.HTTPConnection("127.0.0.1", http_port, timeout=30) for _ in range(args.concurrency)]
+            uris = content_uris(client.get_tileset(specimen_id))
         rng = np.random.default_rng(0)
-        lines = [((float(x0), float(y0)), (float(x1), float(y1))) for x0, y0, x1, y1 in rng.uniform(0, 511, size=(256, 4))]
-
-        def grpc_tile(worker: int, index: int) -> None:
-            clients[worker].get_tile(specimen_id, uris[(worker * 7 + index) % len(uris)])
-
-        def http_tile(worker: int, index: int) -> None:
-            connection = connections[worker]
-            connection.request("GET", f"/specimens/{specimen_id}/{uris[(worker * 7 + index) % len(uris)]}", headers={"Accept-Encoding": "gzip"})
-            response = connection.getresponse()
-            response.read()
-            if response.status != 200:
-                raise RuntimeError(response.status)
-
-        def profile(worker: int, index: int) -> None:
-            clients[worker].profile(specimen_id, list(lines[(worker * 11 + index) % len(lines)]))
-
-        results = {"reconstruct_s": reconstruct_s, "tiles": len(uris), "cpu_count": os.cpu_count()}
-        for name, worker in (("grpc_get_tile", grpc_tile), ("http_get_tile", http_tile), ("grpc_profile", profile)):
-            before_mb = _rss_mb(server.pid)
-            results[name] = load(worker, concurrency=args.concurrency, duration_s=args.duration_s)
-            results[name].update(server_rss_before_mb=before_mb, server_rss_after_mb=_rss_mb(server.pid))
-        for client in clients:
-            client.close()
+        corners = rng.uniform(0, 511, size=(64, 2))
+        zooms = [{"specimen_id": specimen_id, "magnification": float(m),
+                  "region": {"min": {"x_um": x, "y_um": y}, "max": {"x_um": x + size, "y_um": y + size}}}
+                 for (x, y), size, m in zip(corners.tolist(), rng.uniform(16, 256, 64).tolist(), rng.choice([1.0, 2.0, 4.0, 8.0], 64))]
+        profiles = [{"specimen_id": specimen_id, "points": [{"x_um": x0, "y_um": y0}, {"x_um": x1, "y_um": y1}]}
+                    for x0, y0, x1, y1 in rng.uniform(0, 511, size=(256, 4)).tolist()]
+        tiles = [{"specimen_id": specimen_id, "uri": uri} for uri in uris]
+        load = {"concurrency": args.concurrency, "duration_s": args.duration_s, "cpus": load_cpus, "scratch": scratch}
+        tile_paths = [f"/specimens/{specimen_id}/{uri}" for uri in uris]
+        base_url = f"http://127.0.0.1:{http_port}"
+        phases = {
+            "http_get_tile": lambda: http_tiles(base_url, tile_paths, **load),
+            "grpc_get_tile": lambda: grpc_calls(address, "GetTile", tiles, **load),
+            "grpc_zoom": lambda: grpc_calls(address, "Zoom", zooms, **load),
+            "grpc_profile": lambda: grpc_calls(address, "GetProfile", profiles, **load),
+        }
+        results = {
+            "reconstruct_s": reconstruct_s, "tiles": len(uris), "cpu_count": os.cpu_count(),
+            "server_cpus": sorted(server_cpus or []), "load_generator_cpus": sorted(load_cpus or []),
+        }
+        http_tiles(base_url, tile_paths, **{**load, "duration_s": 3})  # warms the endpoint's cache (gzip of every tile)
+        for name, phase in phases.items():
+            with MemorySampler(server.pid) as memory:
+                results[name] = phase()
+            results[name]["server_rss_mb"] = memory.summary()
     finally:
         server.terminate()
         server.wait(timeout=30)
+        shutil.rmtree(scratch, ignore_errors=True)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / f"{args.name}.json").write_text(json.dumps(results, indent=1))
     print(f"specimen: {results['tiles']} tiles, reconstructed in {reconstruct_s:.1f} s")
-    print(f"concurrency {args.concurrency}, {args.duration_s:g} s per query")
-    print(f"{'query':16} {'req/s':>8} {'p50 ms':>8} {'p99 ms':>8} {'errors':>7} {'server MB before/after':>24}")
-    for name in ("grpc_get_tile", "http_get_tile", "grpc_profile"):
+    print(f"concurrency {args.concurrency}, {args.duration_s:g} s per query; server on CPUs {results['server_cpus'] or 'all'}, "
+          f"load generator on {results['load_generator_cpus'] or 'all'}")
+    print(f"{'query':14} {'tool':>5} {'req/s':>8} {'p50 ms':>8} {'p99 ms':>8} {'errors':>7} {'server MB first/max/last':>26}")
+    for name in phases:
         row = results[name]
-        memory = f"{row['server_rss_before_mb']:.0f} / {row['server_rss_after_mb']:.0f}"
-        print(f"{name:16} {row['requests_per_s']:8.0f} {row['p50_ms']:8.2f} {row['p99_ms']:8.2f} {row['errors']:7d} {memory:>24}")
+        memory = row["server_rss_mb"]
+        print(f"{name:14} {row['tool']:>5} {row['requests_per_s']:8.0f} {row['p50_ms']:8.2f} {row['p99_ms']:8.2f} {row['errors']:7d} "
+              f"{memory['first']:>10.0f} / {memory['max']:.0f} / {memory['last']:.0f}")
+    print(f"written to {out / (args.name + '.json')}")
 
 
 def _wait_until_serving(client: FractoscopeClient, timeout_s: float = 60.0) -> None:
@@ -161,7 +225,6 @@ def _rss_mb(pid: int) -> float:
         if line.startswith("VmRSS:"):
             return int(line.split()[1]) / 1024
     return float("nan")
-
 
 
 if __name__ == "__main__":

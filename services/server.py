@@ -172,6 +172,7 @@ def main(argv: list[str] | None = None) -> None:
     server.start()
     log = logging.getLogger("fractoscope.server")
     log.info(f"serving {', '.join(services)} on port {port}")
+    http = None
     if "tiles" in services and args.http_address:
         host, _, http_port = args.http_address.rpartition(":")
         http = start_http_server(SpecimenStore(Path(args.data)), host or "0.0.0.0", int(http_port), tokens=tokens)
@@ -181,6 +182,8 @@ def main(argv: list[str] | None = None) -> None:
     def stop(signum, frame):
         logging.getLogger("fractoscope.server").info("stopping")
         server.stop(args.grace_s).wait()
+        if http is not None:
+            http.shutdown()
         stopped.set()
 
     signal.signal(signal.SIGTERM, stop)

@@ -10,6 +10,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import gzip
 import hashlib
 import json
@@ -18,12 +19,10 @@ import math
 import os
 import re
 import threading
-from functools import partial
 from http import HTTPStatus
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
-from urllib.parse import parse_qs, urlsplit
 
+from aiohttp import web
 from google.protobuf import json_format
 
 from fractoscope import specimen_queries
@@ -64,6 +63,10 @@ class _BodyCache:
         self._lock = threading.Lock()
         self._limit = limit
 
+    def cached(self, key) -> _Body | None:
+        with self._lock:
+            return self._bodies.get(key)
+
     def get(self, key, produce) -> _Body:
         with self._lock:
             body = self._bodies.get(key)
@@ -76,75 +79,55 @@ class _BodyCache:
         return body
 
 
-class _TileHandler(BaseHTTPRequestHandler):
-    server_version = "fractoscope"
-    protocol_version = "HTTP/1.1"
+class _TileApp:
+    """Request handling: one coroutine for every path, so the routing below reads top to bottom.
+    Cached bodies are answered on the event loop; reading files, gzip and analysis run on the
+    default executor so that they never stall the loop."""
 
-    def __init__(self, *args, store: SpecimenStore, cache: _BodyCache, tokens: TokenTable, **kwargs):
+    def __init__(self, store: SpecimenStore, tokens: TokenTable):
         self.store = store
-        self.cache = cache
+        self.cache = _BodyCache()
         self.tokens = tokens
-        super().__init__(*args, **kwargs)
 
-    def log_message(self, format, *args):
-        _log.debug(format % args)
-
-    def do_OPTIONS(self):
-        self.send_response(HTTPStatus.NO_CONTENT)
-        self._cors()
-        self.send_header("Access-Control-Allow-Methods", "GET, HEAD, OPTIONS")
-        self.send_header("Access-Control-Allow-Headers", "*")
-        self.send_header("Content-Length", "0")
-        self.end_headers()
-
-    def do_HEAD(self):
-        self._serve(with_body=False)
-
-    def do_GET(self):
-        self._serve(with_body=True)
-
-    def _serve(self, *, with_body: bool) -> None:
-        url = urlsplit(self.path)
-        path = url.path
+    async def handle(self, request: web.Request) -> web.StreamResponse:
+        if request.method == "OPTIONS":
+            return web.Response(status=HTTPStatus.NO_CONTENT, headers={
+                **_CORS, "Access-Control-Allow-Methods": "GET, HEAD, OPTIONS", "Access-Control-Allow-Headers": "*",
+            })
+        if request.method not in ("GET", "HEAD"):
+            return _plain(HTTPStatus.METHOD_NOT_ALLOWED, "only GET, HEAD and OPTIONS\n", Allow="GET, HEAD, OPTIONS")
+        path = request.path
         if path == "/healthz":
-            self._send_plain(HTTPStatus.OK, b"ok\n", with_body)
-            return
+            return _plain(HTTPStatus.OK, "ok\n")
         if path == "/":
-            self.send_response(HTTPStatus.FOUND)
-            self.send_header("Location", "/viewer/")
-            self.send_header("Content-Length", "0")
-            self.end_headers()
-            return
+            return web.Response(status=HTTPStatus.FOUND, headers={"Location": "/viewer/"})
         if self.tokens.enabled and not path.startswith(("/viewer/", "/vendor/")):
-            offered = self.headers.get("Authorization") or ("Bearer " + parse_qs(url.query).get("token", [""])[0])
+            offered = request.headers.get("Authorization") or "Bearer " + request.query.get("token", "")
             if self.tokens.grant(offered) is None:
-                self._send_plain(HTTPStatus.UNAUTHORIZED, b"a valid bearer token is required\n", with_body)
-                return
+                return _plain(HTTPStatus.UNAUTHORIZED, "a valid bearer token is required\n")
         if (api := _API.match(path)) is not None:
-            self._serve_api(api["specimen"], api["query"], parse_qs(url.query), with_body)
-            return
+            arguments = {key: request.query.getall(key) for key in request.query.keys()}
+            status, answer = await _off_loop(self._api_answer, api["specimen"], api["query"], arguments)
+            return web.Response(status=status, body=json.dumps(answer, allow_nan=False).encode(),
+                                headers={**_CORS, "Content-Type": "application/json", "Cache-Control": "no-store"})
         if (static := _STATIC.match(path)) is not None:
-            self._serve_static(static["area"], static["path"] or "index.html", with_body)
-            return
+            return await self._static(request, static["area"], static["path"] or "index.html")
         route = _ROUTE.match(path)
         if route is None:
-            self._send_plain(HTTPStatus.NOT_FOUND, b"not found\n", with_body)
-            return
+            return _plain(HTTPStatus.NOT_FOUND, "not found\n")
+        relative = route["path"]
         try:
             specimen = self.store.load(route["specimen"])
-            relative = route["path"]
             produce = (lambda: specimen.tileset_bytes) if relative == "tileset.json" else (lambda: specimen.tile_bytes(relative))
-            stamp = (specimen.directory / "specimen.json").stat().st_mtime_ns
-            body = self.cache.get((str(specimen.directory), stamp, relative), produce)
+            key = (str(specimen.directory), (specimen.directory / "specimen.json").stat().st_mtime_ns, relative)
+            body = self.cache.cached(key) or await _off_loop(self.cache.get, key, produce)
         except (NotFoundError, FileNotFoundError):
-            self._send_plain(HTTPStatus.NOT_FOUND, b"not found\n", with_body)
-            return
+            return _plain(HTTPStatus.NOT_FOUND, "not found\n")
         except FractoscopeError as error:
-            self._send_plain(HTTPStatus.BAD_REQUEST, f"{error}\n".encode(), with_body)
-            return
-        self._send_body(body, _TYPES[relative[relative.rfind("."):]], with_body)
+            return _plain(HTTPStatus.BAD_REQUEST, f"{error}\n")
+        return _body_response(request, body, _TYPES[relative[relative.rfind("."):]])
 
-    def _serve_static(self, area: str, relative: str, with_body: bool) -> None:
+    async def _static(self, request: web.Request, area: str, relative: str) -> web.StreamResponse:
         if area == "viewer":
             root = WEB_ROOT
         else:
@@ -152,89 +135,58 @@ class _TileHandler(BaseHTTPRequestHandler):
             root = VENDOR_ROOTS.get(package)
         path = (root / relative).resolve() if root else None
         if path is None or not path.is_relative_to(root.resolve()) or not path.is_file() or path.suffix not in _TYPES:
-            self._send_plain(HTTPStatus.NOT_FOUND, b"not found\n", with_body)
-            return
-        body = self.cache.get(("static", path.stat().st_mtime_ns, str(path)), path.read_bytes)
-        self._send_body(body, _TYPES[path.suffix], with_body)
+            return _plain(HTTPStatus.NOT_FOUND, "not found\n")
+        key = ("static", path.stat().st_mtime_ns, str(path))
+        body = self.cache.cached(key) or await _off_loop(self.cache.get, key, path.read_bytes)
+        return _body_response(request, body, _TYPES[path.suffix])
 
-    def _serve_api(self, specimen_id: str | None, query: str | None, arguments: dict, with_body: bool) -> None:
+    def _api_answer(self, specimen_id: str | None, query: str | None, arguments: dict) -> tuple[HTTPStatus, object]:
         try:
             if specimen_id is None:
-                answer = [_summary(self.store.load(i)) for i in self.store.ids()]
-            elif query is None:
-                answer = _summary(self.store.load(specimen_id))
-            elif query == "profile":
+                return HTTPStatus.OK, [_summary(self.store.load(i)) for i in self.store.ids()]
+            if query is None:
+                return HTTPStatus.OK, _summary(self.store.load(specimen_id))
+            if query == "profile":
                 found = specimen_queries.profile_along(
                     self.store.load(specimen_id), [_numbers(arguments, "from", 2), _numbers(arguments, "to", 2)],
                     magnification=_numbers(arguments, "magnification", 1, default=[0.0])[0],
                 )
                 names = found.sources + [""]
-                answer = {
+                return HTTPStatus.OK, {
                     "distance_um": found.distance_um.tolist(),
                     "z_um": [None if math.isnan(z) else z for z in found.z_um.tolist()],
                     "source": [names[i] for i in found.source_index.tolist()],
                     "parameters": found.parameters,
                 }
-            else:
-                region = _numbers(arguments, "region", 4) if "region" in arguments else None
-                roi = arguments.get("roi", [None])[0]
-                specimen = self.store.load(specimen_id)
-                answer = specimen_queries.roughness_of(specimen, roi=roi or (None if region else specimen.rois[0].id), region_um=region)
+            region = _numbers(arguments, "region", 4) if "region" in arguments else None
+            roi = arguments.get("roi", [None])[0]
+            specimen = self.store.load(specimen_id)
+            return HTTPStatus.OK, specimen_queries.roughness_of(specimen, roi=roi or (None if region else specimen.rois[0].id), region_um=region)
         except NotFoundError as error:
-            self._send_json(HTTPStatus.NOT_FOUND, {"error": str(error)}, with_body)
-            return
+            return HTTPStatus.NOT_FOUND, {"error": str(error)}
         except FractoscopeError as error:
-            field = getattr(error, "field", None)
-            self._send_json(HTTPStatus.BAD_REQUEST, {"error": str(error), "field": field}, with_body)
-            return
-        self._send_json(HTTPStatus.OK, answer, with_body)
+            return HTTPStatus.BAD_REQUEST, {"error": str(error), "field": getattr(error, "field", None)}
 
-    def _send_json(self, status: HTTPStatus, answer, with_body: bool) -> None:
-        payload = json.dumps(answer, allow_nan=False).encode()
-        self.send_response(status)
-        self._cors()
-        self.send_header("Content-Type", "application/json")
-        self.send_header("Cache-Control", "no-store")
-        self.send_header("Content-Length", str(len(payload)))
-        self.end_headers()
-        if with_body:
-            self.wfile.write(payload)
 
-    def _send_body(self, body: _Body, content_type: str, with_body: bool) -> None:
-        if self.headers.get("If-None-Match") == body.etag:
-            self.send_response(HTTPStatus.NOT_MODIFIED)
-            self._cors()
-            self.send_header("ETag", body.etag)
-            self.send_header("Content-Length", "0")
-            self.end_headers()
-            return
-        compressed = "gzip" in self.headers.get("Accept-Encoding", "")
-        payload = body.gzipped if compressed else body.raw
-        self.send_response(HTTPStatus.OK)
-        self._cors()
-        self.send_header("Content-Type", content_type)
-        self.send_header("ETag", body.etag)
-        self.send_header("Cache-Control", "no-cache")
-        self.send_header("Vary", "Accept-Encoding")
-        if compressed:
-            self.send_header("Content-Encoding", "gzip")
-        self.send_header("Content-Length", str(len(payload)))
-        self.end_headers()
-        if with_body:
-            self.wfile.write(payload)
+_CORS = {"Access-Control-Allow-Origin": "*", "Access-Control-Expose-Headers": "ETag, Content-Encoding"}
 
-    def _send_plain(self, status: HTTPStatus, text: bytes, with_body: bool) -> None:
-        self.send_response(status)
-        self._cors()
-        self.send_header("Content-Type", "text/plain; charset=utf-8")
-        self.send_header("Content-Length", str(len(text)))
-        self.end_headers()
-        if with_body:
-            self.wfile.write(text)
 
-    def _cors(self) -> None:
-        self.send_header("Access-Control-Allow-Origin", "*")
-        self.send_header("Access-Control-Expose-Headers", "ETag, Content-Encoding")
+async def _off_loop(function, *args):
+    return await asyncio.get_running_loop().run_in_executor(None, function, *args)
+
+
+def _body_response(request: web.Request, body: _Body, content_type: str) -> web.Response:
+    if request.headers.get("If-None-Match") == body.etag:
+        return web.Response(status=HTTPStatus.NOT_MODIFIED, headers={**_CORS, "ETag": body.etag})
+    headers = {**_CORS, "Content-Type": content_type, "ETag": body.etag, "Cache-Control": "no-cache", "Vary": "Accept-Encoding"}
+    if "gzip" in request.headers.get("Accept-Encoding", ""):
+        headers["Content-Encoding"] = "gzip"
+        return web.Response(body=body.gzipped, headers=headers)
+    return web.Response(body=body.raw, headers=headers)
+
+
+def _plain(status: HTTPStatus, text: str, **headers: str) -> web.Response:
+    return web.Response(status=status, body=text.encode(), headers={**_CORS, "Content-Type": "text/plain; charset=utf-8", **headers})
 
 
 def _summary(specimen) -> dict:
@@ -256,16 +208,31 @@ def _numbers(arguments: dict, name: str, count: int, default: list[float] | None
     return values
 
 
-def create_http_server(store: SpecimenStore, host: str = "127.0.0.1", port: int = 0, *, tokens: TokenTable | None = None) -> ThreadingHTTPServer:
-    """An HTTP server for the store's tilesets (not started: call serve_forever in a thread); with
-    `tokens`, everything but the viewer's static files needs a bearer token (any access)."""
-    server = ThreadingHTTPServer((host, port), partial(_TileHandler, store=store, cache=_BodyCache(), tokens=tokens or TokenTable({})))
-    server.daemon_threads = True
-    return server
+class HttpTileServer:
+    """The HTTP endpoint, served by aiohttp from an event loop on its own daemon thread."""
+
+    def __init__(self, store: SpecimenStore, host: str, port: int, tokens: TokenTable):
+        self._loop = asyncio.new_event_loop()
+        app = _TileApp(store, tokens)
+        application = web.Application()
+        application.router.add_route("*", "/{tail:.*}", app.handle)
+        self._runner = web.AppRunner(application, access_log=None, handle_signals=False)
+        self._loop.run_until_complete(self._runner.setup())
+        site = web.TCPSite(self._runner, host, port, reuse_address=True)
+        self._loop.run_until_complete(site.start())
+        self.server_port: int = self._runner.addresses[0][1]
+        self._thread = threading.Thread(target=self._loop.run_forever, name="fractoscope-http", daemon=True)
+        self._thread.start()
+
+    def shutdown(self) -> None:
+        """Stops serving: open connections are closed, the loop and its thread end."""
+        asyncio.run_coroutine_threadsafe(self._runner.cleanup(), self._loop).result(timeout=30)
+        self._loop.call_soon_threadsafe(self._loop.stop)
+        self._thread.join(timeout=30)
+        self._loop.close()
 
 
-def start_http_server(store: SpecimenStore, host: str = "127.0.0.1", port: int = 0, *, tokens: TokenTable | None = None) -> ThreadingHTTPServer:
-    """Creates the HTTP server and serves it from a daemon thread; `server.server_port` is its port."""
-    server = create_http_server(store, host, port, tokens=tokens)
-    threading.Thread(target=server.serve_forever, name="fractoscope-http", daemon=True).start()
-    return server
+def start_http_server(store: SpecimenStore, host: str = "127.0.0.1", port: int = 0, *, tokens: TokenTable | None = None) -> HttpTileServer:
+    """Serves the store's tilesets over HTTP from a daemon thread; `server_port` is the bound port.
+    With `tokens`, everything but the viewer's static files needs a bearer token (any access)."""
+    return HttpTileServer(store, host, port, tokens or TokenTable({}))

@@ -3,6 +3,7 @@ processes on loopback as the compose file and the Kubernetes manifests run them.
 
 from __future__ import annotations
 
+import json
 import os
 import socket
 import subprocess
@@ -256,6 +257,7 @@ def test_matching_replicas_share_the_strips_of_a_pair_and_the_stitched_map_is_ex
             np.testing.assert_array_equal(farmed_out.sigma_um, local.sigma_um)
             assert farmed_out.report["strip_count"] == local.report["strip_count"]
             assert len(farmed_out.report["strip_workers"]) == 2
+            json.loads(json.dumps(farmed_out.report))  # plain values, as specimens store reports
 
             peers[0].kill()
             peers[0].wait()

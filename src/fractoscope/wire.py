@@ -41,6 +41,7 @@ def raster_to_array(raster: common_pb2.Raster, *, field: str = "raster") -> np.n
 
 
 REPORT_FIELDS = [field.name for field in matching_pb2.MatchingReport.DESCRIPTOR.fields]
+_REPEATED_REPORT_FIELDS = {field.name for field in matching_pb2.MatchingReport.DESCRIPTOR.fields if field.is_repeated}
 
 
 def report_to_message(report: dict) -> matching_pb2.MatchingReport:
@@ -50,7 +51,4 @@ def report_to_message(report: dict) -> matching_pb2.MatchingReport:
 
 def message_to_report(message: matching_pb2.MatchingReport) -> dict:
     """A MatchingReport message to a plain dict (lists for repeated fields)."""
-    report = {key: getattr(message, key) for key in REPORT_FIELDS}
-    for key in ("tilt_deg", "tilt_deg_nominal", "tilt_sigma_deg", "warnings"):
-        report[key] = list(report[key])
-    return report
+    return {key: list(getattr(message, key)) if key in _REPEATED_REPORT_FIELDS else getattr(message, key) for key in REPORT_FIELDS}
