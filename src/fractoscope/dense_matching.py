@@ -77,8 +77,7 @@ def match_disparity(
     Large images are matched in overlapping strips of rows of about `strip_pixels` pixels each,
     which bounds memory; parallax runs along rows, so a strip is a complete stereo problem.
     `strip_matcher` matches them: one after another here by default (`match_strips`), or in
-    parallel elsewhere;
-    the result is the same either way."""
+    parallel elsewhere; the result is the same either way."""
     if left.shape != right.shape or left.ndim != 2:
         raise ValueError(f"left and right must be 2D of one shape, got {left.shape} and {right.shape}")
     if window_px < 3 or window_px % 2 == 0:
