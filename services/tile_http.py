@@ -14,7 +14,6 @@ import asyncio
 import gzip
 import hashlib
 import json
-import logging
 import math
 import os
 import re
@@ -31,7 +30,6 @@ from fractoscope.services.auth import TokenTable
 from fractoscope.services.tiles import specimen_message
 from fractoscope.specimen_store import SpecimenStore
 
-_log = logging.getLogger("fractoscope.http")
 _ROUTE = re.compile(r"^/specimens/(?P<specimen>[A-Za-z0-9_-]{1,64})/(?P<path>tileset\.json|tiles/\d{1,6}/\d{1,6}/\d{1,6}\.glb)$")
 _TYPES = {
     ".json": "application/json", ".glb": "model/gltf-binary", ".html": "text/html; charset=utf-8",
@@ -81,8 +79,8 @@ class _BodyCache:
 
 class _TileApp:
     """Request handling: one coroutine for every path, so the routing below reads top to bottom.
-    Cached bodies are answered on the event loop; reading files, gzip and analysis run on the
-    default executor so that they never stall the loop."""
+    Cached bodies are answered on the event loop; producing them (file reads, gzip) and the
+    analysis queries run on the default executor so that they never stall it."""
 
     def __init__(self, store: SpecimenStore, tokens: TokenTable):
         self.store = store
