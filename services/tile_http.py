@@ -54,26 +54,33 @@ class _Body:
 
 
 class _BodyCache:
-    """Bodies by (specimen folder, path), dropped when the specimen is rebuilt."""
+    """Bodies by key, up to `limit_bytes` in all (raw and gzip); when full it starts over, since a
+    viewer's working set is far smaller. Tile keys hold their loaded `Specimen`, so they go stale
+    with it: the store loads a new object when the specimen is rebuilt."""
 
-    def __init__(self, limit: int = 4096):
-        self._bodies: dict[tuple[str, int, str], _Body] = {}
+    def __init__(self, limit_bytes: int = 256 * 1024 * 1024):
+        self._bodies: dict[tuple, _Body] = {}
+        self._total_bytes = 0
+        self._limit_bytes = limit_bytes
         self._lock = threading.Lock()
-        self._limit = limit
 
-    def cached(self, key) -> _Body | None:
+    def cached(self, key: tuple) -> _Body | None:
         with self._lock:
             return self._bodies.get(key)
 
-    def get(self, key, produce) -> _Body:
-        with self._lock:
-            body = self._bodies.get(key)
+    def get(self, key: tuple, produce) -> _Body:
+        """The cached body, or one made of `produce()` bytes and kept for next time."""
+        body = self.cached(key)
         if body is None:
             body = _Body(produce())
+            size = len(body.raw) + len(body.gzipped)
             with self._lock:
-                if len(self._bodies) >= self._limit:
+                if self._total_bytes + size > self._limit_bytes:
                     self._bodies.clear()
-                self._bodies[key] = body
+                    self._total_bytes = 0
+                if key not in self._bodies:
+                    self._bodies[key] = body
+                    self._total_bytes += size
         return body
 
 
@@ -117,7 +124,7 @@ class _TileApp:
         try:
             specimen = self.store.load(route["specimen"])
             produce = (lambda: specimen.tileset_bytes) if relative == "tileset.json" else (lambda: specimen.tile_bytes(relative))
-            key = (str(specimen.directory), (specimen.directory / "specimen.json").stat().st_mtime_ns, relative)
+            key = (specimen, relative)
             body = self.cache.cached(key) or await _off_loop(self.cache.get, key, produce)
         except (NotFoundError, FileNotFoundError):
             return _plain(HTTPStatus.NOT_FOUND, "not found\n")
