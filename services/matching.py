@@ -17,12 +17,11 @@ from concurrent.futures import ThreadPoolExecutor
 import grpc
 import numpy as np
 
-from fractoscope import wire
+from fractoscope import sem_image, wire
 from fractoscope.client import ClientError, FractoscopeClient
 from fractoscope.dense_matching import DisparityResult, StripTask, match_strip
 from fractoscope.errors import InvalidInputError, UnavailableError
 from fractoscope.height_map import MatchingOptions, compute_series_height_map, validate_options
-from fractoscope.sem_image import read_sem_image
 from fractoscope.services.errors import abort_with_error
 from fractoscope.services.progress import stream_progress
 from fractoscope.v1 import common_pb2, matching_pb2, matching_pb2_grpc
@@ -89,7 +88,7 @@ class MatchingServicer(matching_pb2_grpc.MatchingServiceServicer):
         try:
             if len(request.images) < 2:
                 raise InvalidInputError("images", f"at least two images are needed, got {len(request.images)}")
-            images = [read_sem_image(item.image.content, field=f"images[{i}].image") for i, item in enumerate(request.images)]
+            images = [sem_image.read_sem_image(item.image.content, field=f"images[{i}].image") for i, item in enumerate(request.images)]
             tilts = tuple(item.tilt_deg if item.HasField("tilt_deg") else None for item in request.images)
             options = dataclasses.replace(options_from_message(request.parameters), strip_pixels=self.strip_pixels)
 
@@ -140,6 +139,8 @@ def _strip_task(request: matching_pb2.MatchStripRequest) -> StripTask:
     right = wire.raster_to_array(request.right, field="right").astype(np.float32)
     if left.shape != right.shape:
         raise InvalidInputError("right", f"size {right.shape[::-1]} differs from the left strip's {left.shape[::-1]}")
+    if left.size > sem_image.MAX_IMAGE_PIXELS:
+        raise InvalidInputError("left", f"{left.size} pixels is more than the limit of {sem_image.MAX_IMAGE_PIXELS} (FRACTO_MAX_IMAGE_PIXELS)")
     if not (np.isfinite(left).all() and np.isfinite(right).all()):
         raise InvalidInputError("left" if not np.isfinite(left).all() else "right", "grey values must be finite")
     options = options_from_message(request.parameters)

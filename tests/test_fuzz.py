@@ -87,6 +87,41 @@ def test_random_matching_requests_get_a_status_naming_the_problem(client, tilts,
 
 @FUZZ
 @given(
+    shapes=st.lists(st.tuples(st.integers(0, 70), st.integers(0, 70)), min_size=2, max_size=2),
+    data_types=st.lists(st.sampled_from([0, 1, 2, 3, 99]), min_size=2, max_size=2),
+    truncate=st.booleans(),
+    window=st.integers(-5, 300),
+    max_disparity=st.integers(-5, 300),
+    confidence=finite_or_not,
+    lr=finite_or_not,
+    fill=finite_or_not,
+)
+def test_random_strips_get_a_status_naming_the_problem(client, shapes, data_types, truncate, window, max_disparity, confidence, lr, fill):
+    rasters = []
+    for (rows, cols), data_type in zip(shapes, data_types):
+        item_size = {1: 4, 2: 1, 3: 2}.get(data_type, 1)
+        data = np.full(rows * cols * item_size, 7, np.uint8)
+        if data_type == 1 and data.size:
+            data = np.random.default_rng(rows * 71 + cols).normal(size=rows * cols).astype("<f4")
+            with np.errstate(over="ignore"):
+                data[0] = fill  # NaN, infinite or out of float32 range now and then
+            data = data.view(np.uint8)
+        rasters.append(common_pb2.Raster(rows=rows, cols=cols, data_type=data_type, data=data.tobytes()[: -1 if truncate else None]))
+    request = matching_pb2.MatchStripRequest(
+        left=rasters[0], right=rasters[1],
+        parameters=matching_pb2.MatchingParameters(
+            window_px=window, max_disparity_px=max_disparity, min_confidence=confidence, max_lr_difference_px=lr
+        ),
+    )
+    try:
+        client._matching.MatchStrip(request, timeout=60)
+    except grpc.RpcError as error:
+        assert error.code() in EXPECTED, (error.code(), error.details())
+        assert error.details()
+
+
+@FUZZ
+@given(
     specimen=st.text(max_size=80),
     uri=st.text(max_size=80),
     coordinates=st.lists(finite_or_not, min_size=4, max_size=4),
