@@ -1,8 +1,8 @@
 """`make bench`: scale-out of matching. One large synthetic pair is sent to a matching process
 that matches everything itself, then to one that farms the strips of its dense matching out to
 1, 2, ... matching processes on loopback (round-robin over their addresses), one strip in flight
-per peer. Reports wall times,
-the speed-up over the single process and whether the stitched height maps are identical.
+per peer. Reports wall times, the speed-up over the single process and whether the stitched
+height maps are identical.
 
 With `--one-cpu-per-replica` every process is pinned to one CPU (replicas with a CPU limit of 1,
 as on a cluster), the peers spread over this machine's CPUs; otherwise all share every CPU.
@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import socket
 import subprocess
 import sys
 import tempfile
@@ -26,15 +25,10 @@ import numpy as np
 import tifffile
 
 from benchmarks.matching import PIXEL_SIZE_UM, TILTS_DEG, make_pair
+from benchmarks.serving import free_port
 from fractoscope.client import FractoscopeClient
 
 REPEATS = 2
-
-
-def _free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
 
 
 def _server(port: int, *args: str, cpu: int | None = None) -> subprocess.Popen:
@@ -61,8 +55,8 @@ def time_configuration(files: list[Path], peer_count: int, strip_pixels: int, pi
     peers (0: it matches alone); returns the figures and the last height map. `pinned`: one CPU
     per process, the coordinator on the first, the peers from the second on, wrapping around."""
     cpus = sorted(os.sched_getaffinity(0))
-    peer_ports = [_free_port() for _ in range(peer_count)]
-    coordinator_port = _free_port()
+    peer_ports = [free_port() for _ in range(peer_count)]
+    coordinator_port = free_port()
     peer_args = ["--strip-peers", "ipv4:" + ",".join(f"127.0.0.1:{p}" for p in peer_ports)] if peer_ports else []
     processes = [_server(port, cpu=cpus[(index + 1) % len(cpus)] if pinned else None) for index, port in enumerate(peer_ports)]
     processes.append(_server(coordinator_port, "--strip-pixels", str(strip_pixels), "--strip-in-flight", str(max(peer_count, 1)),
