@@ -83,10 +83,11 @@ def create_server(
             store.discard_unfinished()  # this server is the store's one writer
             tile_servicer = TileServicer(store, matching_address=matching_address, meshing_address=meshing_address)
             add(tile_servicer, server)
+        elif name == "matching":
+            add(MatchingServicer(strip_peers=strip_peers, strip_pixels=strip_pixels, strip_in_flight=strip_in_flight,
+                                 coordinator_slots=max(1, workers // 2)), server)
         else:
-            matching = MatchingServicer(
-                strip_peers=strip_peers, strip_pixels=strip_pixels, strip_in_flight=strip_in_flight, coordinator_slots=max(1, workers // 2))
-            add(matching if name == "matching" else MeshingServicer(), server)
+            add(MeshingServicer(), server)
         names.append(descriptor.full_name)
         health_servicer.set(descriptor.full_name, health_pb2.HealthCheckResponse.SERVING)
     health_servicer.set("", health_pb2.HealthCheckResponse.SERVING)

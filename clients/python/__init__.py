@@ -77,10 +77,11 @@ _ROUGHNESS_NAMES = {
 }
 
 
-# The unary calls are idempotent (reads, and matching one strip), so those that fail with UNAVAILABLE (a replica
-# restarting) are retried with backoff. Streaming calls are not: a retried stream whose server died
-# mid-way can wait forever, and their callers retry whole requests (reconstructions per request
-# id). Several resolved addresses (a `dns:///` name of replicas) are used round-robin.
+# The unary calls are idempotent (reads, and matching one strip), so those that fail with
+# UNAVAILABLE (a replica restarting) are retried with backoff. Streaming calls are not: a retried
+# stream whose server died mid-way can wait forever, and their callers retry whole requests
+# (reconstructions per request id). Several resolved addresses (a `dns:///` name of replicas) are
+# used round-robin.
 _RETRIED_METHODS = ("GetSpecimen", "ListSpecimens", "GetTileset", "GetTile", "Zoom", "GetProfile", "GetRoughness")
 _SERVICE_CONFIG = json.dumps({
     "loadBalancingConfig": [{"round_robin": {}}],
