@@ -147,7 +147,13 @@ def _strip_task(request: matching_pb2.MatchStripRequest) -> StripTask:
     if options.max_disparity_px is None:
         raise InvalidInputError("parameters.max_disparity_px", "is required for a strip")
     validate_options(options, image_cols=left.shape[1])
-    return StripTask(left, right, options.window_px, options.max_disparity_px, options.min_confidence, options.max_lr_difference_px)
+    keep_rows = None
+    if request.keep_from_row or request.keep_to_row:
+        if not 0 <= request.keep_from_row < request.keep_to_row <= left.shape[0]:
+            raise InvalidInputError("keep_to_row", f"rows [{request.keep_from_row}, {request.keep_to_row}) are not within the strip's {left.shape[0]}")
+        keep_rows = (request.keep_from_row, request.keep_to_row)
+    return StripTask(left, right, options.window_px, options.max_disparity_px, options.min_confidence, options.max_lr_difference_px,
+                     keep_rows=keep_rows)
 
 
 def _result_message(result, texture) -> matching_pb2.ComputeHeightMapResponse:

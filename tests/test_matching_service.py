@@ -90,6 +90,7 @@ def test_bad_requests_get_invalid_argument_naming_the_field(client, case, field)
         (lambda task: dataclasses.replace(task, left=np.full_like(task.left, np.nan)), "left"),
         (lambda task: dataclasses.replace(task, max_disparity_px=0), "parameters.max_disparity_px"),
         (lambda task: dataclasses.replace(task, window_px=4), "parameters.window_px"),
+        (lambda task: dataclasses.replace(task, keep_rows=(10, 500)), "keep_to_row"),
     ],
 )
 def test_a_bad_strip_gets_invalid_argument_naming_the_field(client, change, field):
@@ -97,6 +98,8 @@ def test_a_bad_strip_gets_invalid_argument_naming_the_field(client, change, fiel
     task = StripTask(pair.first.astype(np.float32), pair.second.astype(np.float32), 15, 16, 0.5, 1.0)
     result, worker = client.match_strip(task)
     assert np.isfinite(result.disparity_px).mean() > 0.5 and worker
+    kept, _ = client.match_strip(dataclasses.replace(task, keep_rows=(8, 40)))  # only those rows come back
+    np.testing.assert_array_equal(kept.disparity_px, result.disparity_px[8:40])
     with pytest.raises(ClientError) as error:
         client.match_strip(change(task))
     assert error.value.code == grpc.StatusCode.INVALID_ARGUMENT and error.value.field == field

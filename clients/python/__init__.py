@@ -187,9 +187,11 @@ class FractoscopeClient:
     def match_strip(self, task: StripTask, *, request_id: str = "") -> tuple[DisparityResult, str]:
         """Dense disparity of one strip of a rectified pair, matched by the server; returns it
         with the id of the replica that matched it."""
+        first, stop = task.keep_rows or (0, 0)
         request = matching_pb2.MatchStripRequest(
-            left=wire.array_to_raster(task.left),
-            right=wire.array_to_raster(task.right),
+            left=wire.array_to_raster(_exact_integers(task.left)),
+            right=wire.array_to_raster(_exact_integers(task.right)),
+            keep_from_row=first, keep_to_row=stop,
             parameters=matching_pb2.MatchingParameters(
                 window_px=task.window_px, max_disparity_px=task.max_disparity_px,
                 min_confidence=task.min_confidence, max_lr_difference_px=task.max_lr_difference_px,
@@ -352,6 +354,17 @@ class _BearerToken(grpc.UnaryUnaryClientInterceptor, grpc.UnaryStreamClientInter
 
     def intercept_unary_stream(self, continuation, details, request):
         return continuation(self._with_token(details), request)
+
+
+def _exact_integers(values: np.ndarray) -> np.ndarray:
+    """Float grey values that are whole numbers within 0..65535 as uint8 or uint16 (half or a
+    quarter of the bytes on the wire, the same values), others unchanged."""
+    if values.dtype.kind != "f" or values.size == 0:
+        return values
+    low, high = float(values.min()), float(values.max())
+    if low < 0 or high > 65535 or not np.array_equal(values, np.rint(values)):
+        return values
+    return values.astype(np.uint8 if high <= 255 else np.uint16)
 
 
 def _region(region_um: Region) -> tiles_pb2.RegionUm:

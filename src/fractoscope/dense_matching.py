@@ -42,7 +42,8 @@ class DisparityResult:
 @dataclass(frozen=True)
 class StripTask:
     """One strip of rows of a rectified pair with the matcher's settings: a complete stereo
-    problem, since parallax runs along rows (see `match_strip`)."""
+    problem, since parallax runs along rows (see `match_strip`). `keep_rows` (first, stop): the
+    rows of the strip whose results are wanted (None: all); the rest only give context."""
 
     left: np.ndarray
     right: np.ndarray
@@ -50,6 +51,7 @@ class StripTask:
     max_disparity_px: int
     min_confidence: float
     max_lr_difference_px: float
+    keep_rows: tuple[int, int] | None = None
 
 
 # Matches strips, yielding their results in order: `match_strips` here, or peers over the network.
@@ -87,16 +89,17 @@ def match_disparity(
         max_disparity_px = max(left.shape[1] // 4, 8)
     bounds = strip_bounds(left.shape, window_px=window_px, max_disparity_px=max_disparity_px, strip_pixels=strip_pixels)
     tasks = (
-        StripTask(left[top:bottom], right[top:bottom], window_px, max_disparity_px, min_confidence, max_lr_difference_px)
-        for top, _, _, bottom in bounds
+        StripTask(left[top:bottom], right[top:bottom], window_px, max_disparity_px, min_confidence, max_lr_difference_px,
+                  keep_rows=(start - top, stop - top))
+        for top, start, stop, bottom in bounds
     )
     disparity = np.empty(left.shape, np.float32)
     confidence = np.empty(left.shape, np.float32)
     sigma_px = np.empty(left.shape, np.float32)
     report(0.0, f"matching {len(bounds)} strip{'s' if len(bounds) > 1 else ''}")
-    for index, ((top, start, stop, _), strip) in enumerate(zip(bounds, (strip_matcher or match_strips)(tasks))):
+    for index, ((_, start, stop, _), strip) in enumerate(zip(bounds, (strip_matcher or match_strips)(tasks))):
         for out, values in zip((disparity, confidence, sigma_px), (strip.disparity_px, strip.confidence, strip.sigma_px)):
-            out[start:stop] = values[start - top : stop - top]
+            out[start:stop] = values
         report((index + 1) / len(bounds), f"matched strip {index + 1} of {len(bounds)}")
     return DisparityResult(disparity, confidence, sigma_px)
 
@@ -151,6 +154,8 @@ def match_strip(task: StripTask) -> DisparityResult:
     )
     valid &= ~_speckles(np.where(valid, disparity, np.nan), max_pixels=_MAX_SPECKLE_PIXELS)
     sigma_px = _disparity_sigma_px(score, curvature, window_px)
+    kept = slice(*task.keep_rows) if task.keep_rows else slice(None)
+    valid, score, disparity, sigma_px = valid[kept], score[kept], disparity[kept], sigma_px[kept]
     confidence = np.clip(score, 0.0, 1.0).astype(np.float32)
     disparity = np.where(valid, disparity, np.nan).astype(np.float32)
     sigma_px = np.where(valid, sigma_px, np.nan).astype(np.float32)
