@@ -20,7 +20,7 @@ import numpy as np
 from fractoscope import sem_image, wire
 from fractoscope.client import ClientError, FractoscopeClient
 from fractoscope.dense_matching import DisparityResult, StripTask, match_strip
-from fractoscope.errors import InvalidInputError, UnavailableError
+from fractoscope.errors import FractoscopeError, InvalidInputError, UnavailableError
 from fractoscope.height_map import MatchingOptions, compute_series_height_map, validate_options
 from fractoscope.services.errors import abort_with_error
 from fractoscope.services.progress import stream_progress
@@ -63,7 +63,8 @@ class PeerStripMatcher:
         except ClientError as error:
             if error.code in (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.DEADLINE_EXCEEDED):
                 raise UnavailableError(f"a strip peer failed ({error}); retry") from None
-            raise
+            # A peer that refuses what this replica sends runs another version or other limits.
+            raise FractoscopeError(f"a strip peer refused a strip ({error.code.name}: {error}); check that the matching replicas agree") from None
         self.workers.add(worker)
         return result
 

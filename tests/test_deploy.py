@@ -3,6 +3,7 @@ processes on loopback as the compose file and the Kubernetes manifests run them.
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import socket
@@ -13,6 +14,7 @@ from pathlib import Path
 
 import grpc
 import numpy as np
+import pytest
 import tifffile
 import yaml
 
@@ -22,7 +24,7 @@ from fractoscope.client.demo import write_multiscale_specimen
 from fractoscope.client.manifest import load_manifest
 from fractoscope.height_map import MatchingOptions, compute_series_height_map
 from fractoscope.sem_image import read_sem_image
-from fractoscope.services.server import _SERVICES, build_parser
+from fractoscope.services.server import _SERVICES, build_parser, create_server
 from fractoscope.tileset import content_uris
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -275,8 +277,6 @@ def test_a_replica_that_is_its_own_strip_peer_never_deadlocks(tmp_path):
     strips out, the other matches here, and both finish."""
     from concurrent.futures import ThreadPoolExecutor
 
-    from fractoscope.services.server import create_server
-
     pair = fracture_pair(size_px=384, seed=6)
     files = [tifffile.imwrite(tmp_path / f"view{index}.tif", image) or tmp_path / f"view{index}.tif"
              for index, image in enumerate((pair.first, pair.second))]
@@ -292,3 +292,37 @@ def test_a_replica_that_is_its_own_strip_peer_never_deadlocks(tmp_path):
         assert sorted(len(report["strip_workers"]) for report in reports) == [0, 1]  # one farmed out, one here
     finally:
         server.stop(grace=None)
+
+
+def _tiff_bytes(image) -> bytes:
+    buffer = io.BytesIO()
+    tifffile.imwrite(buffer, image)
+    return buffer.getvalue()
+
+
+def test_a_strip_peer_that_refuses_strips_fails_the_map_with_a_clear_status():
+    """A peer of another version or with other limits: FAILED_PRECONDITION saying so, not INTERNAL."""
+    from concurrent import futures
+
+    from fractoscope.v1 import matching_pb2_grpc
+
+    class RefusingPeer(matching_pb2_grpc.MatchingServiceServicer):
+        def MatchStrip(self, request, context):
+            context.abort(grpc.StatusCode.INVALID_ARGUMENT, "left: too large for this replica")
+
+    peer = grpc.server(futures.ThreadPoolExecutor(2))
+    matching_pb2_grpc.add_MatchingServiceServicer_to_server(RefusingPeer(), peer)
+    peer_port = peer.add_insecure_port("127.0.0.1:0")
+    peer.start()
+    server, port = create_server("127.0.0.1:0", services=("matching",), strip_peers=f"127.0.0.1:{peer_port}", strip_pixels=50_000)
+    server.start()
+    pair = fracture_pair(size_px=256, seed=7)
+    try:
+        with FractoscopeClient(f"127.0.0.1:{port}", timeout_s=60) as client:
+            with pytest.raises(ClientError) as refused:
+                client.compute_height_map([_tiff_bytes(pair.first), _tiff_bytes(pair.second)], tilt_deg=(-5, 5), pixel_size_um=0.1)
+        assert refused.value.code == grpc.StatusCode.FAILED_PRECONDITION
+        assert "strip peer refused" in str(refused.value) and "too large for this replica" in str(refused.value)
+    finally:
+        server.stop(grace=None)
+        peer.stop(grace=None)
