@@ -182,9 +182,12 @@ def test_three_processes_build_a_specimen_and_answer_health_checks(tmp_path):
         assert stack.stop() == [0, 0, 0]  # SIGTERM: graceful stop
 
 
-def test_a_service_killed_mid_reconstruction_leaves_nothing_half_written(tmp_path):
-    """Meshing dies while tiles are being meshed: the call fails as retryable (UNAVAILABLE), no
-    specimen appears, and the same request after a restart completes it."""
+@pytest.mark.parametrize("victim, during", [("matching", "matching ROI overview"), ("meshing", "tile"), ("tiles", "tile")])
+def test_a_service_killed_mid_reconstruction_leaves_nothing_half_written(tmp_path, victim, during):
+    """One service dies mid-reconstruction (matching while the overview is matched, meshing or
+    the tile service itself while tiles are meshed): the call fails as UNAVAILABLE, no specimen
+    and no staging folder remain once the tile service runs, and the same request after a
+    restart completes it."""
     import threading
 
     stack = Stack(tmp_path / "data")
@@ -193,11 +196,11 @@ def test_a_service_killed_mid_reconstruction_leaves_nothing_half_written(tmp_pat
     specimens = tmp_path / "data" / "specimens"
     try:
         with FractoscopeClient(f"127.0.0.1:{stack.ports['tiles']}", timeout_s=300) as client:
-            meshing_started = threading.Event()
+            reached = threading.Event()
 
             def watch(fraction: float, message: str) -> None:
-                if message.startswith("tile"):
-                    meshing_started.set()
+                if message.startswith(during):
+                    reached.set()
 
             outcome = {}
 
@@ -209,15 +212,19 @@ def test_a_service_killed_mid_reconstruction_leaves_nothing_half_written(tmp_pat
 
             worker = threading.Thread(target=build)
             worker.start()
-            assert meshing_started.wait(120)
-            stack.kill("meshing")
+            assert reached.wait(120)
+            stack.kill(victim)
             worker.join(120)
-            assert "error" in outcome, "the build should have failed with meshing gone"
-            assert outcome["error"].code == grpc.StatusCode.UNAVAILABLE and "retry" in str(outcome["error"])
+            assert "error" in outcome, f"the build should have failed with {victim} gone"
+            assert outcome["error"].code == grpc.StatusCode.UNAVAILABLE
+            if victim != "tiles":  # the tile service lived to say so, and cleaned up after the failed build
+                assert "retry" in str(outcome["error"])
+                assert client.list_specimens() == [] and not list(specimens.glob(".staging-*"))
+            else:
+                assert list(specimens.glob(".staging-*"))  # the killed build left its half-written folder
+            stack.restart(victim)  # a restarted tile service discards what its killed self left
             assert client.list_specimens() == [] and not (specimens / specimen_id).exists()
-            assert not list(specimens.glob(".staging-*"))  # the failed build cleaned up after itself
-
-            stack.restart("meshing")
+            assert not list(specimens.glob(".staging-*"))
             summary = client.reconstruct_specimen(specimen_id, rois, request_id="job-1")
             tileset = client.get_tileset(specimen_id)
         uris = content_uris(tileset)
