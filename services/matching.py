@@ -142,8 +142,9 @@ def _strip_task(request: matching_pb2.MatchStripRequest) -> StripTask:
         raise InvalidInputError("right", f"size {right.shape[::-1]} differs from the left strip's {left.shape[::-1]}")
     if left.size > sem_image.MAX_IMAGE_PIXELS:
         raise InvalidInputError("left", f"{left.size} pixels is more than the limit of {sem_image.MAX_IMAGE_PIXELS} (FRACTO_MAX_IMAGE_PIXELS)")
-    if not (np.isfinite(left).all() and np.isfinite(right).all()):
-        raise InvalidInputError("left" if not np.isfinite(left).all() else "right", "grey values must be finite")
+    for name, values in (("left", left), ("right", right)):
+        if not np.isfinite(values).all():
+            raise InvalidInputError(name, "grey values must be finite")
     options = options_from_message(request.parameters)
     if options.max_disparity_px is None:
         raise InvalidInputError("parameters.max_disparity_px", "is required for a strip")

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 
 import numpy as np
 import pytest
+import tifffile
 
 from fractoscope import synthetic
 from fractoscope.client import FractoscopeClient
@@ -44,6 +46,13 @@ def cleavage_pair(*, tilt_deg=(-5.0, 5.0), size_px=640, seed=1) -> synthetic.Ste
     """Cleavage facets (~16 µm grains, 0.5 µm river steps, slopes up to 0.2) at 0.1 µm/px, 2 % noise."""
     surface = synthetic.cleavage_surface((size_px + 64,) * 2, facet_size_px=160, step_um=0.5, slope_um_per_px=0.02, seed=seed)
     return synthetic.render_stereo_pair(surface, pixel_size_um=0.1, tilt_deg=tilt_deg, output_shape=(size_px, size_px), seed=seed)
+
+
+def tiff_bytes(image: np.ndarray) -> bytes:
+    """An image as the bytes of a TIFF file, as clients send it."""
+    buffer = io.BytesIO()
+    tifffile.imwrite(buffer, image)
+    return buffer.getvalue()
 
 
 def inner_mask(shape, border_px=16) -> np.ndarray:

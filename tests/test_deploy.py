@@ -3,7 +3,6 @@ processes on loopback as the compose file and the Kubernetes manifests run them.
 
 from __future__ import annotations
 
-import io
 import json
 import os
 import socket
@@ -15,10 +14,9 @@ from pathlib import Path
 import grpc
 import numpy as np
 import pytest
-import tifffile
 import yaml
 
-from conftest import fracture_pair
+from conftest import fracture_pair, tiff_bytes
 from fractoscope.client import ClientError, FractoscopeClient
 from fractoscope.client.demo import write_multiscale_specimen
 from fractoscope.client.manifest import load_manifest
@@ -233,16 +231,15 @@ def test_a_service_killed_mid_reconstruction_leaves_nothing_half_written(tmp_pat
         stack.stop()
 
 
-def test_matching_replicas_share_the_strips_of_a_pair_and_the_stitched_map_is_exact(tmp_path):
+def test_matching_replicas_share_the_strips_of_a_pair_and_the_stitched_map_is_exact():
     """A matching process with two strip peers (round-robin over their addresses) farms the strips
     of a pair out and stitches them: the height map is the one a single process computes, to
     the bit. With one peer killed, the other matches every strip."""
     pair = fracture_pair(seed=5)
-    for index, image in enumerate((pair.first, pair.second)):
-        tifffile.imwrite(tmp_path / f"view{index}.tif", image)
+    files = [tiff_bytes(image) for image in (pair.first, pair.second)]
     strip_pixels = 100_000
     local = compute_series_height_map(
-        [read_sem_image((tmp_path / f"view{index}.tif").read_bytes()) for index in range(2)],
+        [read_sem_image(content) for content in files],
         tilt_deg=(-5.0, 5.0), pixel_size_um=0.1, options=MatchingOptions(strip_pixels=strip_pixels),
     )
     assert local.report["strip_count"] >= 3
@@ -258,7 +255,7 @@ def test_matching_replicas_share_the_strips_of_a_pair_and_the_stitched_map_is_ex
         _wait_until_healthy([*peer_ports, coordinator_port])
         with FractoscopeClient(f"127.0.0.1:{coordinator_port}", timeout_s=300) as client:
             def height_map():
-                return client.compute_height_map([tmp_path / "view0.tif", tmp_path / "view1.tif"], tilt_deg=(-5, 5), pixel_size_um=0.1)
+                return client.compute_height_map(files, tilt_deg=(-5, 5), pixel_size_um=0.1)
 
             height_map()  # connects the coordinator to both peers
             farmed_out = height_map()
@@ -279,14 +276,13 @@ def test_matching_replicas_share_the_strips_of_a_pair_and_the_stitched_map_is_ex
             process.wait(timeout=60)
 
 
-def test_a_replica_that_is_its_own_strip_peer_never_deadlocks(tmp_path):
+def test_a_replica_that_is_its_own_strip_peer_never_deadlocks():
     """Two height maps at once on a two-thread replica whose strip peer is itself: one farms its
     strips out, the other matches here, and both finish."""
     from concurrent.futures import ThreadPoolExecutor
 
     pair = fracture_pair(size_px=384, seed=6)
-    files = [tifffile.imwrite(tmp_path / f"view{index}.tif", image) or tmp_path / f"view{index}.tif"
-             for index, image in enumerate((pair.first, pair.second))]
+    files = [tiff_bytes(image) for image in (pair.first, pair.second)]
     port = _free_port()
     server, _ = create_server(f"127.0.0.1:{port}", services=("matching",), workers=2,
                               strip_peers=f"127.0.0.1:{port}", strip_pixels=50_000)
@@ -299,12 +295,6 @@ def test_a_replica_that_is_its_own_strip_peer_never_deadlocks(tmp_path):
         assert sorted(len(report["strip_workers"]) for report in reports) == [0, 1]  # one farmed out, one here
     finally:
         server.stop(grace=None)
-
-
-def _tiff_bytes(image) -> bytes:
-    buffer = io.BytesIO()
-    tifffile.imwrite(buffer, image)
-    return buffer.getvalue()
 
 
 def test_a_strip_peer_that_refuses_strips_fails_the_map_with_a_clear_status():
@@ -327,7 +317,7 @@ def test_a_strip_peer_that_refuses_strips_fails_the_map_with_a_clear_status():
     try:
         with FractoscopeClient(f"127.0.0.1:{port}", timeout_s=60) as client:
             with pytest.raises(ClientError) as refused:
-                client.compute_height_map([_tiff_bytes(pair.first), _tiff_bytes(pair.second)], tilt_deg=(-5, 5), pixel_size_um=0.1)
+                client.compute_height_map([tiff_bytes(pair.first), tiff_bytes(pair.second)], tilt_deg=(-5, 5), pixel_size_um=0.1)
         assert refused.value.code == grpc.StatusCode.FAILED_PRECONDITION
         assert "strip peer refused" in str(refused.value) and "too large for this replica" in str(refused.value)
     finally:

@@ -1,24 +1,16 @@
 """The matching service over a real gRPC server on loopback."""
 
 import dataclasses
-import io
 
 import grpc
 import numpy as np
 import pytest
-import tifffile
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection_pb2, reflection_pb2_grpc
 
-from conftest import fracture_pair, inner_mask
+from conftest import fracture_pair, inner_mask, tiff_bytes
 from fractoscope.client import ClientError
 from fractoscope.dense_matching import StripTask
-
-
-def _tiff(image) -> bytes:
-    buffer = io.BytesIO()
-    tifffile.imwrite(buffer, image)
-    return buffer.getvalue()
 
 
 def test_health_and_reflection(server_address):
@@ -33,7 +25,7 @@ def test_health_and_reflection(server_address):
 
 def test_height_map_of_images_larger_than_four_mib_with_progress(client):
     pair = fracture_pair(size_px=1536, bits=16, seed=3)
-    files = [_tiff(image) for image in (pair.first, pair.second)]
+    files = [tiff_bytes(image) for image in (pair.first, pair.second)]
     assert min(len(content) for content in files) > 4 * 1024 * 1024
     fractions = []
     result = client.compute_height_map(files, tilt_deg=(-5, 5), pixel_size_um=0.1, on_progress=lambda f, m: fractions.append(f))
@@ -61,11 +53,11 @@ def test_height_map_of_images_larger_than_four_mib_with_progress(client):
 )
 def test_bad_requests_get_invalid_argument_naming_the_field(client, case, field):
     pair = fracture_pair(size_px=128)
-    first, second = _tiff(pair.first), _tiff(pair.second)
+    first, second = tiff_bytes(pair.first), tiff_bytes(pair.second)
     arguments = {"tilt_deg": (-5, 5), "pixel_size_um": 0.1}
     images = [first, second]
     if case == "mismatched sizes":
-        images = [first, _tiff(pair.second[:100])]
+        images = [first, tiff_bytes(pair.second[:100])]
     elif case == "equal tilts":
         arguments["tilt_deg"] = (5, 5)
     elif case == "missing tilt":
