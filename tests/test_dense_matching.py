@@ -22,6 +22,15 @@ def test_constant_shift_is_recovered_to_a_twentieth_of_a_pixel(shift_px):
     assert np.nanmedian(np.abs(inner - shift_px)) < 0.05
 
 
+def test_search_range_as_wide_as_a_small_image_is_searched():
+    """The widest allowed range (the image width) on an image too small for a deep pyramid: a
+    coarse search of more than 128 candidate shifts."""
+    left = _texture((200, 200), seed=2)
+    right = dense_matching._warp_along_rows(left, np.full(left.shape, -3.0, np.float32))
+    result = dense_matching.match_disparity(left, right, max_disparity_px=200)
+    assert np.nanmedian(np.abs(result.disparity_px[20:-20, 20:-20] - 3.0)) < 0.05
+
+
 def test_strips_give_the_same_answer_as_one_piece():
     left = _texture((600, 200), seed=1)
     ramp = np.linspace(-4, 4, 200, dtype=np.float32)[None, :].repeat(600, axis=0)

@@ -288,7 +288,7 @@ def _refine(left, left_stats, right, disparity, window_px, radius) -> _Refinemen
         curvature = before - 2.0 * centre + after
         at_centre = (centre == best) & (curvature < 0)
     else:
-        best, best_index = scores[0].copy(), np.zeros(left.shape, np.int8)
+        best, best_index = scores[0].copy(), np.zeros(left.shape, np.int16)
         for index, score in enumerate(scores[1:], start=1):
             better = score > best
             np.copyto(best, score, where=better)
