@@ -6,7 +6,9 @@ process holding the multi-scale demo specimen, loaded with
 
 each for a fixed time at a fixed number of concurrent requests, round-robin over every tile, 64
 zoom regions and 256 profile lines. Reported per query: requests per second, p50/p99 latency,
-errors, and the server's resident memory sampled every half second.
+errors, and the server's resident memory sampled every half second. Last, the same GetTile load
+on a bare gRPC server returning one cached tile-sized response (bare_grpc_server): the floor that
+gRPC Python sets on these CPUs, whatever the tile service does.
 
 With two or more CPUs the server runs on the first half and the load generator on the rest, so
 that neither takes the other's CPU time; the figures are then the server's on its share.
@@ -27,6 +29,7 @@ import threading
 import time
 from pathlib import Path
 
+import grpc
 import numpy as np
 
 from fractoscope.client import FractoscopeClient
@@ -188,9 +191,14 @@ def main() -> None:
             with MemorySampler(server.pid) as memory:
                 results[name] = phase()
             results[name]["server_rss_mb"] = memory.summary()
+        with FractoscopeClient(address, timeout_s=600) as client:
+            tile_bytes = int(np.mean([len(client.get_tile(specimen_id, uri)) for uri in uris]))
     finally:
         server.terminate()
         server.wait(timeout=30)
+    try:
+        results["grpc_get_tile_bare_server"] = _bare_server_floor(tile_bytes, load, server_cpus)
+    finally:
         shutil.rmtree(scratch, ignore_errors=True)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -199,12 +207,31 @@ def main() -> None:
     print(f"concurrency {args.concurrency}, {args.duration_s:g} s per query; server on CPUs {results['server_cpus'] or 'all'}, "
           f"load generator on {results['load_generator_cpus'] or 'all'}")
     print(f"{'query':14} {'tool':>5} {'req/s':>8} {'p50 ms':>8} {'p99 ms':>8} {'errors':>7} {'server MB first/max/last':>26}")
-    for name in phases:
+    for name in [*phases, "grpc_get_tile_bare_server"]:
         row = results[name]
         memory = row["server_rss_mb"]
         print(f"{name:14} {row['tool']:>5} {row['requests_per_s']:8.0f} {row['p50_ms']:8.2f} {row['p99_ms']:8.2f} {row['errors']:7d} "
               f"{memory['first']:>10.0f} / {memory['max']:.0f} / {memory['last']:.0f}")
     print(f"written to {out / (args.name + '.json')}")
+
+
+def _bare_server_floor(tile_bytes: int, load: dict, server_cpus) -> dict:
+    """GetTile against a bare gRPC server returning a cached response of the mean tile size, on
+    the same CPUs and under the same load: the floor of gRPC Python itself (bare_grpc_server)."""
+    address = f"127.0.0.1:{free_port()}"
+    bare = subprocess.Popen(
+        [sys.executable, "-m", "benchmarks.bare_grpc_server", "--address", address, "--tile-bytes", str(tile_bytes)],
+        env={**os.environ, "GRPC_VERBOSITY": "ERROR"}, preexec_fn=_pinned(server_cpus),
+    )
+    try:
+        with grpc.insecure_channel(address) as channel:
+            grpc.channel_ready_future(channel).result(timeout=60)
+        with MemorySampler(bare.pid) as memory:
+            figures = grpc_calls(address, "GetTile", [{"specimen_id": "bare", "uri": "tile.glb"}], **load)
+        return {**figures, "tile_bytes": tile_bytes, "server_rss_mb": memory.summary()}
+    finally:
+        bare.terminate()
+        bare.wait(timeout=30)
 
 
 def _wait_until_serving(client: FractoscopeClient, timeout_s: float = 60.0) -> None:

@@ -103,7 +103,9 @@ class TileServicer(tiles_pb2_grpc.TileServiceServicer):
         try:
             specimen = self.store.load(request.specimen_id)
             record = specimen.tile_record(request.uri)
-            return tiles_pb2.GetTileResponse(tile=tile_message(specimen, record, with_content=True))
+            response = tiles_pb2.GetTileResponse(tile=tile_message(specimen, record))
+            response.tile.glb = specimen.tile_bytes(record.key.uri)  # set in place: see tile_message
+            return response
         except Exception as error:
             abort_with_error(context, error)
 
@@ -115,7 +117,9 @@ class TileServicer(tiles_pb2_grpc.TileServiceServicer):
             if not 1 <= viewport_px <= 65536:
                 raise InvalidInputError("viewport_px", "must be 1 to 65536")
             for record in tileset.tiles_for_view(specimen.layout, specimen.tiles, region, viewport_px=viewport_px):
-                yield tiles_pb2.StreamViewResponse(tile=tile_message(specimen, record, with_content=True))
+                response = tiles_pb2.StreamViewResponse(tile=tile_message(specimen, record))
+                response.tile.glb = specimen.tile_bytes(record.key.uri)
+                yield response
         except Exception as error:
             abort_with_error(context, error)
 
@@ -126,7 +130,7 @@ class TileServicer(tiles_pb2_grpc.TileServiceServicer):
             cell_um = specimen.pixel_size_at_magnification(specimen_queries.positive(request.magnification, "magnification"))
             chosen = tileset.tiles_in_region(specimen.layout, specimen.tiles, region, cell_um=cell_um)
             return tiles_pb2.ZoomResponse(
-                tiles=[tile_message(specimen, record, with_content=False, upsampled=upsampled) for record, upsampled in chosen]
+                tiles=[tile_message(specimen, record, upsampled=upsampled) for record, upsampled in chosen]
             )
         except Exception as error:
             abort_with_error(context, error)
@@ -184,12 +188,14 @@ def specimen_message(specimen: Specimen) -> tiles_pb2.Specimen:
     return message
 
 
-def tile_message(specimen: Specimen, record: TileRecord, *, with_content: bool, upsampled: bool = False) -> tiles_pb2.Tile:
-    """A tile's identity (and GLB); `upsampled` marks a tile shown beyond its resolution (digital)."""
+def tile_message(specimen: Specimen, record: TileRecord, *, upsampled: bool = False) -> tiles_pb2.Tile:
+    """A tile's identity without its GLB; `upsampled` marks a tile shown beyond its resolution
+    (digital). Callers that send the GLB set it on the response's own copy of this message:
+    nesting a message copies it, which for a tile of some 200 kB costs more than the rest of
+    the call."""
     zoom = tiles_pb2.ZOOM_KIND_DIGITAL if upsampled else _ZOOM_KINDS[record.zoom]
     return tiles_pb2.Tile(
         uri=record.key.uri,
-        glb=specimen.tile_bytes(record.key.uri) if with_content else b"",
         roi=record.roi,
         magnification=record.magnification,
         zoom=zoom,
