@@ -125,12 +125,11 @@ class MatchingServicer(matching_pb2_grpc.MatchingServiceServicer):
     def MatchStrip(self, request, context):
         try:
             result = match_strip(_strip_task(request))
-            return matching_pb2.MatchStripResponse(
-                disparity_px=wire.array_to_raster(result.disparity_px),
-                confidence=wire.array_to_raster(result.confidence),
-                sigma_px=wire.array_to_raster(result.sigma_px),
-                worker=WORKER_ID,
-            )
+            response = matching_pb2.MatchStripResponse(worker=WORKER_ID)
+            wire.fill_raster(response.disparity_px, result.disparity_px)
+            wire.fill_raster(response.confidence, result.confidence)
+            wire.fill_raster(response.sigma_px, result.sigma_px)
+            return response
         except Exception as error:
             abort_with_error(context, error)
 
@@ -159,11 +158,9 @@ def _strip_task(request: matching_pb2.MatchStripRequest) -> StripTask:
 
 
 def _result_message(result, texture) -> matching_pb2.ComputeHeightMapResponse:
-    height_map = common_pb2.HeightMap(
-        z_um=wire.array_to_raster(result.z_um),
-        sigma_um=wire.array_to_raster(result.sigma_um),
-        confidence=wire.array_to_raster(result.confidence),
-        pixel_size_um=result.report["pixel_size_um"],
-        texture=wire.array_to_raster(texture),
-    )
-    return matching_pb2.ComputeHeightMapResponse(height_map=height_map, report=wire.report_to_message(result.report))
+    response = matching_pb2.ComputeHeightMapResponse(report=wire.report_to_message(result.report))
+    height_map = response.height_map
+    height_map.pixel_size_um = result.report["pixel_size_um"]
+    for field, values in (("z_um", result.z_um), ("sigma_um", result.sigma_um), ("confidence", result.confidence), ("texture", texture)):
+        wire.fill_raster(getattr(height_map, field), values)
+    return response

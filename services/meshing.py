@@ -90,13 +90,15 @@ class MeshingServicer(meshing_pb2_grpc.MeshingServiceServicer):
                     continue
                 tiles, report = event
                 for tile in tiles:
-                    yield meshing_pb2.BuildMeshResponse(
+                    response = meshing_pb2.BuildMeshResponse(
                         tile=meshing_pb2.MeshTile(
-                            level=tile.level, tile_row=tile.tile_row, tile_col=tile.tile_col, glb=tile.glb,
+                            level=tile.level, tile_row=tile.tile_row, tile_col=tile.tile_col,
                             geometric_error_m=tile.geometric_error_m, vertex_count=tile.vertex_count,
                             triangle_count=tile.triangle_count,
                         )
                     )
+                    response.tile.glb = tile.glb  # set in place: nesting a message copies it
+                    yield response
                 yield meshing_pb2.BuildMeshResponse(
                     filter_report=meshing_pb2.FilterReport(
                         outliers_removed=report.outliers_removed, holes_filled=report.holes_filled,

@@ -156,7 +156,8 @@ class FractoscopeClient:
         for index, image in enumerate(images):
             content = image if isinstance(image, bytes) else Path(image).read_bytes()
             name = "" if isinstance(image, bytes) else Path(image).name
-            item = request.images.add(image=common_pb2.ImageFile(content=content, filename=name))
+            item = request.images.add()  # filled in place: nesting a built message would copy the image
+            item.image.content, item.image.filename = content, name
             if tilt_deg is not None:
                 item.tilt_deg = float(tilt_deg[index])
         if pixel_size_um is not None:
@@ -189,8 +190,6 @@ class FractoscopeClient:
         with the id of the replica that matched it."""
         first, stop = task.keep_rows or (0, 0)
         request = matching_pb2.MatchStripRequest(
-            left=wire.array_to_raster(_exact_integers(task.left)),
-            right=wire.array_to_raster(_exact_integers(task.right)),
             keep_from_row=first, keep_to_row=stop,
             parameters=matching_pb2.MatchingParameters(
                 window_px=task.window_px, max_disparity_px=task.max_disparity_px,
@@ -198,6 +197,8 @@ class FractoscopeClient:
             ),
             request_id=request_id,
         )
+        wire.fill_raster(request.left, _exact_integers(task.left))
+        wire.fill_raster(request.right, _exact_integers(task.right))
         with _translated_errors():
             response = self._matching.MatchStrip(request, timeout=self._timeout_s)
         arrays = (wire.raster_to_array(raster) for raster in (response.disparity_px, response.confidence, response.sigma_px))
@@ -219,13 +220,14 @@ class FractoscopeClient:
         """GLB levels of detail of a height map ((rows, cols) µm, NaN unknown) textured with a grey
         image of the same shape, pixel (0, 0) placed at `origin_um` (x, y); returns the tiles (finest
         level first) and the filter report."""
-        height_map = common_pb2.HeightMap(z_um=wire.array_to_raster(np.asarray(z_um, np.float32)), pixel_size_um=pixel_size_um)
-        if texture is not None:
-            height_map.texture.CopyFrom(wire.array_to_raster(texture))
         request = meshing_pb2.BuildMeshRequest(
-            height_map=height_map, filter=filter_parameters, method=method, level_count=level_count, request_id=request_id,
+            filter=filter_parameters, method=method, level_count=level_count, request_id=request_id,
             origin_um=common_pb2.PointUm(x_um=origin_um[0], y_um=origin_um[1]),
         )
+        request.height_map.pixel_size_um = pixel_size_um
+        wire.fill_raster(request.height_map.z_um, np.asarray(z_um, np.float32))
+        if texture is not None:
+            wire.fill_raster(request.height_map.texture, texture)
         tiles, report = [], {}
         with _translated_errors():
             for response in self._meshing.BuildMesh(request, timeout=self._timeout_s):

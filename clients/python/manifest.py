@@ -13,7 +13,7 @@ import json
 from pathlib import Path
 
 from fractoscope.errors import InvalidInputError
-from fractoscope.v1 import common_pb2, matching_pb2, tiles_pb2
+from fractoscope.v1 import common_pb2, tiles_pb2
 
 _KEYS = {"id", "left", "right", "tilt_deg", "pixel_size_um", "tilt_axis_deg", "magnification", "parent", "center_um"}
 
@@ -55,10 +55,10 @@ def _roi(entry, index: int, base: Path) -> tiles_pb2.RoiSpec:
             content = image_path.read_bytes()
         except OSError as error:
             raise InvalidInputError(f"{where}.{side}", f"cannot read {image_path}: {error.strerror}") from None
-        image = matching_pb2.TiltImage(image=common_pb2.ImageFile(content=content, filename=image_path.name))
+        image = spec.images.add()  # filled in place: nesting a built message would copy the image
+        image.image.content, image.image.filename = content, image_path.name
         if tilts is not None:
             image.tilt_deg = float(tilts[side_index])
-        spec.images.append(image)
     if "pixel_size_um" in entry:
         spec.pixel_size_um = _float(entry, "pixel_size_um", where)
     if "tilt_axis_deg" in entry:
