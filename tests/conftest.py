@@ -22,10 +22,10 @@ def fracture_pair(
 ) -> synthetic.StereoPair:
     """A self-affine fracture surface (H = 0.8, 2.5 µm RMS at 0.1 µm/px) seen at two tilts, 2 % noise."""
     margin = size_px // 2 if (tilt_axis_deg != 90.0 or rotation_deg) else 64
-    surface = synthetic.self_affine_surface((size_px + margin,) * 2, hurst=0.8, rms_um=2.5, seed=seed)
+    surface = synthetic.reference_surface("self_affine", size_px + margin, seed=seed)
     return synthetic.render_stereo_pair(
         surface,
-        pixel_size_um=0.1,
+        pixel_size_um=synthetic.REFERENCE_PIXEL_SIZE_UM,
         tilt_deg=tilt_deg,
         output_shape=(size_px, size_px),
         tilt_axis_deg=tilt_axis_deg,
@@ -38,14 +38,19 @@ def fracture_pair(
 
 def dimple_pair(*, tilt_deg=(-5.0, 5.0), size_px=640, seed=1) -> synthetic.StereoPair:
     """Ductile dimples (radius ~4 µm, ~3 µm deep, sharp rims) at 0.1 µm/px, 2 % noise."""
-    surface = synthetic.dimple_surface((size_px + 64,) * 2, dimple_radius_px=40, depth_um=3.0, seed=seed)
-    return synthetic.render_stereo_pair(surface, pixel_size_um=0.1, tilt_deg=tilt_deg, output_shape=(size_px, size_px), seed=seed)
+    return _reference_pair("dimples", tilt_deg, size_px, seed)
 
 
 def cleavage_pair(*, tilt_deg=(-5.0, 5.0), size_px=640, seed=1) -> synthetic.StereoPair:
     """Cleavage facets (~16 µm grains, 0.5 µm river steps, slopes up to 0.2) at 0.1 µm/px, 2 % noise."""
-    surface = synthetic.cleavage_surface((size_px + 64,) * 2, facet_size_px=160, step_um=0.5, slope_um_per_px=0.02, seed=seed)
-    return synthetic.render_stereo_pair(surface, pixel_size_um=0.1, tilt_deg=tilt_deg, output_shape=(size_px, size_px), seed=seed)
+    return _reference_pair("cleavage", tilt_deg, size_px, seed)
+
+
+def _reference_pair(kind, tilt_deg, size_px, seed) -> synthetic.StereoPair:
+    surface = synthetic.reference_surface(kind, size_px + 64, seed=seed)
+    return synthetic.render_stereo_pair(
+        surface, pixel_size_um=synthetic.REFERENCE_PIXEL_SIZE_UM, tilt_deg=tilt_deg, output_shape=(size_px, size_px), seed=seed
+    )
 
 
 def tiff_bytes(image: np.ndarray) -> bytes:

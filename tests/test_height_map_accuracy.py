@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from conftest import cleavage_pair, dimple_pair, fracture_pair, inner_mask
-from fractoscope import roughness
+from fractoscope import synthetic
 from fractoscope.height_map import MatchingOptions, compute_height_map
 from fractoscope.sem_image import SemImage
 
@@ -15,14 +15,8 @@ def _reconstruct(pair, tilt_deg, **kwargs):
 
 
 def _errors(result, pair):
-    inner = inner_mask(pair.z_seen_um.shape)
-    valid = np.isfinite(result.z_um) & inner
-    error = result.z_um[valid] - pair.z_seen_um[valid]
-    error -= error.mean()
-    span = pair.z_seen_um[inner].max() - pair.z_seen_um[inner].min()
-    sa_measured = roughness.sa_um(np.where(valid, result.z_um, np.nan))
-    sa_true = roughness.sa_um(np.where(valid, pair.z_seen_um, np.nan))
-    return valid[inner].mean(), np.sqrt(np.mean(error**2)) / span, sa_measured / sa_true - 1.0
+    errors = synthetic.height_errors(result.z_um, pair.z_seen_um)
+    return errors.valid_fraction, errors.rms_of_range, errors.sa_relative
 
 
 @pytest.mark.parametrize("tilt_deg", [(-5.0, 5.0), (0.0, 10.0)])

@@ -16,6 +16,8 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
+from fractoscope import roughness
+
 _SUPERSAMPLING = 2
 
 
@@ -90,6 +92,52 @@ def cleavage_surface(
     return heights + self_affine_surface(shape, hurst=0.8, rms_um=0.1 * step_um, seed=seed + 1)
 
 
+REFERENCE_PIXEL_SIZE_UM = 0.1
+REFERENCE_SURFACES = ("self_affine", "dimples", "cleavage")
+
+
+def reference_surface(kind: str, size_px: int, *, seed: int = 1) -> np.ndarray:
+    """The fracture surface types that accuracy is measured on, (size_px, size_px) µm at
+    REFERENCE_PIXEL_SIZE_UM: "self_affine" (H = 0.8, 2.5 µm RMS), "dimples" (ductile: pits of
+    radius ~4 µm, ~3 µm deep, sharp rims) or "cleavage" (brittle: ~16 µm facets at slopes up
+    to 0.2 with 0.5 µm river steps)."""
+    shape = (size_px, size_px)
+    if kind == "self_affine":
+        return self_affine_surface(shape, hurst=0.8, rms_um=2.5, seed=seed)
+    if kind == "dimples":
+        return dimple_surface(shape, dimple_radius_px=40, depth_um=3.0, seed=seed)
+    if kind == "cleavage":
+        return cleavage_surface(shape, facet_size_px=160, step_um=0.5, slope_um_per_px=0.02, seed=seed)
+    raise ValueError(f"unknown surface kind {kind!r}; known: {REFERENCE_SURFACES}")
+
+
+@dataclass(frozen=True)
+class HeightErrors:
+    """Measured heights against the truth, away from a border.
+
+    valid_fraction: share of the inner pixels with a height.
+    rms_of_range: RMS error after the mean offset, as a fraction of the true height range.
+    sa_relative: Sa (after a plane fit) measured / true - 1, both over the valid pixels.
+    """
+
+    valid_fraction: float
+    rms_of_range: float
+    sa_relative: float
+
+
+def height_errors(z_um: np.ndarray, truth_um: np.ndarray, *, border_px: int = 16) -> HeightErrors:
+    """How `z_um` (rows, cols, NaN unknown, any constant offset) recovers `truth_um`, µm."""
+    inner = np.zeros(truth_um.shape, bool)
+    inner[border_px:-border_px, border_px:-border_px] = True
+    valid = np.isfinite(z_um) & inner
+    error = z_um[valid] - truth_um[valid]
+    error = error - error.mean()
+    span = np.ptp(truth_um[inner])
+    sa_measured = roughness.sa_um(np.where(valid, z_um, np.nan))
+    sa_true = roughness.sa_um(np.where(valid, truth_um, np.nan))
+    return HeightErrors(float(valid[inner].mean()), float(np.sqrt(np.mean(error**2)) / span), float(sa_measured / sa_true - 1.0))
+
+
 @dataclass(frozen=True)
 class RenderedView:
     """One rendered SEM view.
@@ -112,13 +160,17 @@ def render_sem_view(
     material_seed: int = 0,
     material: np.ndarray | None = None,
     bits: int = 8,
+    shading_tilt_deg: float | None = None,
 ) -> RenderedView:
     """Renders `z_um` (rows, cols, µm) seen at stage tilt `tilt_deg` about the vertical axis.
 
     Gaussian noise (drawn from `seed`, so different per view) has a standard deviation of
     `noise_fraction` of the image's grey range; the material contrast belongs to the surface and
     comes from `material` (relative yield change, same grid as `z_um`) or else is drawn from
-    `material_seed`; all views of one surface must share it.
+    `material_seed`; all views of one surface must share it. The secondary-electron shading
+    depends on the beam's incidence, so on the tilt, as in a microscope; a `shading_tilt_deg`
+    given for every view instead makes it a fixed property of the surface like the material
+    contrast, which tells how much of a matching error that dependence causes.
     """
     # Render on a finer grid and average down: the finite probe blurs detail below one pixel.
     fine_um = cv2.resize(z_um, None, fx=_SUPERSAMPLING, fy=_SUPERSAMPLING, interpolation=cv2.INTER_CUBIC)
@@ -129,7 +181,8 @@ def render_sem_view(
         fine_material = self_affine_surface(fine_um.shape, hurst=0.3, rms_um=0.15, seed=material_seed, min_wavelength_px=4.0)
     else:
         fine_material = cv2.resize(material, None, fx=_SUPERSAMPLING, fy=_SUPERSAMPLING, interpolation=cv2.INTER_CUBIC)
-    shading = _secondary_electron_yield(fine_um, fine_pixel_um, tilt_rad, fine_material)
+    shading_rad = tilt_rad if shading_tilt_deg is None else np.radians(shading_tilt_deg)
+    shading = _secondary_electron_yield(fine_um, fine_pixel_um, shading_rad, fine_material)
     x_px = np.arange(cols) - (cols - 1) / 2.0
     projected = x_px[None, :] * np.cos(tilt_rad) + fine_um / fine_pixel_um * np.sin(tilt_rad)
     # Hidden points fold back under the visible ones; the running maximum keeps the visible sheet.
@@ -189,14 +242,17 @@ def render_stereo_pair(
     seed: int = 0,
     material: np.ndarray | None = None,
     bits: int = 8,
+    shading_tilt_deg: float | None = None,
 ) -> StereoPair:
     """Renders `z_um` at both tilts about an axis at `tilt_axis_deg` in the image (counter-clockwise
     from the column axis as displayed), then misplaces the second image by a rotation about its
     centre and a (column, row) shift, as an imperfect stage does. `z_um` must be larger than
-    `output_shape` to leave room for the rotation; the centre of the canvas is kept."""
+    `output_shape` to leave room for the rotation; the centre of the canvas is kept. See
+    `render_sem_view` for `shading_tilt_deg`."""
     views = [
         render_sem_view(
-            z_um, pixel_size_um=pixel_size_um, tilt_deg=t, noise_fraction=noise_fraction, seed=seed + i, material=material, bits=bits
+            z_um, pixel_size_um=pixel_size_um, tilt_deg=t, noise_fraction=noise_fraction, seed=seed + i, material=material, bits=bits,
+            shading_tilt_deg=shading_tilt_deg,
         )
         for i, t in enumerate(tilt_deg)
     ]
