@@ -40,6 +40,7 @@ def options_from_message(parameters: matching_pb2.MatchingParameters) -> Matchin
         max_lr_difference_px=parameters.max_lr_difference_px or defaults.max_lr_difference_px,
         tilt_uncertainty_deg=parameters.tilt_uncertainty_deg or defaults.tilt_uncertainty_deg,
         calibrate_tilt=parameters.calibrate_tilt,
+        normalize_local_contrast=parameters.normalize_local_contrast,
     )
 
 

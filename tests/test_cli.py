@@ -53,6 +53,12 @@ def test_height_against_a_running_server(pair_files, tmp_path, server_address):
     done = _run("height", left, right, "--tilt", "-5", "5", "--pixel-size-um", "0.1", "-o", out, env_extra={"FRACTO_SERVER": server_address})
     assert done.returncode == 0, done.stderr
     assert "valid" in done.stdout and out.is_file()
+    contrast = tmp_path / "contrast.npz"
+    done = _run("height", left, right, "--tilt", "-5", "5", "--pixel-size-um", "0.1", "--local-contrast", "-o", contrast,
+                env_extra={"FRACTO_SERVER": server_address})
+    assert done.returncode == 0, done.stderr
+    with np.load(out) as plain, np.load(contrast) as normalized:  # the option reached the matcher
+        assert not np.array_equal(plain["z_um"], normalized["z_um"], equal_nan=True)
 
 
 @pytest.mark.parametrize(

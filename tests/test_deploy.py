@@ -265,6 +265,15 @@ def test_matching_replicas_share_the_strips_of_a_pair_and_the_stitched_map_is_ex
             assert len(farmed_out.report["strip_workers"]) == 2
             json.loads(json.dumps(farmed_out.report))  # plain values, as specimens store reports
 
+            # Normalized local contrast is computed before the split: the peers get float strips.
+            contrast_options = MatchingOptions(strip_pixels=strip_pixels, normalize_local_contrast=True)
+            contrast_local = compute_series_height_map(
+                [read_sem_image(content) for content in files], tilt_deg=(-5.0, 5.0), pixel_size_um=0.1, options=contrast_options,
+            )
+            contrast_farmed_out = client.compute_height_map(files, tilt_deg=(-5, 5), pixel_size_um=0.1, normalize_local_contrast=True)
+            np.testing.assert_array_equal(contrast_farmed_out.z_um, contrast_local.z_um)
+            assert not np.array_equal(contrast_local.z_um, local.z_um, equal_nan=True)
+
             peers[0].kill()
             peers[0].wait()
             survivor = height_map()

@@ -64,6 +64,27 @@ def test_dimples_and_cleavage_keep_their_measured_accuracy(surface, tilt_deg):
     assert within_one_pixel >= bounds["one_pixel"] and within_three_sigma >= bounds["three_sigma"]
 
 
+# With local contrast normalization (an option) the shading that changes with the tilt is taken
+# out before matching: dimples fall from 7.3-8.0 % to 4.1-4.2 % RMS (95-96 % valid), and the
+# self-affine surface still meets the targets (measured 1.15 %, 100 % valid).
+WITH_LOCAL_CONTRAST = {
+    "self-affine": (fracture_pair, {"valid": 0.98, "rms": 0.015, "sa": 0.02}),
+    "dimples": (dimple_pair, {"valid": 0.94, "rms": 0.045, "sa": 0.02}),
+}
+
+
+@pytest.mark.parametrize("surface", sorted(WITH_LOCAL_CONTRAST))
+@pytest.mark.parametrize("tilt_deg", [(-5.0, 5.0), (0.0, 10.0)])
+def test_local_contrast_normalization_takes_the_tilt_dependent_shading_out(surface, tilt_deg):
+    make_pair, bounds = WITH_LOCAL_CONTRAST[surface]
+    pair = make_pair(tilt_deg=tilt_deg)
+    result = _reconstruct(pair, tilt_deg, options=MatchingOptions(normalize_local_contrast=True))
+    valid_fraction, rms_of_range, sa_relative = _errors(result, pair)
+    assert valid_fraction >= bounds["valid"]
+    assert rms_of_range <= bounds["rms"]
+    assert abs(sa_relative) <= bounds["sa"]
+
+
 def test_misaligned_pair_is_aligned_and_reported():
     pair = fracture_pair(shift_px=(7.5, -3.2), rotation_deg=0.4)
     result = _reconstruct(pair, (-5.0, 5.0))

@@ -143,16 +143,20 @@ class FractoscopeClient:
         tilt_axis_deg: float | None = None,
         parameters: matching_pb2.MatchingParameters | None = None,
         calibrate_tilt: bool = False,
+        normalize_local_contrast: bool = False,
         on_progress: ProgressCallback | None = None,
         request_id: str = "",
     ) -> HeightMap:
         """Heights from a pair or tilt series of images (paths or file bytes), reference first;
         tilts and pixel size default to the files' metadata. With `calibrate_tilt` (three or more
         images) the tilts are estimated from the images; the report then holds them in `tilt_deg`
-        with `tilt_deg_nominal`, `tilt_sigma_deg` and `tilt_residual_px`."""
+        with `tilt_deg_nominal`, `tilt_sigma_deg` and `tilt_residual_px`. `normalize_local_contrast`:
+        see MatchingParameters (for surfaces whose shading changes with the tilt)."""
         request = matching_pb2.ComputeHeightMapRequest(request_id=request_id, parameters=parameters)
         if calibrate_tilt:
             request.parameters.calibrate_tilt = True
+        if normalize_local_contrast:
+            request.parameters.normalize_local_contrast = True
         for index, image in enumerate(images):
             content = image if isinstance(image, bytes) else Path(image).read_bytes()
             name = "" if isinstance(image, bytes) else Path(image).name

@@ -23,6 +23,7 @@ ProgressCallback = Callable[[float, str], None]
 _SIGMA_CALIBRATION = 3.5
 _SUBPIXEL_ITERATIONS = 1
 _MAX_SPECKLE_PIXELS = 400
+_LOCAL_CONTRAST_SIGMA_PX = 6.0
 
 
 @dataclass(frozen=True)
@@ -66,6 +67,7 @@ def match_disparity(
     max_disparity_px: int | None = None,
     min_confidence: float = 0.5,
     max_lr_difference_px: float = 1.0,
+    normalize_local_contrast: bool = False,
     strip_pixels: int = 2_000_000,
     strip_matcher: StripMatcher | None = None,
     progress: ProgressCallback | None = None,
@@ -74,7 +76,8 @@ def match_disparity(
     parallax runs along rows. Masks (NaN) pixels whose peak correlation is below `min_confidence`,
     whose left-to-right and right-to-left disparities differ by more than
     `max_lr_difference_px`, whose window lies on a flat (textureless) patch, or that form small
-    isolated islands among masked pixels.
+    isolated islands among masked pixels. With `normalize_local_contrast` both images are first
+    freed of smooth shading and evened out in contrast (see `local_contrast`).
 
     Large images are matched in overlapping strips of rows of about `strip_pixels` pixels each,
     which bounds memory; parallax runs along rows, so a strip is a complete stereo problem.
@@ -87,6 +90,8 @@ def match_disparity(
     report = progress or (lambda fraction, message: None)
     if max_disparity_px is None:
         max_disparity_px = max(left.shape[1] // 4, 8)
+    if normalize_local_contrast:  # on the whole images, so that every strip sees the same values
+        left, right = local_contrast(left), local_contrast(right)
     bounds = strip_bounds(left.shape, window_px=window_px, max_disparity_px=max_disparity_px, strip_pixels=strip_pixels)
     tasks = (
         StripTask(left[top:bottom], right[top:bottom], window_px, max_disparity_px, min_confidence, max_lr_difference_px,
@@ -187,6 +192,17 @@ def _coarse_to_fine(
     for _ in range(subpixel_iterations):
         refined = _refine(left_pyramid[0], left_stats, right_pyramid[0], refined.disparity, window_px, 1)
     return refined
+
+
+def local_contrast(image: np.ndarray) -> np.ndarray:
+    """(rows, cols) grey image minus its local mean (Gaussian, σ = 6 px), divided by its local
+    standard deviation (σ = 3 px) where that exceeds the median one, float32. Removes smooth
+    shading, which in SEM changes with the tilt, and tones down bright edges and steep walls, so
+    that they do not dominate a correlation window; weakly textured areas are not amplified."""
+    values = image.astype(np.float32)
+    detail = values - cv2.GaussianBlur(values, (0, 0), _LOCAL_CONTRAST_SIGMA_PX)
+    spread = np.sqrt(cv2.GaussianBlur(detail * detail, (0, 0), _LOCAL_CONTRAST_SIGMA_PX / 2))
+    return detail / np.maximum(spread, max(float(np.median(spread)), 1e-6))
 
 
 def _normalized(image: np.ndarray) -> np.ndarray:

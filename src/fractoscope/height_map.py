@@ -30,6 +30,7 @@ class MatchingOptions:
     max_disparity_px: int | None = None
     min_confidence: float = 0.5
     max_lr_difference_px: float = 1.0
+    normalize_local_contrast: bool = False
     tilt_uncertainty_deg: float = 0.5
     calibrate_tilt: bool = False
     strip_pixels: int = 2_000_000
@@ -133,6 +134,7 @@ def compute_series_height_map(
         matched = dense_matching.match_disparity(
             views[0], on_first, window_px=options.window_px, max_disparity_px=max_disparity_px,
             min_confidence=options.min_confidence, max_lr_difference_px=options.max_lr_difference_px,
+            normalize_local_contrast=options.normalize_local_contrast,
             strip_pixels=options.strip_pixels, strip_matcher=strip_matcher, progress=matching_progress,
         )
         strip_count = len(dense_matching.strip_bounds(
