@@ -212,6 +212,7 @@ def _measure(client: FractoscopeClient, spec: tiles_pb2.RoiSpec, index: int, req
             tilt_deg=tilts,
             pixel_size_um=spec.pixel_size_um if spec.HasField("pixel_size_um") else None,
             tilt_axis_deg=spec.tilt_axis_deg if spec.HasField("tilt_axis_deg") else None,
+            parameters=spec.parameters,
             request_id=request_id,
         )
     except ClientError as error:

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from conftest import validate_glbs
+from conftest import fracture_pair, tiff_bytes, validate_glbs
 from fractoscope import synthetic
 from fractoscope.client import ClientError, FractoscopeClient
 from fractoscope.client.demo import MULTISCALE_MAGNIFICATIONS, write_multiscale_specimen
@@ -206,6 +206,8 @@ def test_a_restarted_server_finds_the_specimen(built):
         (lambda c: c.roughness("synthetic", roi="nope"), grpc.StatusCode.NOT_FOUND, None),
         (lambda c: c.reconstruct_specimen("two-overviews", [_roi("a"), _roi("b")]), grpc.StatusCode.INVALID_ARGUMENT, "rois"),
         (lambda c: c.reconstruct_specimen("orphan", [_roi("a"), _roi("b", parent="x")]), grpc.StatusCode.INVALID_ARGUMENT, "rois[1].parent"),
+        (lambda c: c.reconstruct_specimen("bad-window", [_roi_with_window("a", 4)]), grpc.StatusCode.INVALID_ARGUMENT,
+         "rois[0].parameters.window_px"),
     ],
 )
 def test_bad_requests_get_a_status_naming_the_problem(built, call, code, field):
@@ -221,6 +223,19 @@ def _roi(roi_id: str, parent: str = ""):
 
     image = matching_pb2.TiltImage(image=common_pb2.ImageFile(content=b"not an image"))
     return tiles_pb2.RoiSpec(id=roi_id, parent=parent, images=[image, image])
+
+
+def _roi_with_window(roi_id: str, window_px: int):
+    """A readable pair whose matching parameters the matching service must check."""
+    from fractoscope.v1 import tiles_pb2
+
+    pair = fracture_pair(size_px=128)
+    spec = tiles_pb2.RoiSpec(id=roi_id, pixel_size_um=0.1)
+    for image, tilt_deg in ((pair.first, -5.0), (pair.second, 5.0)):
+        item = spec.images.add(tilt_deg=tilt_deg)
+        item.image.content = tiff_bytes(image)
+    spec.parameters.window_px = window_px
+    return spec
 
 
 def test_http_endpoint_serves_tiles_with_cors_etag_and_gzip(built):

@@ -4,7 +4,9 @@
      "rois": [{"id": "overview", "left": "o_l.tif", "right": "o_r.tif", "magnification": 500},
               {"id": "zoom", "left": "z_l.tif", "right": "z_r.tif", "magnification": 2000,
                "parent": "overview", "center_um": "auto", "tilt_deg": [-5, 5], "pixel_size_um": 0.05,
-               "tilt_axis_deg": 90}]}
+               "tilt_axis_deg": 90, "matching": {"normalize_local_contrast": true}}]}
+
+"matching" holds MatchingParameters fields (see the protobuf API) for that ROI's pair.
 """
 
 from __future__ import annotations
@@ -12,10 +14,12 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from google.protobuf import json_format
+
 from fractoscope.errors import InvalidInputError
 from fractoscope.v1 import common_pb2, tiles_pb2
 
-_KEYS = {"id", "left", "right", "tilt_deg", "pixel_size_um", "tilt_axis_deg", "magnification", "parent", "center_um"}
+_KEYS = {"id", "left", "right", "tilt_deg", "pixel_size_um", "tilt_axis_deg", "magnification", "parent", "center_um", "matching"}
 
 
 def load_manifest(path: str | Path) -> tuple[str, list[tiles_pb2.RoiSpec]]:
@@ -68,6 +72,11 @@ def _roi(entry, index: int, base: Path) -> tiles_pb2.RoiSpec:
         if not (isinstance(centre, list) and len(centre) == 2 and all(_number(v) for v in centre)):
             raise InvalidInputError(f"{where}.center_um", 'must be [x, y] in µm or "auto"')
         spec.center_um.CopyFrom(common_pb2.PointUm(x_um=float(centre[0]), y_um=float(centre[1])))
+    if "matching" in entry:
+        try:
+            json_format.ParseDict(entry["matching"], spec.parameters)
+        except json_format.ParseError as error:
+            raise InvalidInputError(f"{where}.matching", f"not MatchingParameters: {error}") from None
     return spec
 
 
