@@ -73,10 +73,13 @@ def _roi(entry, index: int, base: Path) -> tiles_pb2.RoiSpec:
             raise InvalidInputError(f"{where}.center_um", 'must be [x, y] in µm or "auto"')
         spec.center_um.CopyFrom(common_pb2.PointUm(x_um=float(centre[0]), y_um=float(centre[1])))
     if "matching" in entry:
+        if not isinstance(entry["matching"], dict):
+            raise InvalidInputError(f"{where}.matching", "must be an object of MatchingParameters fields")
         try:
             json_format.ParseDict(entry["matching"], spec.parameters)
         except json_format.ParseError as error:
-            raise InvalidInputError(f"{where}.matching", f"not MatchingParameters: {error}") from None
+            first_line = str(error).splitlines()[0]
+            raise InvalidInputError(f"{where}.matching", f"not MatchingParameters: {first_line}") from None
     return spec
 
 
