@@ -67,15 +67,16 @@ finite_or_not = st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.sam
     window=st.integers(-5, 300),
     confidence=finite_or_not,
     images=st.integers(0, 4),
+    local_contrast=st.booleans(),
 )
-def test_random_matching_requests_get_a_status_naming_the_problem(client, tilts, pixel_size, axis, window, confidence, images):
+def test_random_matching_requests_get_a_status_naming_the_problem(client, tilts, pixel_size, axis, window, confidence, images, local_contrast):
     image = _valid_tiff()
     request_images = [matching_pb2.TiltImage(image=common_pb2.ImageFile(content=image)) for _ in range(images)]
     for item, tilt in zip(request_images, tilts):
         item.tilt_deg = tilt
     request = matching_pb2.ComputeHeightMapRequest(
         images=request_images, pixel_size_um=pixel_size, tilt_axis_deg=axis,
-        parameters=matching_pb2.MatchingParameters(window_px=window, min_confidence=confidence),
+        parameters=matching_pb2.MatchingParameters(window_px=window, min_confidence=confidence, normalize_local_contrast=local_contrast),
     )
     try:
         for _ in client._matching.ComputeHeightMap(request, timeout=60):
