@@ -33,7 +33,7 @@ from fractoscope.services.limits import DEFAULT_MAX_MESSAGE_MB, message_size_opt
 from fractoscope.services.matching import MatchingServicer
 from fractoscope.services.meshing import MeshingServicer
 from fractoscope.services.tile_http import start_http_server
-from fractoscope.services.tiles import TileServicer
+from fractoscope.services.tiles import SerializedGetTile, TileServicer
 from fractoscope.specimen_store import SpecimenStore
 from fractoscope.v1 import matching_pb2, matching_pb2_grpc, meshing_pb2, meshing_pb2_grpc, tiles_pb2, tiles_pb2_grpc
 
@@ -67,7 +67,15 @@ def create_server(
     calls need a bearer token (see auth); with a certificate and key, the port speaks TLS. The
     matching service farms strips of about `strip_pixels` out to `strip_peers` when given,
     `strip_in_flight` at a time."""
+    for name in services:
+        if name not in _SERVICES:
+            raise ValueError(f"unknown service {name!r}; known: {', '.join(_SERVICES)}")
     interceptors = [AuthInterceptor(tokens)] if tokens is not None and tokens.enabled else []
+    if "tiles" in services:
+        store = SpecimenStore(Path(data_dir))
+        store.discard_unfinished()  # this server is the store's one writer
+        tile_servicer = TileServicer(store, matching_address=matching_address, meshing_address=meshing_address)
+        interceptors.append(SerializedGetTile(tile_servicer))  # after the token check
     server = grpc.server(
         futures.ThreadPoolExecutor(max_workers=workers), options=message_size_options(max_message_mb), interceptors=interceptors
     )
@@ -75,13 +83,8 @@ def create_server(
     health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
     names = [reflection.SERVICE_NAME, health.SERVICE_NAME]
     for name in services:
-        if name not in _SERVICES:
-            raise ValueError(f"unknown service {name!r}; known: {', '.join(_SERVICES)}")
         descriptor, add = _SERVICES[name]
         if name == "tiles":
-            store = SpecimenStore(Path(data_dir))
-            store.discard_unfinished()  # this server is the store's one writer
-            tile_servicer = TileServicer(store, matching_address=matching_address, meshing_address=meshing_address)
             add(tile_servicer, server)
         elif name == "matching":
             add(MatchingServicer(strip_peers=strip_peers, strip_pixels=strip_pixels, strip_in_flight=strip_in_flight,

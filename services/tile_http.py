@@ -27,6 +27,7 @@ from google.protobuf import json_format
 from fractoscope import specimen_queries
 from fractoscope.errors import FractoscopeError, InvalidInputError, NotFoundError
 from fractoscope.services.auth import TokenTable
+from fractoscope.services.bounded_cache import BoundedCache
 from fractoscope.services.tiles import specimen_message
 from fractoscope.specimen_store import SpecimenStore
 
@@ -53,35 +54,9 @@ class _Body:
         self.gzipped = gzip.compress(raw, compresslevel=6)
 
 
-class _BodyCache:
-    """Bodies by key, up to `limit_bytes` in all (raw and gzip); when full it starts over, since a
-    viewer's working set is far smaller. Tile keys hold their loaded `Specimen`, so they go stale
-    with it: the store loads a new object when the specimen is rebuilt."""
-
-    def __init__(self, limit_bytes: int = 256 * 1024 * 1024):
-        self._bodies: dict[tuple, _Body] = {}
-        self._total_bytes = 0
-        self._limit_bytes = limit_bytes
-        self._lock = threading.Lock()
-
-    def cached(self, key: tuple) -> _Body | None:
-        with self._lock:
-            return self._bodies.get(key)
-
-    def get(self, key: tuple, produce) -> _Body:
-        """The cached body, or one made of `produce()` bytes and kept for next time."""
-        body = self.cached(key)
-        if body is None:
-            body = _Body(produce())
-            size = len(body.raw) + len(body.gzipped)
-            with self._lock:
-                if self._total_bytes + size > self._limit_bytes:
-                    self._bodies.clear()
-                    self._total_bytes = 0
-                if key not in self._bodies:
-                    self._bodies[key] = body
-                    self._total_bytes += size
-        return body
+def body_cache(limit_bytes: int = 256 * 1024 * 1024) -> BoundedCache[_Body]:
+    """Response bodies by key, bounded by their raw and gzip bytes together."""
+    return BoundedCache(limit_bytes, size=lambda body: len(body.raw) + len(body.gzipped))
 
 
 class _TileApp:
@@ -91,7 +66,7 @@ class _TileApp:
 
     def __init__(self, store: SpecimenStore, tokens: TokenTable):
         self.store = store
-        self.cache = _BodyCache()
+        self.cache = body_cache()
         self.tokens = tokens
 
     async def handle(self, request: web.Request) -> web.StreamResponse:
@@ -123,7 +98,8 @@ class _TileApp:
         relative = route["path"]
         try:
             specimen = self.store.load(route["specimen"])
-            produce = (lambda: specimen.tileset_bytes) if relative == "tileset.json" else (lambda: specimen.tile_bytes(relative))
+            content = (lambda: specimen.tileset_bytes) if relative == "tileset.json" else (lambda: specimen.tile_bytes(relative))
+            produce = lambda: _Body(content())  # noqa: E731 - runs on the executor below
             key = (specimen, relative)
             body = self.cache.cached(key) or await _off_loop(self.cache.get, key, produce)
         except (NotFoundError, FileNotFoundError):
@@ -142,7 +118,7 @@ class _TileApp:
         if path is None or not path.is_relative_to(root.resolve()) or not path.is_file() or path.suffix not in _TYPES:
             return _plain(HTTPStatus.NOT_FOUND, "not found\n")
         key = ("static", path.stat().st_mtime_ns, str(path))
-        body = self.cache.cached(key) or await _off_loop(self.cache.get, key, path.read_bytes)
+        body = self.cache.cached(key) or await _off_loop(self.cache.get, key, lambda: _Body(path.read_bytes()))
         return _body_response(request, body, _TYPES[path.suffix])
 
     def _api_answer(self, specimen_id: str | None, query: str | None, arguments: dict) -> tuple[HTTPStatus, object]:

@@ -42,8 +42,14 @@ def test_calls_need_a_token_and_read_tokens_cannot_write(guarded):
     with FractoscopeClient(guarded, token="wrong") as stranger, pytest.raises(ClientError) as refused:
         stranger.list_specimens()
     assert refused.value.code == grpc.StatusCode.UNAUTHENTICATED
+    with FractoscopeClient(guarded) as anonymous, pytest.raises(ClientError) as refused:
+        anonymous.get_tile("s", "tiles/0/0/0.glb")  # the cached path of GetTile checks tokens too
+    assert refused.value.code == grpc.StatusCode.UNAUTHENTICATED
     with FractoscopeClient(guarded, token="read-secret") as viewer:
         assert viewer.list_specimens() == []
+        with pytest.raises(ClientError) as missing:
+            viewer.get_tile("s", "tiles/0/0/0.glb")
+        assert missing.value.code == grpc.StatusCode.NOT_FOUND
         with pytest.raises(ClientError) as denied:
             viewer.build_mesh(np.zeros((8, 8), np.float32), None, pixel_size_um=1.0)
         assert denied.value.code == grpc.StatusCode.PERMISSION_DENIED

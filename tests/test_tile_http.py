@@ -2,7 +2,7 @@
 
 import http.client
 
-from fractoscope.services.tile_http import _BodyCache, start_http_server
+from fractoscope.services.tile_http import _Body, body_cache, start_http_server
 from fractoscope.specimen_store import SpecimenStore
 
 
@@ -25,16 +25,16 @@ def test_http_endpoint_answers_head_options_and_refuses_other_methods(tmp_path):
 
 
 def test_body_cache_keeps_at_most_its_byte_limit_and_reuses_bodies():
-    cache = _BodyCache(limit_bytes=100_000)
+    cache = body_cache(limit_bytes=100_000)
     produced = []
 
     def produce(index):
         produced.append(index)
         return bytes([index % 251]) * 40_000 + bytes(range(256)) * 4  # compressible, ~41 kB raw
 
-    first = cache.get(("a", 0), lambda: produce(0))
-    assert cache.get(("a", 0), lambda: produce(0)) is first and produced == [0]
+    first = cache.get(("a", 0), lambda: _Body(produce(0)))
+    assert cache.get(("a", 0), lambda: _Body(produce(0))) is first and produced == [0]
     for index in range(1, 6):
-        cache.get(("a", index), lambda index=index: produce(index))
-    assert cache._total_bytes <= 100_000
+        cache.get(("a", index), lambda index=index: _Body(produce(index)))
+    assert cache.total_bytes <= 100_000
     assert cache.cached(("a", 0)) is None and cache.cached(("a", 5)) is not None
