@@ -11,8 +11,8 @@ Value = TypeVar("Value")
 
 class BoundedCache(Generic[Value]):
     """Values by key, up to `limit_bytes` in all as measured by `size`; when full it starts over,
-    since a viewer's working set is far smaller. Keys that hold a loaded `Specimen` go stale with
-    it: the store loads a new object when the specimen is rebuilt. Thread-safe."""
+    since a viewer's working set is far smaller. Keys name a specimen by (id, version), so a
+    rebuilt specimen is never answered from an older build. Thread-safe."""
 
     def __init__(self, limit_bytes: int, size: Callable[[Value], int]):
         self._values: dict[Hashable, Value] = {}

@@ -100,7 +100,7 @@ class _TileApp:
             specimen = self.store.load(route["specimen"])
             content = (lambda: specimen.tileset_bytes) if relative == "tileset.json" else (lambda: specimen.tile_bytes(relative))
             produce = lambda: _Body(content())  # noqa: E731 - runs on the executor below
-            key = (specimen, relative)
+            key = (specimen.id, specimen.version, relative)
             body = self.cache.cached(key) or await _off_loop(self.cache.get, key, produce)
         except (NotFoundError, FileNotFoundError):
             return _plain(HTTPStatus.NOT_FOUND, "not found\n")

@@ -118,7 +118,7 @@ class TileServicer(tiles_pb2_grpc.TileServiceServicer):
                 response.tile.glb = specimen.tile_bytes(record.key.uri)  # set in place: see tile_message
                 return response.SerializeToString()
 
-            return self._tile_responses.get((specimen, request.uri), serialized)
+            return self._tile_responses.get((specimen.id, specimen.version, request.uri), serialized)
         except Exception as error:
             abort_with_error(context, error)
 

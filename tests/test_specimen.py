@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import gzip
 import json
+import os
 import subprocess
 import urllib.error
 import urllib.request
@@ -190,6 +191,35 @@ def test_a_restarted_server_finds_the_specimen(built):
             assert [s["id"] for s in client.list_specimens()] == ["synthetic"]
             assert client.get_specimen("synthetic") == summary
     finally:
+        server.stop(grace=None)
+
+
+def test_a_rebuilt_specimen_is_never_served_from_the_caches_of_the_old_build(built, tmp_path):
+    """GetTile and the HTTP endpoint keep tiles in memory; a new build (a new specimen.json) must
+    replace what they serve, on a running server."""
+    import shutil
+
+    _, _, data, _ = built
+    copy = tmp_path / "data"
+    shutil.copytree(data, copy)
+    uri = content_uris(json.loads((copy / "specimens" / "synthetic" / "tileset.json").read_text()))[0]
+    server, port = create_server("127.0.0.1:0", data_dir=copy)
+    server.start()
+    http = start_http_server(SpecimenStore(copy))
+    url = f"http://127.0.0.1:{http.server_port}/specimens/synthetic/{uri}"
+    try:
+        with FractoscopeClient(f"127.0.0.1:{port}") as client:
+            old = client.get_tile("synthetic", uri)
+            assert client.get_tile("synthetic", uri) == old and urllib.request.urlopen(url).read() == old
+            directory = copy / "specimens" / "synthetic"
+            (directory / uri).write_bytes(old + b"    ")  # what a rebuild writes, in place for the test
+            description = directory / "specimen.json"
+            stamp = description.stat().st_mtime_ns + 1_000_000
+            os.utime(description, ns=(stamp, stamp))
+            assert client.get_tile("synthetic", uri) == old + b"    "
+            assert urllib.request.urlopen(url).read() == old + b"    "
+    finally:
+        http.shutdown()
         server.stop(grace=None)
 
 

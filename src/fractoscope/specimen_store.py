@@ -54,10 +54,13 @@ class RoiEntry:
 
 
 class Specimen:
-    """A stored specimen: ROIs (overview first), tile layout and records, lazily loaded surface."""
+    """A stored specimen: ROIs (overview first), tile layout and records, lazily loaded surface.
+    `version` tells builds of one id apart (the description's modification time, ns), so caches
+    key on (id, version) without holding the specimen, and its surface, alive."""
 
-    def __init__(self, directory: Path, description: dict):
+    def __init__(self, directory: Path, description: dict, version: int = 0):
         self.directory = directory
+        self.version = version
         self.id: str = description["id"]
         self.request_id: str = description.get("request_id", "")
         self.rois = [RoiEntry(**{**roi, "origin_um": tuple(roi["origin_um"]), "shape": tuple(roi["shape"])}) for roi in description["rois"]]
@@ -149,7 +152,7 @@ class SpecimenStore:
             cached = self._cache.get(specimen_id)
             if cached and cached[0] == stamp:
                 return cached[1]
-        specimen = Specimen(self.root / specimen_id, json.loads(description_path.read_text()))
+        specimen = Specimen(self.root / specimen_id, json.loads(description_path.read_text()), version=stamp)
         with self._lock:
             self._cache[specimen_id] = (stamp, specimen)
         return specimen
