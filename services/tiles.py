@@ -113,10 +113,7 @@ class TileServicer(tiles_pb2_grpc.TileServiceServicer):
             specimen = self.store.load(request.specimen_id)
 
             def serialized() -> bytes:
-                record = specimen.tile_record(request.uri)
-                response = tiles_pb2.GetTileResponse(tile=tile_message(specimen, record))
-                response.tile.glb = specimen.tile_bytes(record.key.uri)  # set in place: see tile_message
-                return response.SerializeToString()
+                return _with_tile(tiles_pb2.GetTileResponse(), specimen, specimen.tile_record(request.uri)).SerializeToString()
 
             return self._tile_responses.get((specimen.id, specimen.version, request.uri), serialized)
         except Exception as error:
@@ -130,9 +127,7 @@ class TileServicer(tiles_pb2_grpc.TileServiceServicer):
             if not 1 <= viewport_px <= 65536:
                 raise InvalidInputError("viewport_px", "must be 1 to 65536")
             for record in tileset.tiles_for_view(specimen.layout, specimen.tiles, region, viewport_px=viewport_px):
-                response = tiles_pb2.StreamViewResponse(tile=tile_message(specimen, record))
-                response.tile.glb = specimen.tile_bytes(record.key.uri)
-                yield response
+                yield _with_tile(tiles_pb2.StreamViewResponse(), specimen, record)
         except Exception as error:
             abort_with_error(context, error)
 
@@ -216,11 +211,18 @@ def specimen_message(specimen: Specimen) -> tiles_pb2.Specimen:
     return message
 
 
+def _with_tile(response, specimen: Specimen, record: TileRecord):
+    """`response` (a message with a `tile` field) holding the tile and its GLB. The GLB is set on
+    the response's own tile: nesting a filled message copies it, which for a tile of some 200 kB
+    costs more than the rest of the call."""
+    response.tile.CopyFrom(tile_message(specimen, record))
+    response.tile.glb = specimen.tile_bytes(record.key.uri)
+    return response
+
+
 def tile_message(specimen: Specimen, record: TileRecord, *, upsampled: bool = False) -> tiles_pb2.Tile:
-    """A tile's identity without its GLB; `upsampled` marks a tile shown beyond its resolution
-    (digital). Callers that send the GLB set it on the response's own copy of this message:
-    nesting a message copies it, which for a tile of some 200 kB costs more than the rest of
-    the call."""
+    """A tile's identity without its GLB (see `_with_tile`); `upsampled` marks a tile shown
+    beyond its resolution (digital)."""
     zoom = tiles_pb2.ZOOM_KIND_DIGITAL if upsampled else _ZOOM_KINDS[record.zoom]
     return tiles_pb2.Tile(
         uri=record.key.uri,
