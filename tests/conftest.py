@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 import io
+from dataclasses import dataclass
 from pathlib import Path
 
+import meshoptimizer
 import numpy as np
+import pygltflib
 import pytest
 import tifffile
 
@@ -85,6 +88,45 @@ def server_address(tmp_path):
 def client(server_address):
     with FractoscopeClient(server_address, timeout_s=120) as connected:
         yield connected
+
+
+@dataclass(frozen=True)
+class DecodedGlb:
+    """A GLB's one mesh as a client sees it: positions (N, 3) metres after the node's transform,
+    normals (N, 3), texture coordinates (N, 2), triangles (M, 3)."""
+
+    positions_m: np.ndarray
+    normals: np.ndarray
+    uvs: np.ndarray
+    triangles: np.ndarray
+
+
+def decode_glb(glb: bytes) -> DecodedGlb:
+    """Decodes one of our GLBs the way a glTF client does: meshoptimizer's decoder for the
+    EXT_meshopt_compression views, then KHR_mesh_quantization's normalization and node transform."""
+    gltf = pygltflib.GLTF2.load_from_bytes(glb)
+    blob = gltf.binary_blob()
+    primitive = gltf.meshes[0].primitives[0]
+
+    def values(accessor_index: int) -> np.ndarray:
+        accessor = gltf.accessors[accessor_index]
+        compressed = gltf.bufferViews[accessor.bufferView].extensions["EXT_meshopt_compression"]
+        data = blob[compressed["byteOffset"] : compressed["byteOffset"] + compressed["byteLength"]]
+        if compressed["mode"] == "TRIANGLES":
+            return meshoptimizer.decode_index_buffer(compressed["count"], 4, data).astype(np.int64)
+        dtype = {pygltflib.BYTE: np.int8, pygltflib.UNSIGNED_SHORT: np.uint16}[accessor.componentType]
+        components = {pygltflib.VEC2: 2, pygltflib.VEC3: 3}[accessor.type]
+        vertices = meshoptimizer.decode_vertex_buffer(compressed["count"], compressed["byteStride"], data).view(np.uint8)
+        decoded = vertices.reshape(compressed["count"], -1).view(dtype)[:, :components].astype(np.float64)
+        if accessor.normalized:
+            decoded = np.maximum(decoded / np.iinfo(dtype).max, -1.0)
+        return decoded
+
+    node = gltf.nodes[0]
+    positions_m = np.asarray(node.translation) + values(primitive.attributes.POSITION) * np.asarray(node.scale)
+    return DecodedGlb(
+        positions_m, values(primitive.attributes.NORMAL), values(primitive.attributes.TEXCOORD_0), values(primitive.indices).reshape(-1, 3)
+    )
 
 
 VALIDATOR = Path(__file__).resolve().parent / "js" / "validate_gltf.mjs"

@@ -1,15 +1,12 @@
 """Filtering, levels of detail and GLB tiles on surfaces whose shape is known exactly."""
 
-import io
-
 import grpc
 import numpy as np
 import pytest
-import trimesh
 from matplotlib import tri
 
-from conftest import validate_glbs
-from fractoscope import height_filter, meshing, surface_mesh
+from conftest import decode_glb, validate_glbs
+from fractoscope import gltf_tile, height_filter, meshing, surface_mesh
 from fractoscope.client import ClientError
 from fractoscope.gltf_tile import METRES_PER_UM
 from fractoscope.synthetic import self_affine_surface
@@ -18,12 +15,10 @@ from fractoscope.v1 import meshing_pb2
 PIXEL_SIZE_UM = 0.1
 
 
-def _decode(glb: bytes) -> trimesh.Trimesh:
-    """A GLB back to a mesh in the height map's frame: (col_px, row_px, z_um)."""
-    mesh = trimesh.load(io.BytesIO(glb), file_type="glb", force="mesh", process=False)
-    x_m, y_m, z_m = np.asarray(mesh.vertices).T
-    positions = np.column_stack([x_m / METRES_PER_UM / PIXEL_SIZE_UM, z_m / METRES_PER_UM / PIXEL_SIZE_UM, y_m / METRES_PER_UM])
-    return trimesh.Trimesh(vertices=positions, faces=mesh.faces, process=False)
+def _decode_vertices(glb: bytes) -> np.ndarray:
+    """A GLB's vertices back in the height map's frame: (col_px, row_px, z_um)."""
+    x_m, y_m, z_m = decode_glb(glb).positions_m.T
+    return np.column_stack([x_m / METRES_PER_UM / PIXEL_SIZE_UM, z_m / METRES_PER_UM / PIXEL_SIZE_UM, y_m / METRES_PER_UM])
 
 
 def _rough_with_hole(size=600):
@@ -78,19 +73,18 @@ def test_sphere_cap_geometric_error_is_the_true_deviation(tmp_path):
     rows, cols = np.mgrid[0:size, 0:size]
     r2 = ((rows - 199.5) ** 2 + (cols - 199.5) ** 2) * PIXEL_SIZE_UM**2
     sphere = np.sqrt(radius_um**2 - r2).astype(np.float32)
-    tiles, _ = meshing.mesh_height_map(sphere, np.zeros(sphere.shape, np.uint8), pixel_size_um=PIXEL_SIZE_UM)
+    tiles = surface_mesh.iter_tiles(sphere, np.zeros(sphere.shape, np.uint8), pixel_size_um=PIXEL_SIZE_UM)
     errors = {}
     for tile in tiles:
         if tile.level == 0:
             continue
-        mesh = _decode(tile.glb)
         # Independent evaluation: matplotlib's triangle interpolation against the analytic sphere.
-        x, y, z = mesh.vertices.T
-        surface = tri.LinearTriInterpolator(tri.Triangulation(x, y, mesh.faces), z)(cols, rows)
+        x, y, z = tile.positions.T
+        surface = tri.LinearTriInterpolator(tri.Triangulation(x, y, tile.triangles), z)(cols, rows)
         deviation = np.abs(np.ma.filled(surface, np.nan) - sphere)
         true_error_um = np.nanmax(deviation)
-        assert tile.geometric_error_m / METRES_PER_UM == pytest.approx(true_error_um, rel=1e-3, abs=1e-5)
-        errors[tile.level] = max(errors.get(tile.level, 0.0), tile.geometric_error_m)
+        assert tile.geometric_error_um == pytest.approx(true_error_um, rel=1e-3, abs=1e-5)
+        errors[tile.level] = max(errors.get(tile.level, 0.0), tile.geometric_error_um)
     levels = sorted(errors)
     assert all(errors[a] < errors[b] for a, b in zip(levels, levels[1:]))  # coarser, larger error
 
@@ -103,7 +97,7 @@ def test_tiles_share_borders_and_every_glb_is_valid(method, tmp_path):
     assert report.holes_filled > 0
     reports = validate_glbs([tile.glb for tile in tiles], tmp_path)
     assert [r["errors"] for r in reports] == [0] * len(tiles), [r["messages"] for r in reports if r["errors"]][:3]
-    by_key = {(t.level, t.tile_row, t.tile_col): _decode(t.glb).vertices for t in tiles}
+    by_key = {(t.level, t.tile_row, t.tile_col): _decode_vertices(t.glb) for t in tiles}
     shared = 0
     for (level, row, col), vertices in by_key.items():
         right = by_key.get((level, row, col + 1))
@@ -134,9 +128,39 @@ def test_glb_is_y_up_in_metres():
     rows, cols = np.mgrid[0:64, 0:80]
     z = (5.0 * np.exp(-((rows - 10) ** 2 + (cols - 70) ** 2) / 8.0)).astype(np.float32)  # top at row 10, column 70
     tiles, _ = meshing.mesh_height_map(z, np.zeros(z.shape, np.uint8), pixel_size_um=PIXEL_SIZE_UM)
-    mesh = trimesh.load(io.BytesIO(tiles[0].glb), file_type="glb", force="mesh", process=False)
-    top = mesh.vertices[np.argmax(mesh.vertices[:, 1])]
-    np.testing.assert_allclose(top, [70 * PIXEL_SIZE_UM * 1e-6, 5e-6, 10 * PIXEL_SIZE_UM * 1e-6], rtol=1e-5)
+    positions_m = decode_glb(tiles[0].glb).positions_m
+    top = positions_m[np.argmax(positions_m[:, 1])]
+    np.testing.assert_allclose(top, [70 * PIXEL_SIZE_UM * 1e-6, 5e-6, 10 * PIXEL_SIZE_UM * 1e-6], rtol=1e-4)
+
+
+def _rotated_to_lowest_first(triangles: np.ndarray) -> np.ndarray:
+    """Each triangle rotated (winding kept) to start at its lowest index: the index codec may
+    rotate triangles."""
+    shift = np.argmin(triangles, axis=1)[:, None]
+    return np.take_along_axis(triangles, (shift + np.arange(3)) % 3, axis=1)
+
+
+@pytest.mark.parametrize("method", list(surface_mesh.Simplification))
+def test_glb_decodes_to_the_tile_within_its_quantization(method):
+    """What a client decodes (meshoptimizer, then the dequantizing node transform) is the tile's
+    mesh: the same triangles, positions within half a step of a 16-bit grid over the whole map,
+    normals and texture coordinates within half their 8- and 16-bit steps; and a full tile is
+    several times smaller than its mesh as float32."""
+    z, texture = _rough_with_hole(300)
+    low_m, high_m = (0.0, np.nanmin(z) * 1e-6, 0.0), (299 * PIXEL_SIZE_UM * 1e-6, np.nanmax(z) * 1e-6, 299 * PIXEL_SIZE_UM * 1e-6)
+    grid = gltf_tile.PositionGrid.spanning(low_m, high_m)
+    step_m = (np.array(high_m) - np.array(low_m)) / 65535
+    for tile in surface_mesh.iter_tiles(z, texture, pixel_size_um=PIXEL_SIZE_UM, method=method, level_count=3):
+        glb = gltf_tile.tile_glb(tile, pixel_size_um=PIXEL_SIZE_UM, grid=grid)
+        decoded = decode_glb(glb)
+        np.testing.assert_array_equal(_rotated_to_lowest_first(decoded.triangles), _rotated_to_lowest_first(tile.triangles))
+        positions_m = gltf_tile.to_gltf_positions_m(tile.positions, pixel_size_um=PIXEL_SIZE_UM)
+        assert (np.abs(decoded.positions_m - positions_m) <= 0.5 * step_m + 1e-15).all()
+        assert np.abs(decoded.normals - tile.normals).max() <= 0.5 / 127 + 1e-6
+        assert np.abs(decoded.uvs - tile.uvs).max() <= 0.5 / 65535 + 1e-7
+        if len(tile.triangles) > 10_000:
+            float32_bytes = len(tile.positions) * 32 + tile.triangles.size * 2
+            assert len(glb) < float32_bytes / 2.5, (len(glb), float32_bytes)
 
 
 def test_meshing_service_streams_tiles_and_rejects_bad_input(client):

@@ -329,6 +329,7 @@ def test_web_viewer_streams_tiles_and_measures_a_profile(built, tmp_path):
     assert "Ra" in result["profile"]["text"]
     assert result["roughness"]["Sa"] > 0 and 0 < result["roughness"]["hurst_exponent"] < 1.5
     assert result["scaleBar"].endswith("µm")
+    assert result["heightColourSpread"] > 0.3  # heights from the dequantized positions span the ramp
 
 
 def test_http_json_api_names_bad_parameters(built):

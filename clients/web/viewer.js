@@ -3,7 +3,9 @@
 // Tileset frame (3D Tiles, Z up, metres): x = specimen x, y = -specimen y, z = height.
 import * as THREE from "three";
 import { OrbitControls } from "three/addons/controls/OrbitControls.js";
+import { MeshoptDecoder } from "three/addons/libs/meshopt_decoder.module.js";
 import { TilesRenderer } from "3d-tiles-renderer";
+import { GLTFExtensionsPlugin } from "3d-tiles-renderer/plugins";
 
 const METRES_PER_UM = 1e-6;
 // A server with tokens gets one through the page's URL (?token=...): sent with every request.
@@ -59,13 +61,17 @@ function styleMesh(mesh) {
     mesh.material.dispose();
   }
   if (colouring === "height" && !data.heightMaterial) {
-    // glTF positions are Y-up: the height is y, in metres.
+    // glTF positions are Y-up: the height is y, in metres, once the node's transform turns the
+    // quantized positions (KHR_mesh_quantization) back into metres.
     const positions = mesh.geometry.getAttribute("position");
     const colours = new Float32Array(positions.count * 3);
     const colour = new THREE.Color();
+    const vertex = new THREE.Vector3();
     const [low, high] = heightRangeM;
+    mesh.updateMatrix();
     for (let i = 0; i < positions.count; i++) {
-      heightColour((positions.getY(i) - low) / (high - low || 1), colour);
+      const heightM = vertex.fromBufferAttribute(positions, i).applyMatrix4(mesh.matrix).y;
+      heightColour((heightM - low) / (high - low || 1), colour);
       colours.set([colour.r, colour.g, colour.b], i * 3);
     }
     mesh.geometry.setAttribute("color", new THREE.BufferAttribute(colours, 3));
@@ -91,6 +97,8 @@ function open(id) {
   Object.assign(status, { loaded: 0, failed: 0, tilesetLoaded: false });
   tiles = new TilesRenderer(`/specimens/${id}/tileset.json`);
   tiles.fetchOptions.headers = authorization;
+  // Tiles are meshoptimizer-compressed (EXT_meshopt_compression).
+  tiles.registerPlugin(new GLTFExtensionsPlugin({ meshoptDecoder: MeshoptDecoder }));
   tiles.errorTarget = 4;
   tiles.setCamera(camera);
   tiles.setResolutionFromRenderer(camera, renderer);

@@ -60,6 +60,9 @@ def mesh_height_map(
     tiles = surface_mesh.iter_tiles(
         filtered.z_um, texture, pixel_size_um=pixel_size_um, method=options.method, level_count=options.level_count
     )
+    rows, cols = z_um.shape
+    corners = np.array([[0.0, 0.0, np.nanmin(filtered.z_um)], [cols - 1.0, rows - 1.0, np.nanmax(filtered.z_um)]])
+    grid = gltf_tile.PositionGrid.spanning(*gltf_tile.to_gltf_positions_m(corners, pixel_size_um=pixel_size_um, origin_um=origin_um))
     encoded = []
     # Tiles are built (numpy, mostly outside the GIL) in a worker thread while this thread encodes
     # the previous ones, so both cores work.
@@ -73,7 +76,7 @@ def mesh_height_map(
                     level=tile.level,
                     tile_row=tile.tile_row,
                     tile_col=tile.tile_col,
-                    glb=gltf_tile.tile_glb(tile, pixel_size_um=pixel_size_um, origin_um=origin_um, extras=extras),
+                    glb=gltf_tile.tile_glb(tile, pixel_size_um=pixel_size_um, grid=grid, origin_um=origin_um, extras=extras),
                     geometric_error_m=tile.geometric_error_um * gltf_tile.METRES_PER_UM,
                     vertex_count=len(tile.positions),
                     triangle_count=len(tile.triangles),

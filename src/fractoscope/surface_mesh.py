@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import cv2
 import fast_simplification
+import meshoptimizer
 import numpy as np
 
 TILE_CELLS = 254  # 255 x 255 vertices: indices fit 16 bits below the restart value 65535
@@ -233,7 +234,9 @@ def _quad_triangles(index: np.ndarray) -> np.ndarray:
     complete = (top_left >= 0) & (top_right >= 0) & (bottom_left >= 0) & (bottom_right >= 0)
     a, b, c, d = (corner[complete] for corner in (top_left, top_right, bottom_left, bottom_right))
     # Seen from above (+z up, rows down the image) (a, c, b) and (b, c, d) turn counter-clockwise.
-    return np.concatenate([np.column_stack([a, c, b]), np.column_stack([b, c, d])])
+    # A quad's two triangles follow each other, row by row: the order meshoptimizer's index codec
+    # compresses best (half the bytes of meshoptimizer's own vertex-cache order on these grids).
+    return np.stack([np.column_stack([a, c, b]), np.column_stack([b, c, d])], axis=1).reshape(-1, 3)
 
 
 def _decimated_mesh(cluster: ClusterLevel, row_cells, col_cells):
@@ -253,7 +256,21 @@ def _decimated_mesh(cluster: ClusterLevel, row_cells, col_cells):
     # surface. Vertices on hole rims (kept, being borders) may fall in an open quad: unchanged.
     on_surface = _grid_height_at(cluster, simplified[:, 0], simplified[:, 1])
     simplified[:, 2] = np.where(np.isfinite(on_surface), on_surface, simplified[:, 2])
-    return simplified, faces.reshape(-1, 3)
+    return _in_vertex_cache_order(simplified, faces.reshape(-1, 3))
+
+
+def _in_vertex_cache_order(positions: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Triangles in vertex-cache order and vertices in the order they are first used
+    (meshoptimizer): quicker to draw, and it takes a decimated tile's compressed indices to about a
+    third. (Grid meshes keep their row order, which compresses better still.)"""
+    indices = np.ascontiguousarray(triangles, np.uint32).ravel()
+    cached = np.empty_like(indices)
+    meshoptimizer.optimize_vertex_cache(cached, indices, len(indices), len(positions))
+    new_index = np.empty(len(positions), np.uint32)
+    meshoptimizer.optimize_vertex_fetch_remap(new_index, cached, len(cached), len(positions))
+    reordered = np.empty_like(positions)
+    reordered[new_index] = positions
+    return reordered, new_index[cached].astype(np.int64).reshape(-1, 3)
 
 
 def _grid_height_at(cluster: ClusterLevel, col_px: np.ndarray, row_px: np.ndarray) -> np.ndarray:

@@ -38,6 +38,26 @@ try {
   await page.evaluate(() => new Promise((resolve) => requestAnimationFrame(() => requestAnimationFrame(resolve))));
   await writeFile(screenshotPath, await page.screenshot({ timeout: 60000 }));
   result.litFraction = await litFraction(page, "#view canvas", [17, 17, 17]);  // the scene's background
+  // Height colours (blue-green-yellow): the spread of red minus blue over the surface's pixels,
+  // 10th to 90th percentile, which is near 0 when every vertex gets one colour.
+  await page.uncheck("#zoom-kinds");
+  await page.check("input[name=colouring][value=height]");
+  await page.evaluate(() => new Promise((resolve) => requestAnimationFrame(() => requestAnimationFrame(resolve))));
+  result.heightColourSpread = await page.evaluate(() => {
+    const canvas = document.querySelector("#view canvas");
+    const copy = document.createElement("canvas");
+    copy.width = canvas.width; copy.height = canvas.height;
+    const context = copy.getContext("2d");
+    context.drawImage(canvas, 0, 0);
+    const pixels = context.getImageData(0, 0, copy.width, copy.height).data;
+    const redMinusBlue = [];
+    for (let i = 0; i < pixels.length; i += 4) {
+      if (Math.abs(pixels[i] - 17) + Math.abs(pixels[i + 1] - 17) + Math.abs(pixels[i + 2] - 17) > 30) redMinusBlue.push((pixels[i] - pixels[i + 2]) / 255);
+    }
+    redMinusBlue.sort((a, b) => a - b);
+    const at = (q) => redMinusBlue[Math.floor(q * (redMinusBlue.length - 1))];
+    return redMinusBlue.length ? at(0.9) - at(0.1) : 0;
+  });
 } finally {
   await browser.close();
 }

@@ -14,10 +14,13 @@ const page = `<!doctype html><html><body style="margin:0;background:#000">
 <script type="importmap">{"imports": {
   "three": "/node_modules/three/build/three.module.js",
   "three/addons/": "/node_modules/three/examples/jsm/",
-  "3d-tiles-renderer": "/node_modules/3d-tiles-renderer/build/index.js"}}</script>
+  "3d-tiles-renderer": "/node_modules/3d-tiles-renderer/build/index.js",
+  "3d-tiles-renderer/plugins": "/node_modules/3d-tiles-renderer/build/index.plugins.js"}}</script>
 <script type="module">
 import * as THREE from "three";
+import { MeshoptDecoder } from "three/addons/libs/meshopt_decoder.module.js";
 import { TilesRenderer } from "3d-tiles-renderer";
+import { GLTFExtensionsPlugin } from "3d-tiles-renderer/plugins";
 const status = { loaded: 0, failed: [], tilesetLoaded: false, done: false };
 window.status3d = status;
 const renderer = new THREE.WebGLRenderer({ antialias: false, preserveDrawingBuffer: true });
@@ -28,6 +31,7 @@ scene.add(new THREE.HemisphereLight(0xffffff, 0x444444, 3));
 const camera = new THREE.PerspectiveCamera(45, 1, 1e-7, 10);
 const tiles = new TilesRenderer(${JSON.stringify(tilesetUrl)});
 tiles.errorTarget = 2;
+tiles.registerPlugin(new GLTFExtensionsPlugin({ meshoptDecoder: MeshoptDecoder }));
 tiles.setCamera(camera);
 tiles.setResolutionFromRenderer(camera, renderer);
 tiles.addEventListener("load-tileset", () => {
