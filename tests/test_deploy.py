@@ -332,3 +332,16 @@ def test_a_strip_peer_that_refuses_strips_fails_the_map_with_a_clear_status():
     finally:
         server.stop(grace=None)
         peer.stop(grace=None)
+
+
+def test_a_serving_process_freezes_its_start_up_objects_and_collects_garbage_less_often():
+    """settle_garbage_collector, which fracto-server and `make run` call before serving (why: its
+    docstring and the load figures in the README), run in a fresh interpreter."""
+    probe = (
+        "import gc, json; from fractoscope.services.server import settle_garbage_collector;"
+        "before = gc.get_threshold(); settle_garbage_collector();"
+        "print(json.dumps([before, gc.get_threshold(), gc.get_freeze_count()]))"
+    )
+    before, after, frozen = json.loads(subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True).stdout)
+    assert before == [700, 10, 10] and after == [50_000, 20, 10]
+    assert frozen > 10_000  # the objects of start-up (modules, classes), no longer scanned

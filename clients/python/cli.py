@@ -212,6 +212,7 @@ def command_mesh(args) -> int:
 
 def command_demo(args) -> int:
     from fractoscope.client.demo import run_demo
+    from fractoscope.services.server import settle_garbage_collector
     from fractoscope.services.tile_http import start_http_server
     from fractoscope.specimen_store import SpecimenStore
 
@@ -229,6 +230,7 @@ def command_demo(args) -> int:
             console.print(f"gRPC:   {address}   (e.g. fracto roughness {specimens[0]} --server {address})", soft_wrap=True)
             console.print(f"data:   {data.resolve()}", soft_wrap=True)
             if not args.exit:
+                settle_garbage_collector()
                 console.print("serving until Ctrl-C")
                 stop = threading.Event()
                 for signum in (signal.SIGINT, signal.SIGTERM):
