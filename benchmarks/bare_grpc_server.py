@@ -14,6 +14,7 @@ from concurrent import futures
 
 import grpc
 
+from fractoscope.services.server import settle_garbage_collector
 from fractoscope.v1 import tiles_pb2
 
 
@@ -30,6 +31,7 @@ def main() -> None:
     server = grpc.server(futures.ThreadPoolExecutor(max_workers=8))
     server.add_generic_rpc_handlers((handler,))
     server.add_insecure_port(args.address)
+    settle_garbage_collector()  # as the tile service does
     server.start()
     server.wait_for_termination()
 
