@@ -65,6 +65,8 @@ def height_map_arrays(height_map: common_pb2.HeightMap, *, field: str = "height_
     pixel_size_um = validate_pixel_size_um(height_map.pixel_size_um, field=f"{field}.pixel_size_um")
     if min(z_um.shape) < 2:
         _invalid(f"{field}.z_um", "needs at least 2 x 2 heights")
+    if not np.isfinite(z_um).any():
+        _invalid(f"{field}.z_um", "has no finite heights: nothing to mesh")
     return z_um, texture, pixel_size_um
 
 

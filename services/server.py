@@ -166,9 +166,9 @@ def settle_garbage_collector() -> None:
     """Readies a serving process's garbage collector: what start-up built is collected and frozen
     out of later collections, and the youngest generation is collected every 50,000 allocations
     instead of 700. Every gRPC call allocates many short-lived objects; with Python's defaults the
-    collector costs tile fetches about a third of their rate (`make load`, GetTile: 2,900-3,000/s
-    at p99 28-35 ms before, 4,500-4,650/s at p99 20-22 ms after). Garbage cycles wait at most one
-    such period, a few MB."""
+    collector costs tile fetches about a third of their rate (GetTile at concurrency 50, 15 s runs
+    on one CPU: 2,900-3,000/s at p99 28-35 ms with the defaults, 4,200-4,650/s at p99 20-22 ms with
+    these settings). Garbage cycles wait at most one such period, a few MB."""
     gc.collect()
     gc.freeze()
     gc.set_threshold(50_000, 20, 10)

@@ -178,6 +178,9 @@ def test_meshing_service_streams_tiles_and_rejects_bad_input(client):
         client.build_mesh(z, texture, pixel_size_um=float("nan"))
     assert error.value.field == "height_map.pixel_size_um"
     with pytest.raises(ClientError) as error:
+        client.build_mesh(np.full_like(z, np.nan), texture, pixel_size_um=PIXEL_SIZE_UM)
+    assert error.value.code == grpc.StatusCode.INVALID_ARGUMENT and error.value.field == "height_map.z_um"
+    with pytest.raises(ClientError) as error:
         client.build_mesh(z, texture, pixel_size_um=PIXEL_SIZE_UM, method=7)
     assert error.value.field == "method"
     tiles, _ = client.build_mesh(z, None, pixel_size_um=PIXEL_SIZE_UM, method=meshing_pb2.SIMPLIFICATION_METHOD_QUADRIC, level_count=2)

@@ -6,7 +6,7 @@ image rows (down the image), which keeps the SEM image unmirrored seen from abov
 Geometry is quantized (KHR_mesh_quantization: 16-bit positions on a `PositionGrid` that the node's
 translation and scale turn back into metres, 8-bit normals, 16-bit texture coordinates) and then
 compressed with meshoptimizer (EXT_meshopt_compression), which every three.js-based 3D Tiles
-client decodes: a tile is about a quarter of its float32 size.
+client decodes: a tile is about a fifth of its float32 size.
 """
 
 from __future__ import annotations
