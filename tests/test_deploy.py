@@ -214,12 +214,12 @@ def test_a_service_killed_mid_reconstruction_leaves_nothing_half_written(tmp_pat
             stack.kill(victim)
             worker.join(120)
             assert "error" in outcome, f"the build should have failed with {victim} gone"
-            assert outcome["error"].code == grpc.StatusCode.UNAVAILABLE
+            assert outcome["error"].code == grpc.StatusCode.UNAVAILABLE, outcome["error"]
             if victim != "tiles":  # the tile service lived to say so, and cleaned up after the failed build
                 assert "retry" in str(outcome["error"])
                 assert client.list_specimens() == [] and not list(specimens.glob(".staging-*"))
             else:
-                assert list(specimens.glob(".staging-*"))  # the killed build left its half-written folder
+                assert list(specimens.glob(".staging-*")), list(specimens.iterdir())  # the killed build left its half-written folder
             stack.restart(victim)  # a restarted tile service discards what its killed self left
             assert client.list_specimens() == [] and not (specimens / specimen_id).exists()
             assert not list(specimens.glob(".staging-*"))
