@@ -33,6 +33,7 @@ def options_from_request(request: meshing_pb2.BuildMeshRequest) -> MeshingOption
         smoothing_um=parameters.smoothing_um,
         method=_METHODS.get(request.method, None) or _invalid("method", f"unknown method {request.method}"),
         level_count=request.level_count or None,
+        plain_glb=request.plain_glb,
     )
     if not options.outlier_threshold_sigma > 0:
         _invalid("filter.outlier_threshold_sigma", "must be > 0")

@@ -103,14 +103,21 @@ class DecodedGlb:
 
 def decode_glb(glb: bytes) -> DecodedGlb:
     """Decodes one of our GLBs the way a glTF client does: meshoptimizer's decoder for the
-    EXT_meshopt_compression views, then KHR_mesh_quantization's normalization and node transform."""
+    EXT_meshopt_compression views, then KHR_mesh_quantization's normalization and node transform;
+    plain views (float32, no extensions) as they are."""
     gltf = pygltflib.GLTF2.load_from_bytes(glb)
     blob = gltf.binary_blob()
     primitive = gltf.meshes[0].primitives[0]
 
     def values(accessor_index: int) -> np.ndarray:
         accessor = gltf.accessors[accessor_index]
-        compressed = gltf.bufferViews[accessor.bufferView].extensions["EXT_meshopt_compression"]
+        view = gltf.bufferViews[accessor.bufferView]
+        if "EXT_meshopt_compression" not in view.extensions:
+            dtype = {pygltflib.FLOAT: np.float32, pygltflib.UNSIGNED_SHORT: np.uint16, pygltflib.UNSIGNED_INT: np.uint32}[accessor.componentType]
+            components = {pygltflib.SCALAR: 1, pygltflib.VEC2: 2, pygltflib.VEC3: 3}[accessor.type]
+            raw = np.frombuffer(blob, dtype, accessor.count * components, view.byteOffset + (accessor.byteOffset or 0))
+            return raw.reshape(accessor.count, components).astype(np.float64) if components > 1 else raw.astype(np.int64)
+        compressed = view.extensions["EXT_meshopt_compression"]
         data = blob[compressed["byteOffset"] : compressed["byteOffset"] + compressed["byteLength"]]
         if compressed["mode"] == "TRIANGLES":
             return meshoptimizer.decode_index_buffer(compressed["count"], 4, data).astype(np.int64)
@@ -123,7 +130,7 @@ def decode_glb(glb: bytes) -> DecodedGlb:
         return decoded
 
     node = gltf.nodes[0]
-    positions_m = np.asarray(node.translation) + values(primitive.attributes.POSITION) * np.asarray(node.scale)
+    positions_m = np.asarray(node.translation or (0.0, 0.0, 0.0)) + values(primitive.attributes.POSITION) * np.asarray(node.scale or (1.0, 1.0, 1.0))
     return DecodedGlb(
         positions_m, values(primitive.attributes.NORMAL), values(primitive.attributes.TEXCOORD_0), values(primitive.indices).reshape(-1, 3)
     )

@@ -112,6 +112,11 @@ def test_height_then_mesh_writes_valid_glb_levels(pair_files, tmp_path):
     glbs = sorted(out.rglob("*.glb"))
     assert len(glbs) == sum(row["tiles"] for row in summary["levels"])
     assert all(report["errors"] == 0 for report in validate_glbs([p.read_bytes() for p in glbs], tmp_path))
+    assert all(b"EXT_meshopt_compression" in p.read_bytes() for p in glbs)
+    plain = tmp_path / "plain"
+    assert _run("mesh", heights, "--pixel-size-um", "0.1", "-o", plain, "--plain-glb", "--levels", "2").returncode == 0
+    plain_glbs = sorted(plain.rglob("*.glb"))
+    assert plain_glbs and not any(b"EXT_meshopt_compression" in p.read_bytes() for p in plain_glbs)
     done = _run("mesh", heights, "--texture", right, "--pixel-size-um", "-1", "-o", out)
     assert done.returncode == 2 and done.stderr.startswith("error: height_map.pixel_size_um")
 

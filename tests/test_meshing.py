@@ -163,6 +163,24 @@ def test_glb_decodes_to_the_tile_within_its_quantization(method):
             assert len(glb) < float32_bytes / 2.5, (len(glb), float32_bytes)
 
 
+def test_plain_glbs_carry_the_float32_mesh_without_extensions(client, tmp_path):
+    """plain_glb, for tools without a meshopt decoder: float32 geometry, no glTF extensions, valid
+    for the Khronos validator with nothing it cannot check; the same mesh as the compact GLB."""
+    z, texture = _rough_with_hole(300)
+    plain, _ = client.build_mesh(z, texture, pixel_size_um=PIXEL_SIZE_UM, level_count=3, plain_glb=True)
+    compact, _ = client.build_mesh(z, texture, pixel_size_um=PIXEL_SIZE_UM, level_count=3)
+    reports = validate_glbs([tile.glb for tile in plain], tmp_path)
+    assert [(r["errors"], [m for m in r["messages"] if "UNSUPPORTED_EXTENSION" in m]) for r in reports] == [(0, [])] * len(plain)
+    for plain_tile, compact_tile in zip(plain, compact):
+        assert b"EXT_meshopt_compression" not in plain_tile.glb and b"KHR_mesh_quantization" not in plain_tile.glb
+        plain_mesh, compact_mesh = decode_glb(plain_tile.glb), decode_glb(compact_tile.glb)
+        np.testing.assert_array_equal(_rotated_to_lowest_first(plain_mesh.triangles), _rotated_to_lowest_first(compact_mesh.triangles))
+        step_m = np.ptp(plain_mesh.positions_m, axis=0).max() / 65535 * 10  # the compact grid spans the whole map
+        assert np.abs(plain_mesh.positions_m - compact_mesh.positions_m).max() <= step_m
+        if plain_tile.triangle_count > 10_000:
+            assert len(plain_tile.glb) > 2.5 * len(compact_tile.glb)
+
+
 def test_meshing_service_streams_tiles_and_rejects_bad_input(client):
     z, texture = _rough_with_hole(300)
     tiles, report = client.build_mesh(z, texture, pixel_size_um=PIXEL_SIZE_UM)

@@ -220,12 +220,14 @@ class FractoscopeClient:
         filter_parameters: meshing_pb2.FilterParameters | None = None,
         on_progress: ProgressCallback | None = None,
         request_id: str = "",
+        plain_glb: bool = False,
     ) -> tuple[list[EncodedTile], dict]:
         """GLB levels of detail of a height map ((rows, cols) µm, NaN unknown) textured with a grey
         image of the same shape, pixel (0, 0) placed at `origin_um` (x, y); returns the tiles (finest
-        level first) and the filter report."""
+        level first) and the filter report. `plain_glb`: float32 GLBs without extensions, for tools
+        that lack a meshopt decoder (about five times larger)."""
         request = meshing_pb2.BuildMeshRequest(
-            filter=filter_parameters, method=method, level_count=level_count, request_id=request_id,
+            filter=filter_parameters, method=method, level_count=level_count, request_id=request_id, plain_glb=plain_glb,
             origin_um=common_pb2.PointUm(x_um=origin_um[0], y_um=origin_um[1]),
         )
         request.height_map.pixel_size_um = pixel_size_um

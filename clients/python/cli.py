@@ -183,7 +183,8 @@ def command_mesh(args) -> int:
     method = meshing_pb2.SIMPLIFICATION_METHOD_QUADRIC if args.method == "quadric" else meshing_pb2.SIMPLIFICATION_METHOD_VERTEX_CLUSTERING
     with connected(args.server) as client, progress_bar("meshing", enabled=not args.json and _err.is_terminal) as advance:
         tiles, report = client.build_mesh(
-            z_um, texture, pixel_size_um=args.pixel_size_um, method=method, level_count=args.levels, on_progress=advance
+            z_um, texture, pixel_size_um=args.pixel_size_um, method=method, level_count=args.levels, on_progress=advance,
+            plain_glb=args.plain_glb,
         )
     write_tiles(tiles, Path(args.output))
     levels = sorted({tile.level for tile in tiles})
@@ -385,6 +386,8 @@ def build_parser() -> argparse.ArgumentParser:
     mesh.add_argument("--method", choices=("vertex-clustering", "quadric"), default="vertex-clustering")
     mesh.add_argument("--levels", type=int, default=0, help="number of levels (default: down to one small tile)")
     mesh.add_argument("-o", "--output", required=True, help="directory for level_L/ROW_COL.glb")
+    mesh.add_argument("--plain-glb", action="store_true",
+                      help="float32 GLBs without extensions, for tools that cannot decode meshopt compression (about 5x larger)")
     mesh.add_argument("--server", help="HOST:PORT of a Fractoscope server (default: FRACTO_SERVER, else in-process)")
     mesh.add_argument("--json", action="store_true", help="print a JSON summary instead of text")
     mesh.set_defaults(run=command_mesh)

@@ -6,7 +6,8 @@ image rows (down the image), which keeps the SEM image unmirrored seen from abov
 Geometry is quantized (KHR_mesh_quantization: 16-bit positions on a `PositionGrid` that the node's
 translation and scale turn back into metres, 8-bit normals, 16-bit texture coordinates) and then
 compressed with meshoptimizer (EXT_meshopt_compression), which every three.js-based 3D Tiles
-client decodes: a tile is about a fifth of its float32 size.
+client decodes: a tile is about a fifth of its float32 size. Without a grid the geometry is
+plain float32, for tools that lack a meshopt decoder.
 """
 
 from __future__ import annotations
@@ -60,12 +61,12 @@ def tile_glb(
     tile,
     *,
     pixel_size_um: float,
-    grid: PositionGrid,
+    grid: PositionGrid | None,
     origin_um: tuple[float, float] = (0.0, 0.0),
     extras: dict | None = None,
 ) -> bytes:
-    """A `surface_mesh.MeshTile` as GLB on `grid`, its texture as JPEG; pixel (0, 0) at
-    `origin_um` (x, y)."""
+    """A `surface_mesh.MeshTile` as GLB, compact on `grid` (None: plain float32), its texture as
+    JPEG; pixel (0, 0) at `origin_um` (x, y)."""
     return mesh_glb(
         to_gltf_positions_m(tile.positions, pixel_size_um=pixel_size_um, origin_um=origin_um),
         tile.normals,
@@ -87,6 +88,10 @@ def encode_texture(grey: np.ndarray, *, jpeg_quality: int = 90) -> bytes:
     return encoded.tobytes()
 
 
+_COMPONENT_TYPES = {np.dtype(np.float32): pygltflib.FLOAT, np.dtype(np.uint16): pygltflib.UNSIGNED_SHORT,
+                    np.dtype(np.int8): pygltflib.BYTE, np.dtype(np.uint32): pygltflib.UNSIGNED_INT}
+
+
 def mesh_glb(
     positions_m: np.ndarray,
     normals: np.ndarray,
@@ -94,54 +99,66 @@ def mesh_glb(
     triangles: np.ndarray,
     texture_jpeg: bytes,
     *,
-    grid: PositionGrid,
+    grid: PositionGrid | None,
     extras: dict | None = None,
 ) -> bytes:
-    """A GLB holding one mesh: positions (N, 3) metres (quantized to `grid`), unit normals (N, 3),
-    texture coordinates (N, 2) in [0, 1] with (0, 0) at the image's top-left, triangles (M, 3)
-    counter-clockwise seen from +Y, and the JPEG texture. `extras` lands on the mesh node."""
+    """A GLB holding one mesh: positions (N, 3) metres, unit normals (N, 3), texture coordinates
+    (N, 2) in [0, 1] with (0, 0) at the image's top-left, triangles (M, 3) counter-clockwise seen
+    from +Y, and the JPEG texture. With a `grid` the geometry is quantized to it and
+    meshopt-compressed; without, it is plain float32 with no extensions, which any glTF reader
+    opens. `extras` lands on the mesh node."""
     count = len(positions_m)
-    quantized = np.zeros((count, 4), np.uint16)  # x, y, z and the padding to 4-byte vertices
-    quantized[:, :3] = grid.quantize(positions_m)
-    normals_i8 = np.zeros((count, 4), np.int8)
-    normals_i8[:, :3] = np.rint(np.clip(normals, -1.0, 1.0) * 127)
-    uvs_u16 = np.rint(np.clip(uvs, 0.0, 1.0) * 65535).astype(np.uint16)
-    indices = np.ascontiguousarray(triangles, np.uint32).ravel()
     # 16-bit indices when they stay below 65535, which glTF reserves for primitive restart.
-    index_size, index_component = (2, pygltflib.UNSIGNED_SHORT) if count <= 65535 else (4, pygltflib.UNSIGNED_INT)
+    indices = np.ascontiguousarray(triangles, np.uint16 if count <= 65535 else np.uint32).ravel()
+    if grid is None:
+        attributes = [np.ascontiguousarray(values, np.float32) for values in (positions_m, normals, uvs)]
+        position_bounds = attributes[0].min(axis=0).tolist(), attributes[0].max(axis=0).tolist()
+    else:
+        quantized = np.zeros((count, 4), np.uint16)  # x, y, z and the padding to 4-byte vertices
+        quantized[:, :3] = grid.quantize(positions_m)
+        normals_i8 = np.zeros((count, 4), np.int8)
+        normals_i8[:, :3] = np.rint(np.clip(normals, -1.0, 1.0) * 127)
+        uvs_u16 = np.rint(np.clip(uvs, 0.0, 1.0) * 65535).astype(np.uint16)
+        attributes = [quantized, normals_i8, uvs_u16]
+        position_bounds = quantized[:, :3].min(axis=0).tolist(), quantized[:, :3].max(axis=0).tolist()
+        meshoptimizer.encode_vertex_version(0)  # the version EXT_meshopt_compression specifies
 
-    meshoptimizer.encode_vertex_version(0)  # the version EXT_meshopt_compression specifies
-    streams = [  # (compressed bytes, byte length when decoded, stride, element count, mode, target)
-        (meshoptimizer.encode_index_buffer(indices, len(indices), count), indices.size * index_size, index_size,
-         indices.size, "TRIANGLES", pygltflib.ELEMENT_ARRAY_BUFFER),
-    ] + [
-        (meshoptimizer.encode_vertex_buffer(values), values.nbytes, values.strides[0], count, "ATTRIBUTES", pygltflib.ARRAY_BUFFER)
-        for values in (quantized, normals_i8, uvs_u16)
-    ]
-    parts, views, compressed_offset, decoded_offset = [], [], 0, 0
-    for compressed, decoded_length, stride, elements, mode, target in streams:
-        views.append(pygltflib.BufferView(
-            buffer=1, byteOffset=decoded_offset, byteLength=decoded_length, target=target,
-            byteStride=stride if mode == "ATTRIBUTES" else None,
-            extensions={MESHOPT: {"buffer": 0, "byteOffset": compressed_offset, "byteLength": len(compressed),
-                                  "byteStride": stride, "count": elements, "mode": mode}},
-        ))
-        parts += [compressed, b"\0" * (-len(compressed) % 4)]
-        compressed_offset += len(compressed) + -len(compressed) % 4
-        decoded_offset += decoded_length + -decoded_length % 4
+    parts, views, offset, decoded_offset = [], [], 0, 0
+    for values, target in [(indices, pygltflib.ELEMENT_ARRAY_BUFFER)] + [(a, pygltflib.ARRAY_BUFFER) for a in attributes]:
+        if grid is None:
+            data = values.tobytes()
+            views.append(pygltflib.BufferView(buffer=0, byteOffset=offset, byteLength=len(data), target=target))
+        else:
+            if target == pygltflib.ELEMENT_ARRAY_BUFFER:
+                data = meshoptimizer.encode_index_buffer(values.astype(np.uint32), values.size, count)
+                stride, elements, mode = values.itemsize, values.size, "TRIANGLES"
+            else:
+                data = meshoptimizer.encode_vertex_buffer(values)
+                stride, elements, mode = values.strides[0], count, "ATTRIBUTES"
+            # The view itself lies in the data-less buffer 1, where the decoder writes it.
+            views.append(pygltflib.BufferView(
+                buffer=1, byteOffset=decoded_offset, byteLength=values.nbytes, target=target,
+                byteStride=stride if mode == "ATTRIBUTES" else None,
+                extensions={MESHOPT: {"buffer": 0, "byteOffset": offset, "byteLength": len(data),
+                                      "byteStride": stride, "count": elements, "mode": mode}},
+            ))
+            decoded_offset += values.nbytes + -values.nbytes % 4
+        parts += [data, b"\0" * (-len(data) % 4)]
+        offset += len(data) + -len(data) % 4
     image_view = len(views)
-    views.append(pygltflib.BufferView(buffer=0, byteOffset=compressed_offset, byteLength=len(texture_jpeg)))
+    views.append(pygltflib.BufferView(buffer=0, byteOffset=offset, byteLength=len(texture_jpeg)))
     parts += [texture_jpeg, b"\0" * (-len(texture_jpeg) % 4)]
     blob = b"".join(parts)
 
+    normalized = grid is not None  # integer normals and texture coordinates stand for [-1, 1] and [0, 1]
     accessors = [
-        pygltflib.Accessor(bufferView=0, componentType=index_component, count=int(indices.size), type=pygltflib.SCALAR),
-        pygltflib.Accessor(
-            bufferView=1, componentType=pygltflib.UNSIGNED_SHORT, count=count, type=pygltflib.VEC3,
-            min=quantized[:, :3].min(axis=0).tolist(), max=quantized[:, :3].max(axis=0).tolist(),
-        ),
-        pygltflib.Accessor(bufferView=2, componentType=pygltflib.BYTE, normalized=True, count=count, type=pygltflib.VEC3),
-        pygltflib.Accessor(bufferView=3, componentType=pygltflib.UNSIGNED_SHORT, normalized=True, count=count, type=pygltflib.VEC2),
+        pygltflib.Accessor(bufferView=0, componentType=_COMPONENT_TYPES[indices.dtype], count=int(indices.size), type=pygltflib.SCALAR),
+        pygltflib.Accessor(bufferView=1, componentType=_COMPONENT_TYPES[attributes[0].dtype], count=count, type=pygltflib.VEC3,
+                           min=position_bounds[0], max=position_bounds[1]),
+        pygltflib.Accessor(bufferView=2, componentType=_COMPONENT_TYPES[attributes[1].dtype], normalized=normalized or None,
+                           count=count, type=pygltflib.VEC3),
+        pygltflib.Accessor(bufferView=3, componentType=_COMPONENT_TYPES[attributes[2].dtype], normalized=normalized or None,
+                           count=count, type=pygltflib.VEC2),
     ]
     primitive = pygltflib.Primitive(
         attributes=pygltflib.Attributes(POSITION=1, NORMAL=2, TEXCOORD_0=3), indices=0, material=0, mode=pygltflib.TRIANGLES
@@ -152,13 +169,20 @@ def mesh_glb(
         ),
         doubleSided=True,
     )
+    buffers = [pygltflib.Buffer(byteLength=len(blob))]
+    node = pygltflib.Node(mesh=0, extras=extras or {})
+    extensions = []
+    if grid is not None:
+        buffers.append(pygltflib.Buffer(byteLength=decoded_offset, extensions={MESHOPT: {"fallback": True}}))
+        node.translation, node.scale = list(grid.origin_m), list(grid.step_m)
+        extensions = [MESHOPT, QUANTIZATION]
     gltf = pygltflib.GLTF2(
         asset=pygltflib.Asset(version="2.0", generator="fractoscope"),
-        extensionsUsed=[MESHOPT, QUANTIZATION],
-        extensionsRequired=[MESHOPT, QUANTIZATION],
+        extensionsUsed=extensions,
+        extensionsRequired=extensions,
         scene=0,
         scenes=[pygltflib.Scene(nodes=[0])],
-        nodes=[pygltflib.Node(mesh=0, translation=list(grid.origin_m), scale=list(grid.step_m), extras=extras or {})],
+        nodes=[node],
         meshes=[pygltflib.Mesh(primitives=[primitive])],
         materials=[material],
         textures=[pygltflib.Texture(source=0, sampler=0)],
@@ -166,15 +190,15 @@ def mesh_glb(
         images=[pygltflib.Image(bufferView=image_view, mimeType="image/jpeg")],
         accessors=accessors,
         bufferViews=views,
-        # Buffer 1 holds no bytes: it is where the decoder writes the decompressed views.
-        buffers=[pygltflib.Buffer(byteLength=len(blob)), pygltflib.Buffer(byteLength=decoded_offset, extensions={MESHOPT: {"fallback": True}})],
+        buffers=buffers,
     )
     return _glb(gltf, blob)
 
 
 def _glb(gltf: pygltflib.GLTF2, blob: bytes) -> bytes:
     """The GLB container of a document and its BIN chunk (buffer 0). pygltflib's own writer merges
-    every buffer into the BIN chunk, which would give the fallback buffer bytes it must not have."""
+    every buffer into the BIN chunk, which would give meshopt's fallback buffer bytes it must not
+    have."""
     document = gltf.gltf_to_json(separators=(",", ":"), indent=None).encode("utf-8")
     document += b" " * (-len(document) % 4)
     blob += b"\0" * (-len(blob) % 4)

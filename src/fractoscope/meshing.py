@@ -33,6 +33,7 @@ class MeshingOptions:
     smoothing_um: float = 0.0
     method: surface_mesh.Simplification = surface_mesh.Simplification.VERTEX_CLUSTERING
     level_count: int | None = None
+    plain_glb: bool = False  # float32 GLBs without extensions instead of quantized, meshopt-compressed ones
 
 
 def mesh_height_map(
@@ -62,7 +63,9 @@ def mesh_height_map(
     )
     rows, cols = z_um.shape
     corners = np.array([[0.0, 0.0, np.nanmin(filtered.z_um)], [cols - 1.0, rows - 1.0, np.nanmax(filtered.z_um)]])
-    grid = gltf_tile.PositionGrid.spanning(*gltf_tile.to_gltf_positions_m(corners, pixel_size_um=pixel_size_um, origin_um=origin_um))
+    grid = None if options.plain_glb else gltf_tile.PositionGrid.spanning(
+        *gltf_tile.to_gltf_positions_m(corners, pixel_size_um=pixel_size_um, origin_um=origin_um)
+    )
     encoded = []
     # Tiles are built (numpy, mostly outside the GIL) in a worker thread while this thread encodes
     # the previous ones, so both cores work.
