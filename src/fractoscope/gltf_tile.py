@@ -114,8 +114,6 @@ def mesh_glb(
     indices = np.ascontiguousarray(triangles, np.uint16 if count <= 65535 else np.uint32).ravel()
     if grid is None:
         attributes = [np.ascontiguousarray(values, np.float32) for values in (positions_m, normals, uvs)]
-        axes = [attributes[0][:, axis] for axis in range(3)]  # one column at a time: 17x quicker than axis=0
-        position_bounds = [float(values.min()) for values in axes], [float(values.max()) for values in axes]
     else:
         quantized = np.zeros((count, 4), np.uint16)  # x, y, z and the padding to 4-byte vertices
         quantized[:, :3] = grid.quantize(positions_m)
@@ -123,9 +121,9 @@ def mesh_glb(
         normals_i8[:, :3] = np.rint(np.clip(normals, -1.0, 1.0) * 127)
         uvs_u16 = np.rint(np.clip(uvs, 0.0, 1.0) * 65535).astype(np.uint16)
         attributes = [quantized, normals_i8, uvs_u16]
-        axes = [quantized[:, axis] for axis in range(3)]  # one column at a time: 17x quicker than axis=0
-        position_bounds = [int(values.min()) for values in axes], [int(values.max()) for values in axes]
         meshoptimizer.encode_vertex_version(0)  # the version EXT_meshopt_compression specifies
+    axes = [attributes[0][:, axis] for axis in range(3)]  # one column at a time: 17x quicker than axis=0
+    position_bounds = [values.min().item() for values in axes], [values.max().item() for values in axes]
 
     parts, views, offset, decoded_offset = [], [], 0, 0
     for values, target in [(indices, pygltflib.ELEMENT_ARRAY_BUFFER)] + [(a, pygltflib.ARRAY_BUFFER) for a in attributes]:
