@@ -2,7 +2,7 @@
 // measures a profile by clicking two points and the roughness of the view, and prints one JSON
 // line with what happened. Usage: node check_viewer.mjs VIEWER_URL SCREENSHOT.png
 import { writeFile } from "node:fs/promises";
-import { launchChromium, litFraction } from "./browser.mjs";
+import { canvasStats, launchChromium } from "./browser.mjs";
 
 const [viewerUrl, screenshotPath] = process.argv.slice(2);
 const browser = await launchChromium();
@@ -10,6 +10,7 @@ const result = { errors: [], tileRequests: 0 };
 try {
   const page = await browser.newPage({ viewport: { width: 1100, height: 700 } });
   page.on("pageerror", (error) => result.errors.push(String(error)));
+  const twoFrames = () => page.evaluate(() => new Promise((resolve) => requestAnimationFrame(() => requestAnimationFrame(resolve))));
   page.on("request", (request) => { if (request.url().endsWith(".glb")) result.tileRequests++; });
   await page.goto(viewerUrl);
   let quiet = 0;
@@ -35,29 +36,15 @@ try {
   result.roughness = await page.evaluate(() => window.viewer.roughness);
   result.scaleBar = await page.evaluate(() => document.getElementById("scale-label").textContent);
   await page.check("#zoom-kinds");
-  await page.evaluate(() => new Promise((resolve) => requestAnimationFrame(() => requestAnimationFrame(resolve))));
+  await twoFrames();
   await writeFile(screenshotPath, await page.screenshot({ timeout: 60000 }));
-  result.litFraction = await litFraction(page, "#view canvas", [17, 17, 17]);  // the scene's background
-  // Height colours (blue-green-yellow): the spread of red minus blue over the surface's pixels,
-  // 10th to 90th percentile, which is near 0 when every vertex gets one colour.
+  const background = [17, 17, 17];  // the scene's
+  result.litFraction = (await canvasStats(page, "#view canvas", background)).litFraction;
+  // Height colours: their spread is near 0 when every vertex gets one colour.
   await page.uncheck("#zoom-kinds");
   await page.check("input[name=colouring][value=height]");
-  await page.evaluate(() => new Promise((resolve) => requestAnimationFrame(() => requestAnimationFrame(resolve))));
-  result.heightColourSpread = await page.evaluate(() => {
-    const canvas = document.querySelector("#view canvas");
-    const copy = document.createElement("canvas");
-    copy.width = canvas.width; copy.height = canvas.height;
-    const context = copy.getContext("2d");
-    context.drawImage(canvas, 0, 0);
-    const pixels = context.getImageData(0, 0, copy.width, copy.height).data;
-    const redMinusBlue = [];
-    for (let i = 0; i < pixels.length; i += 4) {
-      if (Math.abs(pixels[i] - 17) + Math.abs(pixels[i + 1] - 17) + Math.abs(pixels[i + 2] - 17) > 30) redMinusBlue.push((pixels[i] - pixels[i + 2]) / 255);
-    }
-    redMinusBlue.sort((a, b) => a - b);
-    const at = (q) => redMinusBlue[Math.floor(q * (redMinusBlue.length - 1))];
-    return redMinusBlue.length ? at(0.9) - at(0.1) : 0;
-  });
+  await twoFrames();
+  result.heightColourSpread = (await canvasStats(page, "#view canvas", background)).redMinusBlueSpread;
 } finally {
   await browser.close();
 }

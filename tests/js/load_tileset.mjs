@@ -4,7 +4,7 @@
 import { createServer } from "node:http";
 import { readFile, writeFile } from "node:fs/promises";
 import { extname, join, normalize } from "node:path";
-import { launchChromium, litFraction } from "./browser.mjs";
+import { canvasStats, launchChromium } from "./browser.mjs";
 
 const [tilesetUrl, screenshotPath] = process.argv.slice(2);
 const root = join(import.meta.dirname, "..", "..");
@@ -101,7 +101,7 @@ try {
   await tab.evaluate(() => { window.status3d.stop = true; });
   await tab.waitForTimeout(200);
   await writeFile(screenshotPath, await tab.screenshot({ clip: { x: 0, y: 0, width: 512, height: 512 }, timeout: 60000 }));
-  result.litFraction = await litFraction(tab, "canvas", [0, 0, 0]);  // black background
+  result.litFraction = (await canvasStats(tab, "canvas", [0, 0, 0])).litFraction;  // black background
 } finally {
   await browser.close();
   server.close();
