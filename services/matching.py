@@ -41,6 +41,7 @@ def options_from_message(parameters: matching_pb2.MatchingParameters) -> Matchin
         tilt_uncertainty_deg=parameters.tilt_uncertainty_deg or defaults.tilt_uncertainty_deg,
         calibrate_tilt=parameters.calibrate_tilt,
         normalize_local_contrast=parameters.normalize_local_contrast,
+        propagate_neighbours=parameters.propagate_neighbours,
     )
 
 
@@ -155,7 +156,7 @@ def _strip_task(request: matching_pb2.MatchStripRequest) -> StripTask:
             raise InvalidInputError("keep_to_row", f"rows [{request.keep_from_row}, {request.keep_to_row}) are not within the strip's {left.shape[0]}")
         keep_rows = (request.keep_from_row, request.keep_to_row)
     return StripTask(left, right, options.window_px, options.max_disparity_px, options.min_confidence, options.max_lr_difference_px,
-                     keep_rows=keep_rows)
+                     keep_rows=keep_rows, propagate_neighbours=options.propagate_neighbours)
 
 
 def _result_message(result, texture) -> matching_pb2.ComputeHeightMapResponse:

@@ -57,8 +57,14 @@ def test_height_against_a_running_server(pair_files, tmp_path, server_address):
     done = _run("height", left, right, "--tilt", "-5", "5", "--pixel-size-um", "0.1", "--local-contrast", "-o", contrast,
                 env_extra={"FRACTO_SERVER": server_address})
     assert done.returncode == 0, done.stderr
-    with np.load(out) as plain, np.load(contrast) as normalized:  # the option reached the matcher
+    propagated = tmp_path / "propagated.npz"
+    done = _run("height", left, right, "--tilt", "-5", "5", "--pixel-size-um", "0.1", "--propagate", "-o", propagated,
+                env_extra={"FRACTO_SERVER": server_address})
+    assert done.returncode == 0, done.stderr
+    with np.load(out) as plain, np.load(contrast) as normalized, np.load(propagated) as with_neighbours:  # the options reached the matcher
         assert not np.array_equal(plain["z_um"], normalized["z_um"], equal_nan=True)
+        assert not np.array_equal(plain["z_um"], with_neighbours["z_um"], equal_nan=True)
+        assert np.isfinite(with_neighbours["z_um"]).sum() > np.isfinite(plain["z_um"]).sum()
 
 
 @pytest.mark.parametrize(

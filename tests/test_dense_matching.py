@@ -31,12 +31,13 @@ def test_search_range_as_wide_as_a_small_image_is_searched():
     assert np.nanmedian(np.abs(result.disparity_px[20:-20, 20:-20] - 3.0)) < 0.05
 
 
-def test_strips_give_the_same_answer_as_one_piece():
+@pytest.mark.parametrize("propagate_neighbours", [False, True])
+def test_strips_give_the_same_answer_as_one_piece(propagate_neighbours):
     left = _texture((600, 200), seed=1)
     ramp = np.linspace(-4, 4, 200, dtype=np.float32)[None, :].repeat(600, axis=0)
     right = dense_matching._warp_along_rows(left, -ramp)
-    whole = dense_matching.match_disparity(left, right, max_disparity_px=12)
-    strips = dense_matching.match_disparity(left, right, max_disparity_px=12, strip_pixels=200 * 150)
+    whole = dense_matching.match_disparity(left, right, max_disparity_px=12, propagate_neighbours=propagate_neighbours)
+    strips = dense_matching.match_disparity(left, right, max_disparity_px=12, strip_pixels=200 * 150, propagate_neighbours=propagate_neighbours)
     # Away from the side borders (where the pyramids of different heights see different edges)
     # the seams between strips must not show.
     inner = (slice(None), slice(40, 160))
@@ -50,7 +51,7 @@ def test_small_islands_among_masked_pixels_are_speckles():
     disparity = np.full((100, 100), np.nan, np.float32)
     disparity[:, :60] = 2.0  # a large consistent region
     disparity[40:45, 80:85] = 9.0  # a 25-pixel island
-    speckles = dense_matching._speckles(disparity, max_pixels=100)
+    speckles = dense_matching._speckles(disparity, np.isfinite(disparity), max_pixels=100)
     assert speckles[40:45, 80:85].all()
     assert not speckles[:, :60].any()
 

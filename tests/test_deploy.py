@@ -274,6 +274,15 @@ def test_matching_replicas_share_the_strips_of_a_pair_and_the_stitched_map_is_ex
             np.testing.assert_array_equal(contrast_farmed_out.z_um, contrast_local.z_um)
             assert not np.array_equal(contrast_local.z_um, local.z_um, equal_nan=True)
 
+            # Neighbour propagation runs inside each strip: the setting travels with the strips.
+            propagated_local = compute_series_height_map(
+                [read_sem_image(content) for content in files], tilt_deg=(-5.0, 5.0), pixel_size_um=0.1,
+                options=MatchingOptions(strip_pixels=strip_pixels, propagate_neighbours=True),
+            )
+            propagated_farmed_out = client.compute_height_map(files, tilt_deg=(-5, 5), pixel_size_um=0.1, propagate_neighbours=True)
+            np.testing.assert_array_equal(propagated_farmed_out.z_um, propagated_local.z_um)
+            assert not np.array_equal(propagated_local.z_um, local.z_um, equal_nan=True)
+
             peers[0].kill()
             peers[0].wait()
             survivor = height_map()

@@ -31,6 +31,7 @@ class MatchingOptions:
     min_confidence: float = 0.5
     max_lr_difference_px: float = 1.0
     normalize_local_contrast: bool = False
+    propagate_neighbours: bool = False
     tilt_uncertainty_deg: float = 0.5
     calibrate_tilt: bool = False
     strip_pixels: int = 2_000_000
@@ -134,7 +135,7 @@ def compute_series_height_map(
         matched = dense_matching.match_disparity(
             views[0], on_first, window_px=options.window_px, max_disparity_px=max_disparity_px,
             min_confidence=options.min_confidence, max_lr_difference_px=options.max_lr_difference_px,
-            normalize_local_contrast=options.normalize_local_contrast,
+            normalize_local_contrast=options.normalize_local_contrast, propagate_neighbours=options.propagate_neighbours,
             strip_pixels=options.strip_pixels, strip_matcher=strip_matcher, progress=matching_progress,
         )
         strip_count = len(dense_matching.strip_bounds(
