@@ -9,6 +9,7 @@ Writes bench-results/matching.json and prints a table.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import subprocess
 import sys
@@ -47,15 +48,9 @@ def _heights_from_our_matcher(first, second):
     return result.z_um
 
 
-def _heights_from_matcher_only(first, second):
+def _heights_from_matcher_only(first, second, *, propagate_neighbours=False):
     """The dense matcher alone on the (already rectified) pair, as StereoSGBM gets it."""
-    disparity = match_disparity(first, second, max_disparity_px=DISPARITY_RANGE_PX + 8).disparity_px
-    return disparity * PIXEL_SIZE_UM / (2 * np.sin(np.radians(5.0)))
-
-
-def _heights_from_propagating_matcher(first, second):
-    """The dense matcher alone with neighbour propagation (an option, not the default)."""
-    disparity = match_disparity(first, second, max_disparity_px=DISPARITY_RANGE_PX + 8, propagate_neighbours=True).disparity_px
+    disparity = match_disparity(first, second, max_disparity_px=DISPARITY_RANGE_PX + 8, propagate_neighbours=propagate_neighbours).disparity_px
     return disparity * PIXEL_SIZE_UM / (2 * np.sin(np.radians(5.0)))
 
 
@@ -127,7 +122,8 @@ def run_one(method: str, pair_path: Path) -> dict:
     if method == "template_row":
         return {"method": method, "seconds": _per_pixel_template_seconds(first, second, vertical_reach_px=0), "extrapolated": True}
     heights = {"fractoscope": _heights_from_our_matcher, "fractoscope_matcher_only": _heights_from_matcher_only,
-               "fractoscope_matcher_propagating": _heights_from_propagating_matcher, "sgbm": _heights_from_sgbm}
+               "fractoscope_matcher_propagating": functools.partial(_heights_from_matcher_only, propagate_neighbours=True),
+               "sgbm": _heights_from_sgbm}
     seconds = []
     for _ in range(TIMING_REPEATS):  # the fastest of a few runs: shared machines add noise, never speed
         started = time.perf_counter()
