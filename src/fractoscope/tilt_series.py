@@ -21,8 +21,9 @@ from scipy.optimize import least_squares
 @dataclass(frozen=True)
 class TiltEstimate:
     """Estimated tilts (degrees, one per view, the reference's as given), their one-sigma
-    uncertainty (degrees, 0 for the reference), per-view offsets (px, 0 for the reference) and
-    the RMS reprojection residual (px)."""
+    uncertainty (degrees, 0 for the reference: the fit's, combined with what the views'
+    magnification uncertainties cause), per-view offsets (px, 0 for the reference) and the RMS
+    reprojection residual (px)."""
 
     tilt_deg: np.ndarray
     sigma_deg: np.ndarray
@@ -69,12 +70,20 @@ def heights_px(x_px: np.ndarray, disparities_px: np.ndarray, tilt_deg, *, refere
     return z, residual
 
 
-def estimate_tilts(x_px: np.ndarray, disparities_px: np.ndarray, nominal_tilt_deg, *, reference: int = 0) -> TiltEstimate:
+def estimate_tilts(
+    x_px: np.ndarray, disparities_px: np.ndarray, nominal_tilt_deg, *, reference: int = 0, magnification_sigma=None
+) -> TiltEstimate:
     """Tilts of every view but the reference that minimize the reprojection residual of points
     matched in all views: x_px (M,) where they appear in the reference, disparities_px (N, M) with
     the reference's row ignored.
     Starts from the nominal tilts. Offsets drop out by centring x and each view's disparities
-    (heights are relative), and are recovered afterwards for heights_px."""
+    (heights are relative), and are recovered afterwards for heights_px.
+
+    `magnification_sigma` (N,): each view's relative magnification uncertainty against the
+    reference. A magnification error ε adds ε·x to that view's disparities, which is exactly what
+    a change of cos t does, so it moves the tilts: for ±3° views an ε of 1e-4 moves them by
+    about 4 %. Its effect enters the sigma next to the fit's own (which assumes independent
+    errors)."""
     nominal = np.asarray(nominal_tilt_deg, np.float64)
     views = len(nominal)
     if views < 3:
@@ -93,13 +102,13 @@ def estimate_tilts(x_px: np.ndarray, disparities_px: np.ndarray, nominal_tilt_de
         tilts[others] = values
         return tilts
 
-    def residuals(values):
+    def residuals_of(disparities, values):
         tilts = with_others(values)
-        z, _ = heights_px(x, d, tilts, reference=reference)
+        z, _ = heights_px(x, disparities, tilts, reference=reference)
         a, b = coefficients(tilts, reference=reference)
-        return np.concatenate([d[view] - x * a[view] - z * b[view] for view in others])
+        return np.concatenate([disparities[view] - x * a[view] - z * b[view] for view in others])
 
-    fit = least_squares(residuals, nominal[others], method="lm")
+    fit = least_squares(lambda values: residuals_of(d, values), nominal[others], method="lm")
     tilts = with_others(fit.x)
     # Variable projection: the heights are solved inside, so the Jacobian covers the tilts alone.
     dof = max(fit.fun.size - fit.x.size - x.size, 1)
@@ -109,6 +118,15 @@ def estimate_tilts(x_px: np.ndarray, disparities_px: np.ndarray, nominal_tilt_de
         sigma_deg[others] = np.sqrt(np.clip(np.diag(np.linalg.inv(fit.jac.T @ fit.jac)) * variance, 0, None))
     except np.linalg.LinAlgError:
         sigma_deg[others] = np.inf
+    if magnification_sigma is not None:
+        # Residuals are linear in the disparities: one Gauss-Newton step gives each view's effect.
+        from_magnification = np.zeros(len(others))
+        for view in others:
+            scaled = d.copy()
+            scaled[view] += magnification_sigma[view] * x
+            step, *_ = np.linalg.lstsq(fit.jac, residuals_of(scaled, fit.x) - fit.fun, rcond=None)
+            from_magnification += step**2
+        sigma_deg[others] = np.hypot(sigma_deg[others], np.sqrt(from_magnification))
     offsets = d_mean - x_mean * coefficients(tilts, reference=reference)[0]
     offsets[reference] = 0.0
     return TiltEstimate(tilts, sigma_deg, offsets, float(np.sqrt(np.mean(fit.fun**2))))
