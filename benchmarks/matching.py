@@ -1,7 +1,7 @@
 """`make bench`: our matcher against OpenCV StereoSGBM and per-pixel matchTemplate (the paper's
 method), side by side on one synthetic 1024² pair with a ±32 px disparity range (ours also with
-neighbour propagation, an option), and a 4096² pair for peak memory. Each method runs in its own
-process so peak RSS is its own.
+propagation at full resolution, an option), and a 4096² pair for peak memory. Each method runs
+in its own process so peak RSS is its own.
 
 Writes bench-results/matching.json and prints a table.
 """
@@ -48,9 +48,11 @@ def _heights_from_our_matcher(first, second):
     return result.z_um
 
 
-def _heights_from_matcher_only(first, second, *, propagate_neighbours=False):
+def _heights_from_matcher_only(first, second, *, propagate_at_full_resolution=False):
     """The dense matcher alone on the (already rectified) pair, as StereoSGBM gets it."""
-    disparity = match_disparity(first, second, max_disparity_px=DISPARITY_RANGE_PX + 8, propagate_neighbours=propagate_neighbours).disparity_px
+    disparity = match_disparity(
+        first, second, max_disparity_px=DISPARITY_RANGE_PX + 8, propagate_at_full_resolution=propagate_at_full_resolution
+    ).disparity_px
     return disparity * PIXEL_SIZE_UM / (2 * np.sin(np.radians(5.0)))
 
 
@@ -122,7 +124,7 @@ def run_one(method: str, pair_path: Path) -> dict:
     if method == "template_row":
         return {"method": method, "seconds": _per_pixel_template_seconds(first, second, vertical_reach_px=0), "extrapolated": True}
     heights = {"fractoscope": _heights_from_our_matcher, "fractoscope_matcher_only": _heights_from_matcher_only,
-               "fractoscope_matcher_propagating": functools.partial(_heights_from_matcher_only, propagate_neighbours=True),
+               "fractoscope_matcher_propagating": functools.partial(_heights_from_matcher_only, propagate_at_full_resolution=True),
                "sgbm": _heights_from_sgbm}
     seconds = []
     for _ in range(TIMING_REPEATS):  # the fastest of a few runs: shared machines add noise, never speed

@@ -31,7 +31,7 @@ WORKER_ID = f"{socket.gethostname()}:{os.getpid()}"
 
 
 def options_from_message(parameters: matching_pb2.MatchingParameters) -> MatchingOptions:
-    """MatchingParameters (zero = default) to MatchingOptions."""
+    """MatchingParameters (zero or absent = default) to MatchingOptions."""
     defaults = MatchingOptions()
     return MatchingOptions(
         window_px=parameters.window_px or defaults.window_px,
@@ -40,8 +40,10 @@ def options_from_message(parameters: matching_pb2.MatchingParameters) -> Matchin
         max_lr_difference_px=parameters.max_lr_difference_px or defaults.max_lr_difference_px,
         tilt_uncertainty_deg=parameters.tilt_uncertainty_deg or defaults.tilt_uncertainty_deg,
         calibrate_tilt=parameters.calibrate_tilt,
-        normalize_local_contrast=parameters.normalize_local_contrast,
-        propagate_neighbours=parameters.propagate_neighbours,
+        normalize_local_contrast=(
+            parameters.normalize_local_contrast if parameters.HasField("normalize_local_contrast") else defaults.normalize_local_contrast
+        ),
+        propagate_at_full_resolution=parameters.propagate_at_full_resolution,
     )
 
 
@@ -156,7 +158,7 @@ def _strip_task(request: matching_pb2.MatchStripRequest) -> StripTask:
             raise InvalidInputError("keep_to_row", f"rows [{request.keep_from_row}, {request.keep_to_row}) are not within the strip's {left.shape[0]}")
         keep_rows = (request.keep_from_row, request.keep_to_row)
     return StripTask(left, right, options.window_px, options.max_disparity_px, options.min_confidence, options.max_lr_difference_px,
-                     keep_rows=keep_rows, propagate_neighbours=options.propagate_neighbours)
+                     keep_rows=keep_rows, propagate_at_full_resolution=options.propagate_at_full_resolution)
 
 
 def _result_message(result, texture) -> matching_pb2.ComputeHeightMapResponse:

@@ -31,13 +31,13 @@ def test_search_range_as_wide_as_a_small_image_is_searched():
     assert np.nanmedian(np.abs(result.disparity_px[20:-20, 20:-20] - 3.0)) < 0.05
 
 
-@pytest.mark.parametrize("propagate_neighbours", [False, True])
-def test_strips_give_the_same_answer_as_one_piece(propagate_neighbours):
+@pytest.mark.parametrize("propagate_at_full_resolution", [False, True])
+def test_strips_give_the_same_answer_as_one_piece(propagate_at_full_resolution):
     left = _texture((600, 200), seed=1)
     ramp = np.linspace(-4, 4, 200, dtype=np.float32)[None, :].repeat(600, axis=0)
     right = dense_matching._warp_along_rows(left, -ramp)
-    whole = dense_matching.match_disparity(left, right, max_disparity_px=12, propagate_neighbours=propagate_neighbours)
-    strips = dense_matching.match_disparity(left, right, max_disparity_px=12, strip_pixels=200 * 150, propagate_neighbours=propagate_neighbours)
+    whole = dense_matching.match_disparity(left, right, max_disparity_px=12, propagate_at_full_resolution=propagate_at_full_resolution)
+    strips = dense_matching.match_disparity(left, right, max_disparity_px=12, strip_pixels=200 * 150, propagate_at_full_resolution=propagate_at_full_resolution)
     # Away from the side borders (where the pyramids of different heights see different edges)
     # the seams between strips must not show.
     inner = (slice(None), slice(40, 160))

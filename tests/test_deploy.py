@@ -265,21 +265,22 @@ def test_matching_replicas_share_the_strips_of_a_pair_and_the_stitched_map_is_ex
             assert len(farmed_out.report["strip_workers"]) == 2
             json.loads(json.dumps(farmed_out.report))  # plain values, as specimens store reports
 
-            # Normalized local contrast is computed before the split: the peers get float strips.
-            contrast_options = MatchingOptions(strip_pixels=strip_pixels, normalize_local_contrast=True)
+            # Normalized local contrast (the default) is computed before the split, so the peers
+            # got float strips above; without it they get the images' own values.
+            contrast_options = MatchingOptions(strip_pixels=strip_pixels, normalize_local_contrast=False)
             contrast_local = compute_series_height_map(
                 [read_sem_image(content) for content in files], tilt_deg=(-5.0, 5.0), pixel_size_um=0.1, options=contrast_options,
             )
-            contrast_farmed_out = client.compute_height_map(files, tilt_deg=(-5, 5), pixel_size_um=0.1, normalize_local_contrast=True)
+            contrast_farmed_out = client.compute_height_map(files, tilt_deg=(-5, 5), pixel_size_um=0.1, normalize_local_contrast=False)
             np.testing.assert_array_equal(contrast_farmed_out.z_um, contrast_local.z_um)
             assert not np.array_equal(contrast_local.z_um, local.z_um, equal_nan=True)
 
-            # Neighbour propagation runs inside each strip: the setting travels with the strips.
+            # Propagation at full resolution runs inside each strip: the setting travels with them.
             propagated_local = compute_series_height_map(
                 [read_sem_image(content) for content in files], tilt_deg=(-5.0, 5.0), pixel_size_um=0.1,
-                options=MatchingOptions(strip_pixels=strip_pixels, propagate_neighbours=True),
+                options=MatchingOptions(strip_pixels=strip_pixels, propagate_at_full_resolution=True),
             )
-            propagated_farmed_out = client.compute_height_map(files, tilt_deg=(-5, 5), pixel_size_um=0.1, propagate_neighbours=True)
+            propagated_farmed_out = client.compute_height_map(files, tilt_deg=(-5, 5), pixel_size_um=0.1, propagate_at_full_resolution=True)
             np.testing.assert_array_equal(propagated_farmed_out.z_um, propagated_local.z_um)
             assert not np.array_equal(propagated_local.z_um, local.z_um, equal_nan=True)
 

@@ -20,12 +20,14 @@ def _write(tmp_path, **roi):
 
 def test_an_roi_carries_its_images_tilts_and_matching_parameters(tmp_path):
     specimen_id, (roi,) = load_manifest(_write(
-        tmp_path, tilt_deg=[-5, 5], pixel_size_um=0.1, matching={"normalize_local_contrast": True, "window_px": 21},
+        tmp_path, tilt_deg=[-5, 5], pixel_size_um=0.1, matching={"normalize_local_contrast": False, "window_px": 21},
     ))
     assert specimen_id == "s" and roi.id == "overview"
     assert [image.tilt_deg for image in roi.images] == [-5.0, 5.0]
     assert roi.images[0].image.content == (tmp_path / "l.tif").read_bytes() and roi.images[1].image.filename == "r.tif"
-    assert roi.parameters.normalize_local_contrast and roi.parameters.window_px == 21
+    # An explicit false is kept apart from absent (which means the default, on).
+    assert roi.parameters.HasField("normalize_local_contrast") and not roi.parameters.normalize_local_contrast
+    assert roi.parameters.window_px == 21
     _, (plain,) = load_manifest(_write(tmp_path))
     assert not plain.HasField("parameters")
 

@@ -143,8 +143,8 @@ class FractoscopeClient:
         tilt_axis_deg: float | None = None,
         parameters: matching_pb2.MatchingParameters | None = None,
         calibrate_tilt: bool = False,
-        normalize_local_contrast: bool = False,
-        propagate_neighbours: bool = False,
+        normalize_local_contrast: bool | None = None,
+        propagate_at_full_resolution: bool = False,
         on_progress: ProgressCallback | None = None,
         request_id: str = "",
     ) -> HeightMap:
@@ -152,15 +152,16 @@ class FractoscopeClient:
         tilts and pixel size default to the files' metadata. With `calibrate_tilt` (three or more
         images) the tilts are estimated from the images; the report then holds them in `tilt_deg`
         with `tilt_deg_nominal`, `tilt_sigma_deg` and `tilt_residual_px`. `normalize_local_contrast`
-        and `propagate_neighbours`: see MatchingParameters (for surfaces whose shading changes
-        with the tilt, and for surfaces with steps and narrow pits)."""
+        (None: the server's default, on) and `propagate_at_full_resolution`: see
+        MatchingParameters (against shading that changes with the tilt, and for surfaces with
+        steps)."""
         request = matching_pb2.ComputeHeightMapRequest(request_id=request_id, parameters=parameters)
         if calibrate_tilt:
             request.parameters.calibrate_tilt = True
-        if normalize_local_contrast:
-            request.parameters.normalize_local_contrast = True
-        if propagate_neighbours:
-            request.parameters.propagate_neighbours = True
+        if normalize_local_contrast is not None:
+            request.parameters.normalize_local_contrast = normalize_local_contrast
+        if propagate_at_full_resolution:
+            request.parameters.propagate_at_full_resolution = True
         for index, image in enumerate(images):
             content = image if isinstance(image, bytes) else Path(image).read_bytes()
             name = "" if isinstance(image, bytes) else Path(image).name
@@ -202,7 +203,7 @@ class FractoscopeClient:
             parameters=matching_pb2.MatchingParameters(
                 window_px=task.window_px, max_disparity_px=task.max_disparity_px,
                 min_confidence=task.min_confidence, max_lr_difference_px=task.max_lr_difference_px,
-                propagate_neighbours=task.propagate_neighbours,
+                propagate_at_full_resolution=task.propagate_at_full_resolution,
             ),
             request_id=request_id,
         )

@@ -86,7 +86,7 @@ def compute_height(client: FractoscopeClient, args, quiet: bool) -> HeightMap:
             tilt_axis_deg=args.tilt_axis_deg,
             calibrate_tilt=args.calibrate_tilt,
             normalize_local_contrast=args.local_contrast,
-            propagate_neighbours=args.propagate,
+            propagate_at_full_resolution=args.propagate_at_full_resolution,
             on_progress=advance,
         )
 
@@ -370,10 +370,12 @@ def build_parser() -> argparse.ArgumentParser:
     height.add_argument("--tilt", nargs="+", type=float, metavar="T", help="stage tilts in degrees, one per image (default: metadata)")
     height.add_argument("--calibrate-tilt", action="store_true",
                         help="estimate the tilts from three or more images (the given or metadata tilts are the start)")
-    height.add_argument("--local-contrast", action="store_true",
-                        help="take tilt-dependent shading out before matching: for steep surfaces such as ductile dimples")
-    height.add_argument("--propagate", action="store_true",
-                        help="let pixels try their neighbours' disparities: for steps (cleavage) and narrow pits; about 2.5x slower")
+    height.add_argument("--local-contrast", action=argparse.BooleanOptionalAction,
+                        help="take tilt-dependent shading out before matching (default: on; --no-local-contrast for flat, "
+                             "weakly textured areas)")
+    height.add_argument("--propagate-at-full-resolution", action="store_true",
+                        help="let pixels try their neighbours' disparities at full resolution too: for steps (cleavage); "
+                             "about 1.6x slower")
     height.add_argument("--pixel-size-um", type=float, help="pixel size in µm (default: metadata)")
     height.add_argument("--tilt-axis-deg", type=float, help="tilt axis direction in the image, degrees (default 90: vertical)")
     height.add_argument("-o", "--output", required=True, help="output .npz with z_um, sigma_um, confidence")

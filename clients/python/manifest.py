@@ -4,7 +4,7 @@
      "rois": [{"id": "overview", "left": "o_l.tif", "right": "o_r.tif", "magnification": 500},
               {"id": "zoom", "left": "z_l.tif", "right": "z_r.tif", "magnification": 2000,
                "parent": "overview", "center_um": "auto", "tilt_deg": [-5, 5], "pixel_size_um": 0.05,
-               "tilt_axis_deg": 90, "matching": {"normalize_local_contrast": true}}]}
+               "tilt_axis_deg": 90, "matching": {"propagate_at_full_resolution": true}}]}
 
 "matching" holds MatchingParameters fields (see the protobuf API) for that ROI's pair.
 """

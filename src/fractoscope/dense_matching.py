@@ -53,7 +53,7 @@ class StripTask:
     min_confidence: float
     max_lr_difference_px: float
     keep_rows: tuple[int, int] | None = None
-    propagate_neighbours: bool = False
+    propagate_at_full_resolution: bool = False
 
 
 # Matches strips, yielding their results in order: `match_strips` here, or peers over the network.
@@ -66,10 +66,10 @@ def match_disparity(
     *,
     window_px: int = 15,
     max_disparity_px: int | None = None,
-    min_confidence: float = 0.5,
+    min_confidence: float = 0.3,
     max_lr_difference_px: float = 1.0,
-    normalize_local_contrast: bool = False,
-    propagate_neighbours: bool = False,
+    normalize_local_contrast: bool = True,
+    propagate_at_full_resolution: bool = False,
     strip_pixels: int = 2_000_000,
     strip_matcher: StripMatcher | None = None,
     progress: ProgressCallback | None = None,
@@ -79,10 +79,10 @@ def match_disparity(
     whose left-to-right and right-to-left disparities differ by more than
     `max_lr_difference_px`, whose window lies on a flat (textureless) patch, or that form small
     isolated islands among masked pixels. With `normalize_local_contrast` both images are first
-    freed of smooth shading and evened out in contrast (see `local_contrast`). With
-    `propagate_neighbours` every pyramid level also tries each pixel's neighbours' disparities
-    (see `_propagate`): about 2.5 times the matching time, for surfaces with steps and narrow
-    pits that a coarse level blurs.
+    freed of smooth shading and evened out in contrast (see `local_contrast`). Every pyramid
+    level but the finest also lets each pixel try its neighbours' disparities (see
+    `_propagate`); `propagate_at_full_resolution` does so at the finest level too, for surfaces
+    with steps, at about 1.6 times the matching time.
 
     Large images are matched in overlapping strips of rows of about `strip_pixels` pixels each,
     which bounds memory; parallax runs along rows, so a strip is a complete stereo problem.
@@ -101,7 +101,7 @@ def match_disparity(
     bounds = strip_bounds(left.shape, window_px=window_px, max_disparity_px=max_disparity_px, strip_pixels=strip_pixels)
     tasks = (
         StripTask(left[top:bottom], right[top:bottom], window_px, max_disparity_px, min_confidence, max_lr_difference_px,
-                  keep_rows=(start - top, stop - top), propagate_neighbours=propagate_neighbours)
+                  keep_rows=(start - top, stop - top), propagate_at_full_resolution=propagate_at_full_resolution)
         for top, start, stop, bottom in bounds
     )
     disparity = np.empty(left.shape, np.float32)
@@ -146,9 +146,9 @@ def match_strip(task: StripTask) -> DisparityResult:
     # parabola fit at full resolution is precise enough without the extra sub-pixel pass.
     finest_left_stats = _window_stats(left_f, window_px)  # also tells textureless windows below
     with ThreadPoolExecutor(max_workers=2) as pool:
-        propagate = task.propagate_neighbours
-        forward_job = pool.submit(_coarse_to_fine, left_pyramid, right_pyramid, window_px, coarse_radius, propagate, finest_left_stats)
-        backward_job = pool.submit(_coarse_to_fine, right_pyramid, left_pyramid, window_px, coarse_radius, propagate, subpixel_iterations=0)
+        at_full = task.propagate_at_full_resolution
+        forward_job = pool.submit(_coarse_to_fine, left_pyramid, right_pyramid, window_px, coarse_radius, at_full, finest_left_stats)
+        backward_job = pool.submit(_coarse_to_fine, right_pyramid, left_pyramid, window_px, coarse_radius, at_full, subpixel_iterations=0)
         forward, backward = forward_job.result(), backward_job.result().disparity
     del left_pyramid, right_pyramid
     backward_at_match = _sample_along_rows(backward, forward.disparity)
@@ -180,13 +180,14 @@ def match_strips(tasks: Iterable[StripTask]) -> Iterator[DisparityResult]:
 
 
 def _coarse_to_fine(
-    left_pyramid, right_pyramid, window_px, coarse_radius, propagate=False, finest_left_stats=None,
+    left_pyramid, right_pyramid, window_px, coarse_radius, propagate_at_full_resolution=False, finest_left_stats=None,
     subpixel_iterations=_SUBPIXEL_ITERATIONS,
 ) -> _Refinement:
     """Full search at the coarsest level, ±2 px residual searches on warped images at the
-    intermediate levels, ±1 px at full resolution, then sub-pixel iterations; with `propagate`,
-    each level's result also competes with its neighbours' (`_propagate`). The window
-    statistics of the full-resolution left image are computed here unless given."""
+    intermediate levels, ±1 px at full resolution, then sub-pixel iterations. Each level's result
+    but the finest's (and that one too with `propagate_at_full_resolution`) also competes with
+    its neighbours' (`_propagate`). The window statistics of the full-resolution left image are
+    computed here unless given."""
     levels = len(left_pyramid)
     disparity = np.zeros(left_pyramid[-1].shape, np.float32)
     for level in range(levels - 1, -1, -1):
@@ -197,7 +198,7 @@ def _coarse_to_fine(
             disparity = 2.0 * cv2.resize(disparity, left_level.shape[::-1], interpolation=cv2.INTER_LINEAR)
         radius = coarse_radius if level == levels - 1 else (2 if level > 0 else 1)
         refined = _refine(left_level, left_stats, right_level, disparity, window_px, radius)
-        if propagate:
+        if level > 0 or propagate_at_full_resolution:
             refined = _propagate(left_level, left_stats, right_level, refined, window_px)
         disparity = _clean_for_upsampling(refined.disparity, refined.score) if level > 0 else refined.disparity
     for _ in range(subpixel_iterations):
@@ -336,15 +337,17 @@ def _refine(left, left_stats, right, disparity, window_px, radius) -> _Refinemen
 
 
 def _propagate(left, left_stats, right, refined: _Refinement, window_px) -> _Refinement:
-    """Each pixel also tries the disparity field as found half a window to its left, right, above
-    and below (a ±1 px residual search on the right image warped by each), and keeps whichever
-    correlates best. Near a step, or a pit narrower than a coarse level's window, the coarse
-    result is a blend that the small residual searches of the finer levels cannot leave; the
-    neighbour on the pixel's own side of the step carries the right disparity."""
+    """Each pixel also tries the largest and the smallest of the disparities found half a window
+    to its left, right, above and below (a ±1 px residual search on the right image warped by
+    each), and keeps whichever correlates best. Near a step, or a pit narrower than a coarse
+    level's window, the result is a blend of the two sides that the small residual searches of
+    the finer levels cannot leave; of the two sides' disparities, one is the largest of the
+    neighbours' and the other the smallest."""
     step = window_px // 2
+    neighbours = [_shifted(refined.disparity, row_step, col_step) for row_step, col_step in ((0, step), (0, -step), (step, 0), (-step, 0))]
     best = _Refinement(refined.disparity.copy(), refined.score.copy(), refined.curvature.copy())
-    for row_step, col_step in ((0, step), (0, -step), (step, 0), (-step, 0)):
-        candidate = _refine(left, left_stats, right, _shifted(refined.disparity, row_step, col_step), window_px, 1)
+    for pick in (np.maximum, np.minimum):
+        candidate = _refine(left, left_stats, right, pick(pick(neighbours[0], neighbours[1]), pick(neighbours[2], neighbours[3])), window_px, 1)
         better = (candidate.score > best.score).view(np.uint8)
         for new, kept in zip((candidate.disparity, candidate.score, candidate.curvature), (best.disparity, best.score, best.curvature)):
             cv2.copyTo(new, better, kept)  # in place, and quicker than numpy's masked copies

@@ -28,10 +28,10 @@ class MatchingOptions:
 
     window_px: int = 15
     max_disparity_px: int | None = None
-    min_confidence: float = 0.5
+    min_confidence: float = 0.3
     max_lr_difference_px: float = 1.0
-    normalize_local_contrast: bool = False
-    propagate_neighbours: bool = False
+    normalize_local_contrast: bool = True
+    propagate_at_full_resolution: bool = False
     tilt_uncertainty_deg: float = 0.5
     calibrate_tilt: bool = False
     strip_pixels: int = 2_000_000
@@ -135,7 +135,7 @@ def compute_series_height_map(
         matched = dense_matching.match_disparity(
             views[0], on_first, window_px=options.window_px, max_disparity_px=max_disparity_px,
             min_confidence=options.min_confidence, max_lr_difference_px=options.max_lr_difference_px,
-            normalize_local_contrast=options.normalize_local_contrast, propagate_neighbours=options.propagate_neighbours,
+            normalize_local_contrast=options.normalize_local_contrast, propagate_at_full_resolution=options.propagate_at_full_resolution,
             strip_pixels=options.strip_pixels, strip_matcher=strip_matcher, progress=matching_progress,
         )
         strip_count = len(dense_matching.strip_bounds(
