@@ -24,6 +24,7 @@ from fractoscope import synthetic
 from fractoscope.dense_matching import match_disparity
 from fractoscope.height_map import compute_height_map
 from fractoscope.sem_image import SemImage
+from fractoscope.services.server import keep_freed_memory
 
 PIXEL_SIZE_UM = 0.1
 TILTS_DEG = (-5.0, 5.0)
@@ -114,7 +115,9 @@ def _peak_rss_mb() -> float:
 
 
 def run_one(method: str, pair_path: Path) -> dict:
-    """Runs one method in this process; returns its figures including peak RSS."""
+    """Runs one method in this process, with the C library's allocator set as in fracto-server;
+    returns its figures including peak RSS."""
+    keep_freed_memory()
     with np.load(pair_path) as arrays:
         first, second, truth = arrays["first"], arrays["second"], arrays["truth_um"]
     baseline_mb = _peak_rss_mb()

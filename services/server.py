@@ -14,6 +14,7 @@ FRACTO_HTTP_ADDRESS (host:port of the plain-HTTP tile endpoint; empty = off), FR
 from __future__ import annotations
 
 import argparse
+import ctypes
 import gc
 import json
 import logging
@@ -174,10 +175,28 @@ def settle_garbage_collector() -> None:
     gc.set_threshold(50_000, 20, 10)
 
 
+def keep_freed_memory() -> None:
+    """Lets glibc's malloc keep freed memory for reuse instead of handing it back to the kernel:
+    blocks up to 32 MB come from the heap rather than fresh mappings, and the heap is not trimmed.
+    Dense matching allocates and frees hundreds of image-sized temporaries per strip; with the
+    defaults many are fresh mappings whose pages the kernel faults in and zeroes again (a 512²
+    pair: 8,800 page faults per match, 23 with this), which took a quarter of the matching time
+    (1024² pair: 0.14 s, 0.12 s with this; system time 0.09 s, 0.02 s). Resident memory then
+    stays near its peak. Does nothing where the C library is not glibc."""
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+    except OSError:
+        return
+    m_trim_threshold, m_mmap_threshold = -1, -3  # mallopt's parameter numbers, from malloc.h
+    libc.mallopt(m_mmap_threshold, 32 * 2**20)  # glibc's largest allowed value on 64-bit
+    libc.mallopt(m_trim_threshold, 2**30)
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = build_parser()
     args = parser.parse_args(argv)
     configure_logging(args.log_level)
+    keep_freed_memory()
     tokens = TokenTable.from_environment()
     services = tuple(name.strip() for name in args.services.split(",") if name.strip())
     server, port = create_server(

@@ -47,6 +47,9 @@ def connected(server: str | None, data_dir: str = "./data") -> Iterator[Fractosc
         with FractoscopeClient(address) as client:
             yield client
         return
+    from fractoscope.services.server import keep_freed_memory
+
+    keep_freed_memory()  # as fracto-server does: the services run in this process
     with embedded_server(data_dir) as local, FractoscopeClient(local) as client:
         yield client
 
@@ -214,12 +217,13 @@ def command_mesh(args) -> int:
 
 def command_demo(args) -> int:
     from fractoscope.client.demo import run_demo
-    from fractoscope.services.server import settle_garbage_collector
+    from fractoscope.services.server import keep_freed_memory, settle_garbage_collector
     from fractoscope.services.tile_http import start_http_server
     from fractoscope.specimen_store import SpecimenStore
 
     console = Console()
     data = Path(args.data)
+    keep_freed_memory()
     try:
         http = start_http_server(SpecimenStore(data), args.host, args.http_port)
     except OSError as error:
@@ -375,7 +379,7 @@ def build_parser() -> argparse.ArgumentParser:
                              "weakly textured areas)")
     height.add_argument("--propagate-at-full-resolution", action="store_true",
                         help="let pixels try their neighbours' disparities at full resolution too: for steps (cleavage); "
-                             "about 1.6x slower")
+                             "about 1.5x slower")
     height.add_argument("--pixel-size-um", type=float, help="pixel size in µm (default: metadata)")
     height.add_argument("--tilt-axis-deg", type=float, help="tilt axis direction in the image, degrees (default 90: vertical)")
     height.add_argument("-o", "--output", required=True, help="output .npz with z_um, sigma_um, confidence")

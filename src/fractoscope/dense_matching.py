@@ -82,7 +82,7 @@ def match_disparity(
     freed of smooth shading and evened out in contrast (see `local_contrast`). Every pyramid
     level but the finest also lets each pixel try its neighbours' disparities (see
     `_propagate`); `propagate_at_full_resolution` does so at the finest level too, for surfaces
-    with steps, at about 1.6 times the matching time.
+    with steps, at about 1.5 times the matching time.
 
     Large images are matched in overlapping strips of rows of about `strip_pixels` pixels each,
     which bounds memory; parallax runs along rows, so a strip is a complete stereo problem.
@@ -141,14 +141,14 @@ def match_strip(task: StripTask) -> DisparityResult:
     levels = _level_count(left.shape, max_disparity_px, window_px)
     left_pyramid, right_pyramid = _pyramid(left_f, levels), _pyramid(right_f, levels)
     coarse_radius = int(np.ceil(max_disparity_px / 2 ** (levels - 1))) + 1
-    # The two directions are independent; OpenCV and numpy release the GIL, so they overlap. The
-    # backward direction serves the consistency check and the average below, for which its
-    # parabola fit at full resolution is precise enough without the extra sub-pixel pass.
+    # The two directions are independent; OpenCV and numpy release the GIL, so they overlap. Both
+    # get the sub-pixel pass: the consistency check compares them to 1 px, and without it the
+    # backward direction's coarser estimate failed 1-2 % of good dimple pixels.
     finest_left_stats = _window_stats(left_f, window_px)  # also tells textureless windows below
     with ThreadPoolExecutor(max_workers=2) as pool:
         at_full = task.propagate_at_full_resolution
         forward_job = pool.submit(_coarse_to_fine, left_pyramid, right_pyramid, window_px, coarse_radius, at_full, finest_left_stats)
-        backward_job = pool.submit(_coarse_to_fine, right_pyramid, left_pyramid, window_px, coarse_radius, at_full, subpixel_iterations=0)
+        backward_job = pool.submit(_coarse_to_fine, right_pyramid, left_pyramid, window_px, coarse_radius, at_full)
         forward, backward = forward_job.result(), backward_job.result().disparity
     del left_pyramid, right_pyramid
     backward_at_match = _sample_along_rows(backward, forward.disparity)
@@ -181,7 +181,6 @@ def match_strips(tasks: Iterable[StripTask]) -> Iterator[DisparityResult]:
 
 def _coarse_to_fine(
     left_pyramid, right_pyramid, window_px, coarse_radius, propagate_at_full_resolution=False, finest_left_stats=None,
-    subpixel_iterations=_SUBPIXEL_ITERATIONS,
 ) -> _Refinement:
     """Full search at the coarsest level, ±2 px residual searches on warped images at the
     intermediate levels, ±1 px at full resolution, then sub-pixel iterations. Each level's result
@@ -201,7 +200,7 @@ def _coarse_to_fine(
         if level > 0 or propagate_at_full_resolution:
             refined = _propagate(left_level, left_stats, right_level, refined, window_px)
         disparity = _clean_for_upsampling(refined.disparity, refined.score) if level > 0 else refined.disparity
-    for _ in range(subpixel_iterations):
+    for _ in range(_SUBPIXEL_ITERATIONS):
         refined = _refine(left_pyramid[0], left_stats, right_pyramid[0], refined.disparity, window_px, 1)
     return refined
 
