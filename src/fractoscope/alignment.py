@@ -98,7 +98,7 @@ def estimate_alignment(
         inliers = np.abs(residual) < 3.0 * residual_scale
     sin_rotation, scale_change, shift_across = coef
     dof = max(int(inliers.sum()) - 3, 1)
-    covariance = np.linalg.inv(design[inliers].T @ design[inliers]) * float(residual[inliers] @ residual[inliers]) / dof
+    covariance = np.linalg.pinv(design[inliers].T @ design[inliers]) * float(residual[inliers] @ residual[inliers]) / dof
     magnification = 1.0 + scale_change
     rotation = np.arcsin(np.clip(sin_rotation / magnification, -1.0, 1.0))
     rotated_x = magnification * (np.cos(rotation) * points1[:, 0] - np.sin(rotation) * points1[:, 1])
