@@ -30,6 +30,12 @@ def test_fracture_surface_heights_meet_the_accuracy_targets(tilt_deg):
     assert result.z_um.dtype == np.float32 and result.z_um.shape == pair.first.shape
 
 
+def _errors_by_default_and_with(options, make_pair, tilt_deg):
+    """`_errors` of the pair made by `make_pair` reconstructed with the defaults, and with `options`."""
+    pair = make_pair(tilt_deg=tilt_deg)
+    return _errors(_reconstruct(pair, tilt_deg), pair), _errors(_reconstruct(pair, tilt_deg, options=options), pair)
+
+
 def _within(result, pair):
     """Fractions of valid inner heights within one pixel of disparity of the truth and within
     three reported sigmas (after the constant offset)."""
@@ -78,9 +84,9 @@ WITHOUT_LOCAL_CONTRAST = {
 @pytest.mark.parametrize("tilt_deg", [(-5.0, 5.0), (0.0, 10.0)])
 def test_local_contrast_normalization_takes_the_tilt_dependent_shading_out(surface, tilt_deg):
     make_pair, bounds = WITHOUT_LOCAL_CONTRAST[surface]
-    pair = make_pair(tilt_deg=tilt_deg)
-    with_contrast = _errors(_reconstruct(pair, tilt_deg), pair)
-    valid_fraction, rms_of_range, _ = _errors(_reconstruct(pair, tilt_deg, options=MatchingOptions(normalize_local_contrast=False)), pair)
+    with_contrast, (valid_fraction, rms_of_range, _) = _errors_by_default_and_with(
+        MatchingOptions(normalize_local_contrast=False), make_pair, tilt_deg
+    )
     assert valid_fraction >= bounds["valid"] and rms_of_range <= bounds["rms"]
     assert with_contrast[0] > valid_fraction and with_contrast[1] < rms_of_range
     if surface == "dimples":
@@ -101,10 +107,8 @@ WITH_FULL_RESOLUTION_PROPAGATION = {
 @pytest.mark.parametrize("tilt_deg", [(-5.0, 5.0), (0.0, 10.0)])
 def test_propagation_at_full_resolution_recovers_more_steps(surface, tilt_deg):
     make_pair, bounds = WITH_FULL_RESOLUTION_PROPAGATION[surface]
-    pair = make_pair(tilt_deg=tilt_deg)
-    default = _errors(_reconstruct(pair, tilt_deg), pair)
-    valid_fraction, rms_of_range, sa_relative = _errors(
-        _reconstruct(pair, tilt_deg, options=MatchingOptions(propagate_at_full_resolution=True)), pair
+    default, (valid_fraction, rms_of_range, sa_relative) = _errors_by_default_and_with(
+        MatchingOptions(propagate_at_full_resolution=True), make_pair, tilt_deg
     )
     assert valid_fraction >= bounds["valid"] and rms_of_range <= bounds["rms"] and abs(sa_relative) <= bounds["sa"]
     if surface != "self-affine":
