@@ -7,7 +7,9 @@ at 0.1 µm/px, tilts ±5° and 0/10°, 2 % noise, as in the accuracy tests:
   issue's targets: ≥ 98 %, ≤ 1.5 %, within 2 %), and RMS error and valid share without local
   contrast normalization and with propagation at full resolution;
 - the same pair without noise, and with the secondary-electron shading made a fixed property of
-  the surface (as if it did not change with tilt): how much of the error each causes;
+  the surface (as if it did not change with tilt): how much of the error each causes; and
+  both ("ideal" images that differ only by parallax), with the default window and with a
+  SMALL_WINDOW_PX one, which tells what the matcher itself can do;
 - the window floor: the RMS difference between the truth and the truth averaged over one
   matching window, which any matcher that finds one disparity per window leaves.
 
@@ -31,6 +33,7 @@ SIZE_PX = 640
 MARGIN_PX = 64
 BORDER_PX = 16
 TILTS_DEG = ((-5.0, 5.0), (0.0, 10.0))
+SMALL_WINDOW_PX = 7
 
 
 def _measure(surface_um: np.ndarray, tilt_deg, options=MatchingOptions(), **render) -> tuple[synthetic.HeightErrors, np.ndarray]:
@@ -64,6 +67,11 @@ def main() -> None:
             propagated, _ = _measure(surface, tilt_deg, MatchingOptions(propagate_at_full_resolution=True))
             noise_free, _ = _measure(surface, tilt_deg, noise_fraction=0.0)
             fixed_shading, _ = _measure(surface, tilt_deg, shading_tilt_deg=float(np.mean(tilt_deg)))
+            ideal = {"noise_fraction": 0.0, "shading_tilt_deg": float(np.mean(tilt_deg))}
+            ideal_images, _ = _measure(surface, tilt_deg, **ideal)
+            small_window = MatchingOptions(window_px=SMALL_WINDOW_PX)
+            noise_free_small_window, _ = _measure(surface, tilt_deg, small_window, noise_fraction=0.0)
+            ideal_small_window, _ = _measure(surface, tilt_deg, small_window, **ideal)
             rows.append({
                 "surface": kind, "tilt_deg": list(tilt_deg),
                 "valid_percent": 100 * measured.valid_fraction,
@@ -76,13 +84,17 @@ def main() -> None:
                 "full_resolution_propagation_sa_error_percent": 100 * propagated.sa_relative,
                 "rms_percent_without_noise": 100 * noise_free.rms_of_range,
                 "rms_percent_with_fixed_shading": 100 * fixed_shading.rms_of_range,
+                "rms_percent_ideal_images": 100 * ideal_images.rms_of_range,
+                "rms_percent_without_noise_small_window": 100 * noise_free_small_window.rms_of_range,
+                "ideal_images_small_window_valid_percent": 100 * ideal_small_window.valid_fraction,
+                "ideal_images_small_window_rms_percent_of_range": 100 * ideal_small_window.rms_of_range,
                 "window_floor_rms_percent": 100 * _window_floor_of_range(truth, window_px),
             })
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "accuracy.json").write_text(json.dumps({"window_px": window_px, "rows": rows}, indent=1))
+    (out / "accuracy.json").write_text(json.dumps({"window_px": window_px, "small_window_px": SMALL_WINDOW_PX, "rows": rows}, indent=1))
     print(f"{'surface':<12}{'tilts':>10}{'valid %':>9}{'RMS %':>7}{'Sa err %':>10}{'no local contrast':>19}{'full-res prop.':>16}"
-          f"{'no noise':>10}{'fixed shading':>15}{'window floor':>14}")
+          f"{'no noise':>10}{'fixed shading':>15}{'ideal':>7}{'window floor':>14}{'no noise, small':>17}{'ideal, small':>15}")
 
     def option(row, name):
         return f"{row[name + '_rms_percent_of_range']:.2f} ({row[name + '_valid_percent']:.0f} %)"
@@ -91,9 +103,11 @@ def main() -> None:
         tilts = "/".join(f"{t:g}" for t in row["tilt_deg"])
         print(f"{row['surface']:<12}{tilts:>10}{row['valid_percent']:>9.1f}{row['rms_percent_of_range']:>7.2f}{row['sa_error_percent']:>10.2f}"
               f"{option(row, 'without_local_contrast'):>19}{option(row, 'full_resolution_propagation'):>16}"
-              f"{row['rms_percent_without_noise']:>10.2f}{row['rms_percent_with_fixed_shading']:>15.2f}{row['window_floor_rms_percent']:>14.2f}")
-    print(f"RMS as % of the height range (options: RMS and valid share); window floor: "
-          f"truth minus its {window_px}² window average. Written to {out / 'accuracy.json'}")
+              f"{row['rms_percent_without_noise']:>10.2f}{row['rms_percent_with_fixed_shading']:>15.2f}{row['rms_percent_ideal_images']:>7.2f}"
+              f"{row['window_floor_rms_percent']:>14.2f}{row['rms_percent_without_noise_small_window']:>17.2f}"
+              f"{option(row, 'ideal_images_small_window'):>15}")
+    print(f"RMS as % of the height range (options: RMS and valid share); ideal: no noise and fixed shading; small: "
+          f"{SMALL_WINDOW_PX} px window; window floor: truth minus its {window_px}² window average. Written to {out / 'accuracy.json'}")
 
 
 if __name__ == "__main__":

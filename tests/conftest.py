@@ -39,9 +39,10 @@ def fracture_pair(
     )
 
 
-def dimple_pair(*, tilt_deg=(-5.0, 5.0), size_px=640, seed=1) -> synthetic.StereoPair:
-    """Ductile dimples (radius ~4 µm, ~3 µm deep, sharp rims) at 0.1 µm/px, 2 % noise."""
-    return _reference_pair("dimples", tilt_deg, size_px, seed)
+def dimple_pair(*, tilt_deg=(-5.0, 5.0), size_px=640, seed=1, **render) -> synthetic.StereoPair:
+    """Ductile dimples (radius ~4 µm, ~3 µm deep, sharp rims) at 0.1 µm/px, 2 % noise unless
+    `render` (see synthetic.render_stereo_pair) says otherwise."""
+    return _reference_pair("dimples", tilt_deg, size_px, seed, **render)
 
 
 def cleavage_pair(*, tilt_deg=(-5.0, 5.0), size_px=640, seed=1) -> synthetic.StereoPair:
@@ -49,10 +50,11 @@ def cleavage_pair(*, tilt_deg=(-5.0, 5.0), size_px=640, seed=1) -> synthetic.Ste
     return _reference_pair("cleavage", tilt_deg, size_px, seed)
 
 
-def _reference_pair(kind, tilt_deg, size_px, seed) -> synthetic.StereoPair:
+def _reference_pair(kind, tilt_deg, size_px, seed, **render) -> synthetic.StereoPair:
     surface = synthetic.reference_surface(kind, size_px + 64, seed=seed)
     return synthetic.render_stereo_pair(
-        surface, pixel_size_um=synthetic.REFERENCE_PIXEL_SIZE_UM, tilt_deg=tilt_deg, output_shape=(size_px, size_px), seed=seed
+        surface, pixel_size_um=synthetic.REFERENCE_PIXEL_SIZE_UM, tilt_deg=tilt_deg, output_shape=(size_px, size_px), seed=seed,
+        **render,
     )
 
 

@@ -46,8 +46,8 @@ def _within(result, pair):
     return np.mean(np.abs(error) < one_pixel_um), np.mean(np.abs(error) < 3 * result.sigma_um[valid])
 
 
-# The RMS target (1.5 %) is not met on dimples (steep walls and sharp rims whose shading changes
-# with the tilt), nor any target on cleavage (steep grain-boundary walls, faint facet texture:
+# The RMS target (1.5 %) is not met on dimples (their shading texture changes with the tilt; see
+# the next test), nor any target on cleavage (windows across its steps, faint facet texture:
 # masked); these bounds pin what the default matcher achieves (measured: dimples 4.1-4.2 % RMS,
 # 98.8-98.9 % valid, Sa within 0.5 %; cleavage 2.8-6.5 % RMS, 78-80 % valid) so it cannot
 # silently get worse. See "Accuracy" in the README.
@@ -69,6 +69,20 @@ def test_dimples_and_cleavage_keep_their_measured_accuracy(surface, tilt_deg):
     assert rms_of_range <= bounds["rms"]
     assert abs(sa_relative) <= bounds["sa"]
     assert within_one_pixel >= bounds["one_pixel"] and within_three_sigma >= bounds["three_sigma"]
+
+
+@pytest.mark.parametrize("tilt_deg", [(-5.0, 5.0), (0.0, 10.0)])
+def test_dimples_meet_the_targets_when_the_two_views_differ_only_by_parallax(tilt_deg):
+    """What keeps dimples from the targets is the images, not the matcher: rendered without
+    noise and with the secondary-electron shading fixed to the surface (the same in both views),
+    a 7 px window measures them within the targets (measured: 1.32 % and 1.43 % RMS, 99.9 % and
+    99.7 % valid). With the shading changing with the tilt, as in a microscope, no window from
+    7 to 15 px does better than 3.4 % (see "Accuracy" in the README)."""
+    pair = dimple_pair(tilt_deg=tilt_deg, noise_fraction=0.0, shading_tilt_deg=float(np.mean(tilt_deg)))
+    valid_fraction, rms_of_range, sa_relative = _errors(_reconstruct(pair, tilt_deg, options=MatchingOptions(window_px=7)), pair)
+    assert valid_fraction >= 0.98
+    assert rms_of_range <= 0.015
+    assert abs(sa_relative) <= 0.02
 
 
 # Local contrast normalization (on by default) takes the shading that changes with the tilt out
