@@ -111,3 +111,28 @@ def test_tilt_axis_is_estimated_from_the_parallax_and_a_wrong_one_is_flagged(tru
     )
     assert result.report["tilt_axis_deg_estimated"] == pytest.approx(true_axis_deg, abs=1.0)
     assert bool(result.report["warnings"]) == warned
+
+
+def test_unknown_magnification_uncertainty_keeps_sigma_and_warns(monkeypatch):
+    """When a view's magnification can be measured neither on the matched images nor from SIFT
+    features (a featureless view), the calibrated tilts' sigma is unknown: the report says NaN
+    and warns, and sigma_um falls back to the nominal tilt uncertainty instead of turning NaN."""
+    import dataclasses
+
+    from fractoscope import alignment, synthetic
+    from fractoscope.height_map import MatchingOptions, compute_series_height_map
+    from fractoscope.sem_image import SemImage
+
+    true = (-5.0, 0.0, 5.0)
+    surface = synthetic.self_affine_surface((384, 384), hurst=0.8, rms_um=2.5, seed=5)
+    images, _ = synthetic.render_tilt_series(surface, pixel_size_um=0.1, tilt_deg=true, output_shape=(320, 320), seed=5)
+    views = [SemImage(image, None, 0.1, 0) for image in images]
+    featureless = alignment.estimate_alignment
+    monkeypatch.setattr(alignment, "estimate_alignment", lambda *a, **k: dataclasses.replace(featureless(*a, **k), scale_sigma=float("nan")))
+    monkeypatch.setattr(alignment, "residual_magnification", lambda *a, **k: None)
+    result = compute_series_height_map(views, tilt_deg=true, options=MatchingOptions(calibrate_tilt=True))
+
+    assert np.isnan(result.report["tilt_sigma_deg"][1:]).all()
+    assert any("uncertainty is unknown" in warning for warning in result.report["warnings"])
+    known = np.isfinite(result.z_um)
+    assert known.mean() > 0.9 and np.isfinite(result.sigma_um[known]).all()

@@ -172,7 +172,17 @@ def compute_series_height_map(
         information = sum(np.where(np.isfinite(sigma), (np.float32(b[index + 1]) / sigma) ** 2, np.float32(0)) for index, sigma in enumerate(sigmas))
         disparity_sigma_um = np.float32(pixel_size) / np.sqrt(information)
     widest = (float(tilts[0]), float(tilts[np.argmax(np.abs(b))]))
-    tilt_uncertainty = max(calibration["tilt_sigma_deg"]) if calibration else options.tilt_uncertainty_deg
+    warnings = []
+    tilt_uncertainty = options.tilt_uncertainty_deg
+    if calibration:
+        calibrated_sigma = float(np.max(calibration["tilt_sigma_deg"]))
+        if np.isfinite(calibrated_sigma):
+            tilt_uncertainty = calibrated_sigma
+        else:  # a view's magnification could be measured neither on the matched images nor from features
+            warnings.append(
+                "the calibrated tilts' uncertainty is unknown (a view's magnification could not be measured); "
+                f"sigma_um uses the nominal tilt uncertainty of {options.tilt_uncertainty_deg:g} degrees"
+            )
     relative = stereo_geometry.relative_height_error_from_tilt(tilt_deg=widest, tilt_uncertainty_deg=tilt_uncertainty)
     finite = np.isfinite(z_um)
     sample = z_um[::4, ::4]  # the median height, which the tilt error scales from, needs no more
@@ -193,7 +203,6 @@ def compute_series_height_map(
     first_placement = placements[0]
     directions = [p.parallax_direction_deg for p in placements if np.isfinite(p.parallax_direction_deg)]
     axis_estimated = float(tilt_axis_deg + np.median(directions)) if directions else float("nan")
-    warnings = []
     if directions and abs(axis_estimated - tilt_axis_deg) > AXIS_WARNING_DEG:
         warnings.append(
             f"the parallax points to a tilt axis at {axis_estimated:.1f} degrees, {abs(axis_estimated - tilt_axis_deg):.1f} "
