@@ -65,12 +65,13 @@ def main() -> None:
             measured, truth = _measure(surface, tilt_deg)
             without_local_contrast, _ = _measure(surface, tilt_deg, MatchingOptions(normalize_local_contrast=False))
             propagated, _ = _measure(surface, tilt_deg, MatchingOptions(propagate_at_full_resolution=True))
-            noise_free, _ = _measure(surface, tilt_deg, noise_fraction=0.0)
-            fixed_shading, _ = _measure(surface, tilt_deg, shading_tilt_deg=float(np.mean(tilt_deg)))
-            ideal = {"noise_fraction": 0.0, "shading_tilt_deg": float(np.mean(tilt_deg))}
+            no_noise, fixed = {"noise_fraction": 0.0}, {"shading_tilt_deg": float(np.mean(tilt_deg))}
+            ideal = {**no_noise, **fixed}
+            noise_free, _ = _measure(surface, tilt_deg, **no_noise)
+            fixed_shading, _ = _measure(surface, tilt_deg, **fixed)
             ideal_images, _ = _measure(surface, tilt_deg, **ideal)
             small_window = MatchingOptions(window_px=SMALL_WINDOW_PX)
-            noise_free_small_window, _ = _measure(surface, tilt_deg, small_window, noise_fraction=0.0)
+            noise_free_small_window, _ = _measure(surface, tilt_deg, small_window, **no_noise)
             ideal_small_window, _ = _measure(surface, tilt_deg, small_window, **ideal)
             rows.append({
                 "surface": kind, "tilt_deg": list(tilt_deg),
