@@ -78,6 +78,7 @@ $(KUBE_SCHEMAS): deploy/kubernetes_schemas.py
 
 ## test: the whole test suite
 test: install $(CHROMIUM) $(KUBECONFORM) $(KUSTOMIZE) $(KUBE_SCHEMAS)
+	$(BIN)/lint-imports
 	$(BIN)/python -m pytest -q
 
 ## bench: speed, memory and accuracy figures, written to bench-results/
@@ -93,7 +94,8 @@ load: install $(WRK) $(GHZ)
 	$(BIN)/python -m benchmarks.serving --out bench-results --name load --concurrency 50 --duration-s 60
 
 lint: install
-	$(BIN)/python -m compileall -q src services clients tests
+	$(BIN)/python -m compileall -q src tests benchmarks
+	$(BIN)/lint-imports
 
 clean:
 	rm -rf $(VENV) $(GEN_DIR) build *.egg-info node_modules $(TOOLS)

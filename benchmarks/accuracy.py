@@ -26,8 +26,8 @@ import cv2
 import numpy as np
 
 from fractoscope import synthetic
-from fractoscope.height_map import MatchingOptions, compute_height_map
-from fractoscope.sem_image import SemImage
+from fractoscope.stereo.pipeline import MatchingOptions, compute_height_map
+from fractoscope.sem.image import SemImage
 
 SIZE_PX = 640
 MARGIN_PX = 64

@@ -21,9 +21,9 @@ import cv2
 import numpy as np
 
 from fractoscope import synthetic
-from fractoscope.dense_matching import match_disparity
-from fractoscope.height_map import compute_height_map
-from fractoscope.sem_image import SemImage
+from fractoscope.stereo.matching import match_disparity
+from fractoscope.stereo.pipeline import compute_height_map
+from fractoscope.sem.image import SemImage
 from fractoscope.services.server import keep_freed_memory
 
 PIXEL_SIZE_UM = 0.1

@@ -15,8 +15,8 @@ import pytest
 from fractoscope.client import ClientError, FractoscopeClient
 from fractoscope.services.auth import TokenTable
 from fractoscope.services.server import create_server
-from fractoscope.services.tile_http import start_http_server
-from fractoscope.specimen_store import SpecimenStore
+from fractoscope.services.tiles.http import start_http_server
+from fractoscope.specimen.store import SpecimenStore
 
 TOKENS = TokenTable.from_text("lims:write-secret:write,viewer:read-secret:read")
 

@@ -135,7 +135,7 @@ def test_demo_builds_the_specimens_and_prints_the_viewer_url(tmp_path):
 
 
 def test_specimen_commands_from_a_manifest(tmp_path):
-    from fractoscope.client.demo import write_multiscale_specimen
+    from fractoscope.synthetic.examples import write_multiscale_specimen
 
     write_multiscale_specimen(tmp_path / "input")
     data = tmp_path / "data"

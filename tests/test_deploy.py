@@ -18,12 +18,12 @@ import yaml
 
 from conftest import fracture_pair, tiff_bytes
 from fractoscope.client import ClientError, FractoscopeClient
-from fractoscope.client.demo import write_multiscale_specimen
+from fractoscope.synthetic.examples import write_multiscale_specimen
 from fractoscope.client.manifest import load_manifest
-from fractoscope.height_map import MatchingOptions, compute_series_height_map
-from fractoscope.sem_image import read_sem_image
+from fractoscope.stereo.pipeline import MatchingOptions, compute_series_height_map
+from fractoscope.sem.image import read_sem_image
 from fractoscope.services.server import _SERVICES, build_parser, create_server
-from fractoscope.tileset import content_uris
+from fractoscope.formats.tileset import content_uris
 
 ROOT = Path(__file__).resolve().parents[1]
 DEPLOY = ROOT / "deploy"
@@ -363,7 +363,7 @@ def test_a_serving_process_reuses_freed_memory_instead_of_faulting_in_fresh_page
     second match, with the C library's defaults and with the setting."""
     def page_faults(keep: bool) -> int:
         probe = (
-            "import json, resource, numpy as np, cv2; from fractoscope.dense_matching import match_disparity;"
+            "import json, resource, numpy as np, cv2; from fractoscope.stereo.matching import match_disparity;"
             "from fractoscope.services.server import keep_freed_memory;"
             f"{'keep_freed_memory();' if keep else ''}"
             "image = cv2.GaussianBlur((np.random.default_rng(0).random((512, 512)) * 255).astype(np.uint8), (0, 0), 1.5);"

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 from fractoscope.client import ClientError
 from fractoscope.errors import InvalidInputError
-from fractoscope.sem_image import read_sem_image
+from fractoscope.sem.image import read_sem_image
 from fractoscope.v1 import common_pb2, matching_pb2, tiles_pb2
 
 FUZZ = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
@@ -49,7 +49,7 @@ def test_damaged_image_files_are_rejected_cleanly(data):
 
 
 def test_a_huge_declared_image_is_refused_before_decoding(monkeypatch):
-    from fractoscope import sem_image
+    from fractoscope.sem import image as sem_image
 
     monkeypatch.setattr(sem_image, "MAX_IMAGE_PIXELS", 1000)
     with pytest.raises(InvalidInputError, match="larger than the limit"):

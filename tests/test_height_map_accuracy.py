@@ -5,8 +5,8 @@ import pytest
 
 from conftest import cleavage_pair, dimple_pair, fracture_pair, inner_mask
 from fractoscope import synthetic
-from fractoscope.height_map import MatchingOptions, compute_height_map
-from fractoscope.sem_image import SemImage
+from fractoscope.stereo.pipeline import MatchingOptions, compute_height_map
+from fractoscope.sem.image import SemImage
 
 
 def _reconstruct(pair, tilt_deg, **kwargs):

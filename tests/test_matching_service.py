@@ -10,7 +10,7 @@ from grpc_reflection.v1alpha import reflection_pb2, reflection_pb2_grpc
 
 from conftest import fracture_pair, inner_mask, tiff_bytes
 from fractoscope.client import ClientError
-from fractoscope.dense_matching import StripTask
+from fractoscope.stereo.disparity import StripTask
 
 
 def test_health_and_reflection(server_address):
@@ -102,7 +102,7 @@ def test_cancelled_call_stops_the_work_at_its_next_progress_report():
     import threading
 
     from fractoscope.errors import CancelledError
-    from fractoscope.services.progress import stream_progress
+    from fractoscope.services.streaming import stream_progress
 
     class GoneClient:
         def add_callback(self, callback):

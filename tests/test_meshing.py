@@ -6,9 +6,12 @@ import pytest
 from matplotlib import tri
 
 from conftest import decode_glb, validate_glbs
-from fractoscope import gltf_tile, height_filter, meshing, surface_mesh
+from fractoscope.formats import glb as glb_format
+from fractoscope.mesh import levels as mesh_levels
+from fractoscope.mesh import pipeline
+from fractoscope.surface import filtering
 from fractoscope.client import ClientError
-from fractoscope.gltf_tile import METRES_PER_UM
+from fractoscope.units import METRES_PER_UM
 from fractoscope.synthetic import self_affine_surface
 from fractoscope.v1 import meshing_pb2
 
@@ -33,7 +36,7 @@ def test_isolated_spike_is_removed_and_a_step_is_kept():
     z = np.where(np.arange(100)[None, :] < 50, 0.0, 2.0) + rng.normal(0, 0.01, (100, 100))
     z = z.astype(np.float32)
     z[20, 20] += 30.0
-    result = height_filter.filter_heights(z, smoothing_um=0.05)
+    result = filtering.filter_heights(z, smoothing_um=0.05)
     assert result.report.outliers_removed == 1
     assert abs(result.z_um[20, 20]) < 0.1 and result.filled[20, 20]
     step = np.median(result.z_um[:, 52:60]) - np.median(result.z_um[:, 40:48])
@@ -47,7 +50,7 @@ def test_holes_are_filled_only_near_measured_points():
     z = np.zeros((120, 120), np.float32)
     z[10:14, 10:14] = np.nan  # small hole: filled
     z[50:100, 50:100] = np.nan  # large hole: only its rim is filled
-    result = height_filter.filter_heights(z, max_fill_distance_px=8)
+    result = filtering.filter_heights(z, max_fill_distance_px=8)
     assert np.isfinite(result.z_um[10:14, 10:14]).all()
     assert np.isnan(result.z_um[60:90, 60:90]).all()
     assert np.isfinite(result.z_um[50:58, 50:100]).all()
@@ -55,11 +58,11 @@ def test_holes_are_filled_only_near_measured_points():
     assert result.report.outliers_removed == 0
 
 
-@pytest.mark.parametrize("method", list(surface_mesh.Simplification))
+@pytest.mark.parametrize("method", list(mesh_levels.Simplification))
 def test_a_plane_stays_a_plane_at_every_level(method):
     rows, cols = np.mgrid[0:530, 0:610].astype(np.float32)
     plane = 0.02 * rows - 0.01 * cols + 3.0
-    tiles = list(surface_mesh.iter_tiles(plane, np.zeros(plane.shape, np.uint8), pixel_size_um=PIXEL_SIZE_UM, method=method))
+    tiles = list(mesh_levels.iter_tiles(plane, np.zeros(plane.shape, np.uint8), pixel_size_um=PIXEL_SIZE_UM, method=method))
     assert len({tile.level for tile in tiles}) >= 4
     for tile in tiles:
         col_px, row_px, z_um = tile.positions.T
@@ -73,7 +76,7 @@ def test_sphere_cap_geometric_error_is_the_true_deviation(tmp_path):
     rows, cols = np.mgrid[0:size, 0:size]
     r2 = ((rows - 199.5) ** 2 + (cols - 199.5) ** 2) * PIXEL_SIZE_UM**2
     sphere = np.sqrt(radius_um**2 - r2).astype(np.float32)
-    tiles = surface_mesh.iter_tiles(sphere, np.zeros(sphere.shape, np.uint8), pixel_size_um=PIXEL_SIZE_UM)
+    tiles = mesh_levels.iter_tiles(sphere, np.zeros(sphere.shape, np.uint8), pixel_size_um=PIXEL_SIZE_UM)
     errors = {}
     for tile in tiles:
         if tile.level == 0:
@@ -89,11 +92,11 @@ def test_sphere_cap_geometric_error_is_the_true_deviation(tmp_path):
     assert all(errors[a] < errors[b] for a, b in zip(levels, levels[1:]))  # coarser, larger error
 
 
-@pytest.mark.parametrize("method", list(surface_mesh.Simplification))
+@pytest.mark.parametrize("method", list(mesh_levels.Simplification))
 def test_tiles_share_borders_and_every_glb_is_valid(method, tmp_path):
     z, texture = _rough_with_hole()
-    options = meshing.MeshingOptions(method=method)
-    tiles, report = meshing.mesh_height_map(z, texture, pixel_size_um=PIXEL_SIZE_UM, options=options)
+    options = pipeline.MeshingOptions(method=method)
+    tiles, report = pipeline.mesh_height_map(z, texture, pixel_size_um=PIXEL_SIZE_UM, options=options)
     assert report.holes_filled > 0
     reports = validate_glbs([tile.glb for tile in tiles], tmp_path)
     assert [r["errors"] for r in reports] == [0] * len(tiles), [r["messages"] for r in reports if r["errors"]][:3]
@@ -113,11 +116,11 @@ def test_tiles_share_borders_and_every_glb_is_valid(method, tmp_path):
 
 def test_coarsest_level_is_one_small_tile_and_errors_grow():
     z, texture = _rough_with_hole(1100)
-    tiles, _ = meshing.mesh_height_map(z, texture, pixel_size_um=PIXEL_SIZE_UM)
+    tiles, _ = pipeline.mesh_height_map(z, texture, pixel_size_um=PIXEL_SIZE_UM)
     levels = sorted({t.level for t in tiles})
     coarsest = [t for t in tiles if t.level == levels[-1]]
-    assert len(coarsest) == 1 and coarsest[0].triangle_count <= surface_mesh.COARSEST_TRIANGLES
-    assert len(tiles) == surface_mesh.tile_count(z.shape)
+    assert len(coarsest) == 1 and coarsest[0].triangle_count <= mesh_levels.COARSEST_TRIANGLES
+    assert len(tiles) == mesh_levels.tile_count(z.shape)
     errors = [max(t.geometric_error_m for t in tiles if t.level == level) for level in levels]
     assert errors[0] == 0.0 and all(a < b for a, b in zip(errors, errors[1:]))
     finest = [t for t in tiles if t.level == 0]
@@ -127,7 +130,7 @@ def test_coarsest_level_is_one_small_tile_and_errors_grow():
 def test_glb_is_y_up_in_metres():
     rows, cols = np.mgrid[0:64, 0:80]
     z = (5.0 * np.exp(-((rows - 10) ** 2 + (cols - 70) ** 2) / 8.0)).astype(np.float32)  # top at row 10, column 70
-    tiles, _ = meshing.mesh_height_map(z, np.zeros(z.shape, np.uint8), pixel_size_um=PIXEL_SIZE_UM)
+    tiles, _ = pipeline.mesh_height_map(z, np.zeros(z.shape, np.uint8), pixel_size_um=PIXEL_SIZE_UM)
     positions_m = decode_glb(tiles[0].glb).positions_m
     top = positions_m[np.argmax(positions_m[:, 1])]
     np.testing.assert_allclose(top, [70 * PIXEL_SIZE_UM * 1e-6, 5e-6, 10 * PIXEL_SIZE_UM * 1e-6], rtol=1e-4)
@@ -140,7 +143,7 @@ def _rotated_to_lowest_first(triangles: np.ndarray) -> np.ndarray:
     return np.take_along_axis(triangles, (shift + np.arange(3)) % 3, axis=1)
 
 
-@pytest.mark.parametrize("method", list(surface_mesh.Simplification))
+@pytest.mark.parametrize("method", list(mesh_levels.Simplification))
 def test_glb_decodes_to_the_tile_within_its_quantization(method):
     """What a client decodes (meshoptimizer, then the dequantizing node transform) is the tile's
     mesh: the same triangles, positions within half a step of a 16-bit grid over the whole map,
@@ -148,13 +151,13 @@ def test_glb_decodes_to_the_tile_within_its_quantization(method):
     several times smaller than its mesh as float32."""
     z, texture = _rough_with_hole(300)
     low_m, high_m = (0.0, np.nanmin(z) * 1e-6, 0.0), (299 * PIXEL_SIZE_UM * 1e-6, np.nanmax(z) * 1e-6, 299 * PIXEL_SIZE_UM * 1e-6)
-    grid = gltf_tile.PositionGrid.spanning(low_m, high_m)
+    grid = glb_format.PositionGrid.spanning(low_m, high_m)
     step_m = (np.array(high_m) - np.array(low_m)) / 65535
-    for tile in surface_mesh.iter_tiles(z, texture, pixel_size_um=PIXEL_SIZE_UM, method=method, level_count=3):
-        glb = gltf_tile.tile_glb(tile, pixel_size_um=PIXEL_SIZE_UM, grid=grid)
+    for tile in mesh_levels.iter_tiles(z, texture, pixel_size_um=PIXEL_SIZE_UM, method=method, level_count=3):
+        glb = glb_format.tile_glb(tile, pixel_size_um=PIXEL_SIZE_UM, grid=grid)
         decoded = decode_glb(glb)
         np.testing.assert_array_equal(_rotated_to_lowest_first(decoded.triangles), _rotated_to_lowest_first(tile.triangles))
-        positions_m = gltf_tile.to_gltf_positions_m(tile.positions, pixel_size_um=PIXEL_SIZE_UM)
+        positions_m = glb_format.to_gltf_positions_m(tile.positions, pixel_size_um=PIXEL_SIZE_UM)
         assert (np.abs(decoded.positions_m - positions_m) <= 0.5 * step_m + 1e-15).all()
         assert np.abs(decoded.normals - tile.normals).max() <= 0.5 / 127 + 1e-6
         assert np.abs(decoded.uvs - tile.uvs).max() <= 0.5 / 65535 + 1e-7
@@ -184,7 +187,7 @@ def test_plain_glbs_carry_the_float32_mesh_without_extensions(client, tmp_path):
 def test_meshing_service_streams_tiles_and_rejects_bad_input(client):
     z, texture = _rough_with_hole(300)
     tiles, report = client.build_mesh(z, texture, pixel_size_um=PIXEL_SIZE_UM)
-    local, local_report = meshing.mesh_height_map(z, texture, pixel_size_um=PIXEL_SIZE_UM)
+    local, local_report = pipeline.mesh_height_map(z, texture, pixel_size_um=PIXEL_SIZE_UM)
     assert [(t.level, t.tile_row, t.tile_col, t.triangle_count) for t in tiles] == [
         (t.level, t.tile_row, t.tile_col, t.triangle_count) for t in local
     ]

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from fractoscope.height_map import compute_height_map
-from fractoscope.sem_image import read_sem_image
+from fractoscope.stereo.pipeline import compute_height_map
+from fractoscope.sem.image import read_sem_image
 
 pytestmark = pytest.mark.real_data
 
@@ -49,7 +49,7 @@ def test_substrate_is_flat(pairs):
 
 @pytest.fixture(scope="module")
 def calibrated(pollen_series):
-    from fractoscope.height_map import MatchingOptions, compute_series_height_map
+    from fractoscope.stereo.pipeline import MatchingOptions, compute_series_height_map
 
     results = {}
     for views in [(2, 3, 4), (1, 3, 5)]:

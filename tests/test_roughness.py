@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 from surfalize import Surface
 
-from fractoscope import profile, roughness, synthetic
+from fractoscope import synthetic
+from fractoscope.surface import profiles, roughness
 
 
 @pytest.fixture(scope="module")
@@ -46,7 +47,7 @@ def test_profile_parameters_of_a_cosine_on_a_slope():
     # A cosine symmetric about the middle is orthogonal to the line, so de-tilting leaves it whole.
     distance = np.linspace(0, 100, 100001)
     heights = 2.0 * np.cos(2 * np.pi * (distance - 50) / 10) + 0.3 * distance
-    values = profile.profile_parameters(distance, heights)
+    values = profiles.profile_parameters(distance, heights)
     assert values["Ra"] == pytest.approx(2 * 2.0 / np.pi, rel=1e-3)  # mean |cos| = 2/pi
     assert values["Rq"] == pytest.approx(2.0 / np.sqrt(2), rel=1e-3)
     assert values["Rz"] == pytest.approx(4.0, rel=1e-3)
@@ -55,7 +56,7 @@ def test_profile_parameters_of_a_cosine_on_a_slope():
 
 
 def test_polyline_positions_keep_vertices_and_spacing():
-    positions, distances = profile.polyline_positions(np.array([[0, 0], [3, 4], [3, 10]]), spacing_um=0.5)
+    positions, distances = profiles.polyline_positions(np.array([[0, 0], [3, 4], [3, 10]]), spacing_um=0.5)
     assert distances[-1] == pytest.approx(11.0)
     assert [3.0, 4.0] in positions.tolist()
     assert np.diff(distances).max() <= 0.5 + 1e-12

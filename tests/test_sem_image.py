@@ -6,7 +6,7 @@ import tifffile
 from PIL import Image
 
 from fractoscope.errors import InvalidInputError
-from fractoscope.sem_image import detect_data_bar_rows, read_sem_image
+from fractoscope.sem.image import detect_data_bar_rows, read_sem_image
 
 
 def _textured(rows=256, cols=300, dtype=np.uint8, seed=0):

@@ -1,18 +1,18 @@
 import numpy as np
 import pytest
 
-from fractoscope import stereo_geometry
+from fractoscope.stereo import geometry
 from fractoscope.errors import InvalidInputError
 
 
 @pytest.mark.parametrize("pixel_size_um, expected_um", [(0.005, 0.0287), (1.0, 5.74)])
 def test_one_pixel_of_disparity_matches_the_papers_figures(pixel_size_um, expected_um):
-    per_px = stereo_geometry.height_per_disparity_um(tilt_deg=(-5.0, 5.0), pixel_size_um=pixel_size_um)
+    per_px = geometry.height_per_disparity_um(tilt_deg=(-5.0, 5.0), pixel_size_um=pixel_size_um)
     assert per_px == pytest.approx(expected_um, abs=5e-4 if pixel_size_um < 0.1 else 5e-3)
 
 
 def test_tilt_error_of_half_a_degree_at_five_degrees_is_ten_percent():
-    relative = stereo_geometry.relative_height_error_from_tilt(tilt_deg=(-5.0, 5.0), tilt_uncertainty_deg=0.5)
+    relative = geometry.relative_height_error_from_tilt(tilt_deg=(-5.0, 5.0), tilt_uncertainty_deg=0.5)
     assert relative == pytest.approx(np.radians(0.5) / np.tan(np.radians(5.0)))
     assert relative == pytest.approx(0.0998, abs=5e-4)
 
@@ -20,7 +20,7 @@ def test_tilt_error_of_half_a_degree_at_five_degrees_is_ten_percent():
 def test_general_formula_reduces_to_symmetric_case():
     x1 = np.array([-300.0, 0.0, 250.0])
     disparity = np.array([3.0, -2.0, 10.0])
-    z = stereo_geometry.heights_um(x1, disparity, tilt_deg=(-5.0, 5.0), pixel_size_um=0.2)
+    z = geometry.heights_um(x1, disparity, tilt_deg=(-5.0, 5.0), pixel_size_um=0.2)
     np.testing.assert_allclose(z, disparity * 0.2 / (2 * np.sin(np.radians(5.0))))
 
 
@@ -31,16 +31,16 @@ def test_general_formula_inverts_parallel_projection_for_asymmetric_tilts():
     pixel_size_um = 0.25
     x1 = x_px * np.cos(t1) + z_um / pixel_size_um * np.sin(t1)
     x2 = x_px * np.cos(t2) + z_um / pixel_size_um * np.sin(t2)
-    recovered = stereo_geometry.heights_um(x1, x2 - x1, tilt_deg=(0.0, 10.0), pixel_size_um=pixel_size_um)
+    recovered = geometry.heights_um(x1, x2 - x1, tilt_deg=(0.0, 10.0), pixel_size_um=pixel_size_um)
     np.testing.assert_allclose(recovered, z_um, atol=1e-9)
 
 
 def test_sigma_combines_disparity_and_tilt_terms():
     z = np.array([0.0, 10.0])
-    sigma = stereo_geometry.height_sigma_um(
+    sigma = geometry.height_sigma_um(
         z, np.array([1.0, 0.0]), tilt_deg=(-5.0, 5.0), pixel_size_um=1.0, tilt_uncertainty_deg=0.5
     )
-    relative = stereo_geometry.relative_height_error_from_tilt(tilt_deg=(-5.0, 5.0), tilt_uncertainty_deg=0.5)
+    relative = geometry.relative_height_error_from_tilt(tilt_deg=(-5.0, 5.0), tilt_uncertainty_deg=0.5)
     assert sigma[0] == pytest.approx(np.hypot(5.737, relative * 5.0), rel=1e-3)
     assert sigma[1] == pytest.approx(relative * 5.0, rel=1e-6)
 
@@ -48,5 +48,5 @@ def test_sigma_combines_disparity_and_tilt_terms():
 @pytest.mark.parametrize("tilts", [(5.0, 5.0), (np.nan, 5.0), (-95.0, 5.0)])
 def test_unusable_tilts_are_rejected(tilts):
     with pytest.raises(InvalidInputError) as error:
-        stereo_geometry.validate_tilts(tilts)
+        geometry.validate_tilts(tilts)
     assert error.value.field == "tilt_deg"

@@ -2,8 +2,8 @@
 
 import http.client
 
-from fractoscope.services.tile_http import _Body, body_cache, start_http_server
-from fractoscope.specimen_store import SpecimenStore
+from fractoscope.services.tiles.http import _Body, body_cache, start_http_server
+from fractoscope.specimen.store import SpecimenStore
 
 
 def test_http_endpoint_answers_head_options_and_refuses_other_methods(tmp_path):

@@ -1,0 +1,1 @@
+"""File formats we write: glTF binary tiles (`glb`) and 3D Tiles tilesets (`tileset`)."""

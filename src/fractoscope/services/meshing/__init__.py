@@ -1,0 +1,1 @@
+"""The meshing service: height maps to tiled GLB levels of detail."""

@@ -1,0 +1,218 @@
+"""Plain HTTP for standard 3D Tiles viewers and our web viewer.
+
+- `/specimens/{id}/tileset.json` and the tiles it names: CORS headers (viewers run on other
+  origins), a strong ETag (answered with 304 when the client has it), gzip when accepted.
+- `/viewer/` the web viewer (this package's data folder `web/`) and `/vendor/` the three.js and
+  3DTilesRendererJS modules it imports (installed by `make install` into node_modules).
+- `/api/specimens[/{id}[/profile|/roughness]]` JSON for the viewer: summaries, profiles
+  (`?from=X,Y&to=X,Y[&magnification=M]`) and roughness (`?roi=ID` or `?region=X0,Y0,X1,Y1`), µm.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import gzip
+import hashlib
+import json
+import math
+import os
+import re
+import threading
+from http import HTTPStatus
+from pathlib import Path
+
+from aiohttp import web
+from google.protobuf import json_format
+
+from fractoscope.specimen import queries as specimen_queries
+from fractoscope.errors import FractoscopeError, InvalidInputError, NotFoundError
+from fractoscope.services.auth import TokenTable
+from fractoscope.services.caches import BoundedCache
+from fractoscope.services.tiles.servicer import specimen_message
+from fractoscope.specimen.store import SpecimenStore
+
+_ROUTE = re.compile(r"^/specimens/(?P<specimen>[A-Za-z0-9_-]{1,64})/(?P<path>tileset\.json|tiles/\d{1,6}/\d{1,6}/\d{1,6}\.glb)$")
+_TYPES = {
+    ".json": "application/json", ".glb": "model/gltf-binary", ".html": "text/html; charset=utf-8",
+    ".js": "text/javascript", ".css": "text/css", ".svg": "image/svg+xml",
+}
+WEB_ROOT = Path(__file__).resolve().parent / "web"
+# From a checkout the repository's node_modules; an installed image says where via the environment.
+_VENDOR = Path(os.environ.get("FRACTO_VENDOR_ROOT", Path(__file__).resolve().parents[4] / "node_modules"))
+VENDOR_ROOTS = {"three": _VENDOR / "three", "3d-tiles-renderer": _VENDOR / "3d-tiles-renderer"}
+_STATIC = re.compile(r"^/(?P<area>viewer|vendor)/(?P<path>[A-Za-z0-9_./-]*)$")
+_API = re.compile(r"^/api/specimens(?:/(?P<specimen>[A-Za-z0-9_-]{1,64})(?:/(?P<query>profile|roughness))?)?$")
+
+
+class _Body:
+    """One response body with its ETag and gzip form, computed once."""
+
+    def __init__(self, raw: bytes):
+        self.raw = raw
+        self.etag = '"' + hashlib.sha256(raw).hexdigest()[:32] + '"'
+        self.gzipped = gzip.compress(raw, compresslevel=6)
+
+
+def body_cache(limit_bytes: int = 256 * 1024 * 1024) -> BoundedCache[_Body]:
+    """Response bodies by key, bounded by their raw and gzip bytes together."""
+    return BoundedCache(limit_bytes, size=lambda body: len(body.raw) + len(body.gzipped))
+
+
+class _TileApp:
+    """Request handling: one coroutine for every path, so the routing below reads top to bottom.
+    Cached bodies are answered on the event loop; producing them (file reads, gzip) and the
+    analysis queries run on the default executor so that they never stall it."""
+
+    def __init__(self, store: SpecimenStore, tokens: TokenTable):
+        self.store = store
+        self.cache = body_cache()
+        self.tokens = tokens
+
+    async def handle(self, request: web.Request) -> web.StreamResponse:
+        if request.method == "OPTIONS":
+            return web.Response(status=HTTPStatus.NO_CONTENT, headers={
+                **_CORS, "Access-Control-Allow-Methods": "GET, HEAD, OPTIONS", "Access-Control-Allow-Headers": "*",
+            })
+        if request.method not in ("GET", "HEAD"):
+            return _plain(HTTPStatus.METHOD_NOT_ALLOWED, "only GET, HEAD and OPTIONS\n", Allow="GET, HEAD, OPTIONS")
+        path = request.path
+        if path == "/healthz":
+            return _plain(HTTPStatus.OK, "ok\n")
+        if path == "/":
+            return web.Response(status=HTTPStatus.FOUND, headers={"Location": "/viewer/"})
+        if self.tokens.enabled and not path.startswith(("/viewer/", "/vendor/")):
+            offered = request.headers.get("Authorization") or "Bearer " + request.query.get("token", "")
+            if self.tokens.grant(offered) is None:
+                return _plain(HTTPStatus.UNAUTHORIZED, "a valid bearer token is required\n")
+        if (api := _API.match(path)) is not None:
+            arguments = {key: request.query.getall(key) for key in request.query.keys()}
+            status, answer = await _off_loop(self._api_answer, api["specimen"], api["query"], arguments)
+            return web.Response(status=status, body=json.dumps(answer, allow_nan=False).encode(),
+                                headers={**_CORS, "Content-Type": "application/json", "Cache-Control": "no-store"})
+        if (static := _STATIC.match(path)) is not None:
+            return await self._static(request, static["area"], static["path"] or "index.html")
+        route = _ROUTE.match(path)
+        if route is None:
+            return _plain(HTTPStatus.NOT_FOUND, "not found\n")
+        relative = route["path"]
+        try:
+            specimen = self.store.load(route["specimen"])
+            content = (lambda: specimen.tileset_bytes) if relative == "tileset.json" else (lambda: specimen.tile_bytes(relative))
+            produce = lambda: _Body(content())  # noqa: E731 - runs on the executor below
+            key = (specimen.id, specimen.version, relative)
+            body = self.cache.cached(key) or await _off_loop(self.cache.get, key, produce)
+        except (NotFoundError, FileNotFoundError):
+            return _plain(HTTPStatus.NOT_FOUND, "not found\n")
+        except FractoscopeError as error:
+            return _plain(HTTPStatus.BAD_REQUEST, f"{error}\n")
+        return _body_response(request, body, _TYPES[relative[relative.rfind("."):]])
+
+    async def _static(self, request: web.Request, area: str, relative: str) -> web.StreamResponse:
+        if area == "viewer":
+            root = WEB_ROOT
+        else:
+            package, _, relative = relative.partition("/")
+            root = VENDOR_ROOTS.get(package)
+        path = (root / relative).resolve() if root else None
+        if path is None or not path.is_relative_to(root.resolve()) or not path.is_file() or path.suffix not in _TYPES:
+            return _plain(HTTPStatus.NOT_FOUND, "not found\n")
+        key = ("static", path.stat().st_mtime_ns, str(path))
+        body = self.cache.cached(key) or await _off_loop(self.cache.get, key, lambda: _Body(path.read_bytes()))
+        return _body_response(request, body, _TYPES[path.suffix])
+
+    def _api_answer(self, specimen_id: str | None, query: str | None, arguments: dict) -> tuple[HTTPStatus, object]:
+        try:
+            if specimen_id is None:
+                return HTTPStatus.OK, [_summary(self.store.load(i)) for i in self.store.ids()]
+            if query is None:
+                return HTTPStatus.OK, _summary(self.store.load(specimen_id))
+            if query == "profile":
+                found = specimen_queries.profile_along(
+                    self.store.load(specimen_id), [_numbers(arguments, "from", 2), _numbers(arguments, "to", 2)],
+                    magnification=_numbers(arguments, "magnification", 1, default=[0.0])[0],
+                )
+                names = found.sources + [""]
+                return HTTPStatus.OK, {
+                    "distance_um": found.distance_um.tolist(),
+                    "z_um": [None if math.isnan(z) else z for z in found.z_um.tolist()],
+                    "source": [names[i] for i in found.source_index.tolist()],
+                    "parameters": found.parameters,
+                }
+            region = _numbers(arguments, "region", 4) if "region" in arguments else None
+            roi = arguments.get("roi", [None])[0]
+            specimen = self.store.load(specimen_id)
+            return HTTPStatus.OK, specimen_queries.roughness_of(specimen, roi=roi or (None if region else specimen.rois[0].id), region_um=region)
+        except NotFoundError as error:
+            return HTTPStatus.NOT_FOUND, {"error": str(error)}
+        except FractoscopeError as error:
+            return HTTPStatus.BAD_REQUEST, {"error": str(error), "field": getattr(error, "field", None)}
+
+
+_CORS = {"Access-Control-Allow-Origin": "*", "Access-Control-Expose-Headers": "ETag, Content-Encoding"}
+
+
+async def _off_loop(function, *args):
+    return await asyncio.get_running_loop().run_in_executor(None, function, *args)
+
+
+def _body_response(request: web.Request, body: _Body, content_type: str) -> web.Response:
+    if request.headers.get("If-None-Match") == body.etag:
+        return web.Response(status=HTTPStatus.NOT_MODIFIED, headers={**_CORS, "ETag": body.etag})
+    headers = {**_CORS, "Content-Type": content_type, "ETag": body.etag, "Cache-Control": "no-cache", "Vary": "Accept-Encoding"}
+    if "gzip" in request.headers.get("Accept-Encoding", ""):
+        headers["Content-Encoding"] = "gzip"
+        return web.Response(body=body.gzipped, headers=headers)
+    return web.Response(body=body.raw, headers=headers)
+
+
+def _plain(status: HTTPStatus, text: str, **headers: str) -> web.Response:
+    return web.Response(status=status, body=text.encode(), headers={**_CORS, "Content-Type": "text/plain; charset=utf-8", **headers})
+
+
+def _summary(specimen) -> dict:
+    return json_format.MessageToDict(specimen_message(specimen), preserving_proto_field_name=True, always_print_fields_with_no_presence=True)
+
+
+def _numbers(arguments: dict, name: str, count: int, default: list[float] | None = None) -> list[float]:
+    """`name=a,b,...` from a query string as `count` finite numbers."""
+    if name not in arguments:
+        if default is not None:
+            return default
+        raise InvalidInputError(name, "is required")
+    try:
+        values = [float(v) for v in arguments[name][0].split(",")]
+    except ValueError:
+        values = []
+    if len(values) != count or not all(math.isfinite(v) for v in values):
+        raise InvalidInputError(name, f"must be {count} comma-separated numbers")
+    return values
+
+
+class HttpTileServer:
+    """The HTTP endpoint, served by aiohttp from an event loop on its own daemon thread."""
+
+    def __init__(self, store: SpecimenStore, host: str, port: int, tokens: TokenTable):
+        self._loop = asyncio.new_event_loop()
+        app = _TileApp(store, tokens)
+        application = web.Application()
+        application.router.add_route("*", "/{tail:.*}", app.handle)
+        self._runner = web.AppRunner(application, access_log=None, handle_signals=False)
+        self._loop.run_until_complete(self._runner.setup())
+        site = web.TCPSite(self._runner, host, port, reuse_address=True)
+        self._loop.run_until_complete(site.start())
+        self.server_port: int = self._runner.addresses[0][1]
+        self._thread = threading.Thread(target=self._loop.run_forever, name="fractoscope-http", daemon=True)
+        self._thread.start()
+
+    def shutdown(self) -> None:
+        """Stops serving: open connections are closed, the loop and its thread end."""
+        asyncio.run_coroutine_threadsafe(self._runner.cleanup(), self._loop).result(timeout=30)
+        self._loop.call_soon_threadsafe(self._loop.stop)
+        self._thread.join(timeout=30)
+        self._loop.close()
+
+
+def start_http_server(store: SpecimenStore, host: str = "127.0.0.1", port: int = 0, *, tokens: TokenTable | None = None) -> HttpTileServer:
+    """Serves the store's tilesets over HTTP from a daemon thread; `server_port` is the bound port.
+    With `tokens`, everything but the viewer's static files needs a bearer token (any access)."""
+    return HttpTileServer(store, host, port, tokens or TokenTable({}))

@@ -1,0 +1,168 @@
+"""Building a specimen: measure every ROI, place children in their parents, fuse, tile, store.
+
+Matching and meshing are passed in as functions, so the tile service can run them on the other
+services and tests can run them in-process.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+
+from fractoscope.formats.tileset import tileset_json
+from fractoscope.progress import silent
+from fractoscope.specimen import registration
+from fractoscope.surface import filtering
+from fractoscope.errors import InvalidInputError
+from fractoscope.specimen.fusion import FusedSurface, PlacedRoi
+from fractoscope.specimen.store import RoiEntry, Specimen, SpecimenStore, validate_id, write_description, write_roi_arrays
+from fractoscope.specimen.quadtree import QuadtreeLayout, TileKey, build_tiles
+
+
+@dataclass(frozen=True)
+class RoiRequest:
+    """One ROI to build: its parent ('' for the overview), magnification, and centre in the parent's
+    frame (x, y) µm, or None to register it automatically."""
+
+    id: str
+    parent: str = ""
+    magnification: float = 0.0
+    center_um: tuple[float, float] | None = None
+
+
+@dataclass(frozen=True)
+class MeasuredHeights:
+    """What matching returns for an ROI: heights (rows, cols) µm, grey texture, pixel size µm and the
+    matching report (see MatchingReport)."""
+
+    z_um: np.ndarray
+    texture: np.ndarray
+    pixel_size_um: float
+    report: dict
+
+
+Measure = Callable[[RoiRequest], MeasuredHeights]
+TileMesher = Callable[[np.ndarray, np.ndarray, float, tuple[float, float]], bytes]
+
+
+def ordered_rois(rois: Sequence[RoiRequest]) -> list[RoiRequest]:
+    """The ROIs with every parent before its children; checks ids, the single overview and parents."""
+    if not rois:
+        raise InvalidInputError("rois", "a specimen needs at least one ROI")
+    by_id: dict[str, RoiRequest] = {}
+    for index, roi in enumerate(rois):
+        validate_id(roi.id, field=f"rois[{index}].id")
+        if roi.id in by_id:
+            raise InvalidInputError(f"rois[{index}].id", f"ROI id {roi.id!r} is used twice")
+        by_id[roi.id] = roi
+    overviews = [roi.id for roi in rois if not roi.parent]
+    if len(overviews) != 1:
+        raise InvalidInputError("rois", f"exactly one ROI must have no parent (the overview); found {len(overviews)}")
+    for index, roi in enumerate(rois):
+        if roi.parent and roi.parent not in by_id:
+            raise InvalidInputError(f"rois[{index}].parent", f"no ROI {roi.parent!r} in this specimen")
+    ordered, placed = [], set()
+    while len(ordered) < len(rois):
+        ready = [roi for roi in rois if roi.id not in placed and (not roi.parent or roi.parent in placed)]
+        if not ready:
+            raise InvalidInputError("rois", "the ROIs' parents form a cycle")
+        for roi in ready:
+            ordered.append(roi)
+            placed.add(roi.id)
+    return ordered
+
+
+def reconstruct_specimen(
+    specimen_id: str,
+    rois: Sequence[RoiRequest],
+    *,
+    measure: Measure,
+    mesh_tile: TileMesher,
+    store: SpecimenStore,
+    request_id: str = "",
+    progress: Callable[[float, str], None] | None = None,
+) -> Specimen:
+    """Builds and stores a specimen; returns it as stored."""
+    report = progress or silent
+    validate_id(specimen_id, field="specimen_id")
+    ordered = ordered_rois(rois)
+    measured: dict[str, MeasuredHeights] = {}
+    for index, roi in enumerate(ordered):
+        report(0.6 * index / len(ordered), f"matching ROI {roi.id}")
+        measured[roi.id] = measure(roi)
+
+    report(0.6, "placing ROIs")
+    placed: dict[str, PlacedRoi] = {}
+    entries: list[RoiEntry] = []
+    for roi in ordered:
+        heights = measured[roi.id]
+        z_um = filtering.filter_heights(heights.z_um).z_um.astype(np.float32)
+        texture = _grey8(heights.texture)
+        entry = RoiEntry(roi.id, roi.parent, roi.magnification, heights.pixel_size_um, (0.0, 0.0), z_um.shape, matching=heights.report)
+        if roi.parent:
+            parent = placed[roi.parent]
+            entry.origin_um, entry.registration_score = _child_origin(roi, parent, texture, heights)
+            unaligned = PlacedRoi(roi.id, roi.magnification, heights.pixel_size_um, entry.origin_um, z_um, texture)
+            alignment = registration.align_heights(parent, unaligned)
+            z_um = registration.apply_height_alignment(z_um, alignment, pixel_size_um=heights.pixel_size_um)
+            texture = registration.match_texture(parent, unaligned)
+            entry.alignment_residual_um = alignment.residual_um
+        placed[roi.id] = PlacedRoi(roi.id, roi.magnification, heights.pixel_size_um, entry.origin_um, z_um, texture)
+        entries.append(entry)
+
+    surface = FusedSurface(list(placed.values()))
+    layout = QuadtreeLayout.covering(surface)
+    with store.writing(specimen_id) as staging:
+        meshers = ThreadPoolExecutor(max_workers=2)
+        pending, failures = [], []
+
+        def emit(key: TileKey, z_um, texture, cell_um, origin_um) -> None:
+            if failures:  # fail fast: a mesher that cannot be reached will not come back mid-build
+                raise failures[0]
+            job = meshers.submit(mesh_tile, z_um, texture, cell_um, origin_um)
+            job.add_done_callback(lambda done: done.exception() and failures.append(done.exception()))
+            pending.append((key, job))
+            report(0.65 + 0.3 * (1 - 0.5 ** (len(pending) / 16)), f"tile {key.uri}")
+
+        try:
+            records = build_tiles(surface, layout, emit)
+            for key, glb in pending:
+                path = staging / key.uri
+                path.parent.mkdir(parents=True, exist_ok=True)
+                path.write_bytes(glb.result())
+        finally:
+            meshers.shutdown(wait=True, cancel_futures=True)
+        for roi in placed.values():
+            write_roi_arrays(staging, roi)
+        (staging / "tileset.json").write_text(json.dumps(tileset_json(layout, records)))
+        write_description(staging, specimen_id=specimen_id, request_id=request_id, rois=entries, layout=layout, tiles=records)
+    report(1.0, "stored")
+    return store.load(specimen_id)
+
+
+def _child_origin(roi: RoiRequest, parent: PlacedRoi, texture: np.ndarray, heights: MeasuredHeights) -> tuple[tuple[float, float], float]:
+    """Where the child's pixel (0, 0) lies in the specimen frame, µm, and the registration score."""
+    rows, cols = heights.z_um.shape
+    if roi.center_um is not None:
+        centre_x, centre_y = roi.center_um
+        half_x, half_y = (cols - 1) / 2 * heights.pixel_size_um, (rows - 1) / 2 * heights.pixel_size_um
+        return (parent.origin_um[0] + centre_x - half_x, parent.origin_um[1] + centre_y - half_y), 0.0
+    image_rows = rows - int(heights.report.get("data_bar_rows", 0))
+    found = registration.register_child(
+        parent.texture, texture[:image_rows], parent_pixel_size_um=parent.pixel_size_um, child_pixel_size_um=heights.pixel_size_um
+    )
+    col_px, row_px = found.origin_px
+    origin = (parent.origin_um[0] + col_px * parent.pixel_size_um, parent.origin_um[1] + row_px * parent.pixel_size_um)
+    return origin, found.score
+
+
+def _grey8(texture: np.ndarray) -> np.ndarray:
+    """8-bit grey of a uint8 or uint16 texture (16-bit spread over its 0.1 to 99.9 percentiles)."""
+    if texture.dtype == np.uint8:
+        return texture
+    low, high = np.percentile(texture, (0.1, 99.9))
+    return np.clip((texture.astype(np.float32) - low) * 255.0 / max(high - low, 1.0), 0, 255).astype(np.uint8)

@@ -1,0 +1,192 @@
+"""Specimens on disk: `DATA/specimens/{id}/` holds specimen.json, tileset.json, tiles/ and rois/.
+
+A specimen is written in a staging folder and renamed into place, so readers see the old one or
+the new one complete, never half of one.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import re
+import shutil
+import threading
+import uuid
+from collections.abc import Iterator
+from dataclasses import asdict, dataclass, field
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+
+from fractoscope.errors import InvalidInputError, NotFoundError
+from fractoscope.specimen.fusion import FusedSurface, PlacedRoi, footprint_um, overlaps
+from fractoscope.specimen.quadtree import QuadtreeLayout, TileKey, TileRecord
+
+_ID = re.compile(r"[A-Za-z0-9_-]{1,64}")
+
+
+def validate_id(value: str, *, field: str) -> str:
+    """Specimen and ROI ids: 1 to 64 of A-Z a-z 0-9 _ -, which keeps them safe in paths and URLs."""
+    if not _ID.fullmatch(value or ""):
+        raise InvalidInputError(field, f"{value!r} is not an id of 1 to 64 letters, digits, '_' or '-'")
+    return value
+
+
+@dataclass
+class RoiEntry:
+    """An ROI as stored: placement (origin of pixel (0, 0), µm), shape (rows, cols), fit figures
+    and the matching report."""
+
+    id: str
+    parent: str
+    magnification: float
+    pixel_size_um: float
+    origin_um: tuple[float, float]
+    shape: tuple[int, int]
+    alignment_residual_um: float = 0.0
+    registration_score: float = 0.0
+    matching: dict = field(default_factory=dict)
+
+    @property
+    def region_um(self) -> tuple[float, float, float, float]:
+        return footprint_um(self.origin_um, self.shape, self.pixel_size_um)
+
+
+class Specimen:
+    """A stored specimen: ROIs (overview first), tile layout and records, lazily loaded surface.
+    `version` tells builds of one id apart (the description's modification time, ns), so caches
+    key on (id, version) without holding the specimen, and its surface, alive."""
+
+    def __init__(self, directory: Path, description: dict, version: int = 0):
+        self.directory = directory
+        self.version = version
+        self.id: str = description["id"]
+        self.request_id: str = description.get("request_id", "")
+        self.rois = [RoiEntry(**{**roi, "origin_um": tuple(roi["origin_um"]), "shape": tuple(roi["shape"])}) for roi in description["rois"]]
+        self.layout = QuadtreeLayout(tuple(description["layout"]["origin_um"]), description["layout"]["size_um"])
+        self.tiles = {record.key: record for record in map(TileRecord.from_json, description["tiles"])}
+
+    def roi(self, roi_id: str) -> RoiEntry:
+        for roi in self.rois:
+            if roi.id == roi_id:
+                return roi
+        raise NotFoundError(f"specimen {self.id!r} has no ROI {roi_id!r}")
+
+    def pixel_size_at_magnification(self, magnification: float) -> float:
+        """Pixel size, µm, that a magnification means here (inversely proportional, from the overview)."""
+        overview = self.rois[0]
+        if overview.magnification <= 0:
+            raise InvalidInputError("magnification", f"specimen {self.id!r} was built without magnifications; give them in its manifest")
+        return overview.pixel_size_um * overview.magnification / magnification
+
+    def finest_pixel_size_um(self, region_um: tuple[float, float, float, float]) -> float:
+        """The smallest pixel size among the ROIs that meet a region (the overview's if none)."""
+        sizes = [roi.pixel_size_um for roi in self.rois if overlaps(roi.region_um, region_um)]
+        return min(sizes) if sizes else self.rois[0].pixel_size_um
+
+    def heights(self, roi_id: str) -> PlacedRoi:
+        return next(placed for placed in self.surface.rois if placed.id == roi_id)
+
+    @cached_property
+    def surface(self) -> FusedSurface:
+        placed = []
+        for roi in self.rois:
+            with np.load(self.directory / "rois" / f"{roi.id}.npz") as arrays:
+                placed.append(PlacedRoi(roi.id, roi.magnification, roi.pixel_size_um, roi.origin_um, arrays["z_um"], arrays["texture"]))
+        return FusedSurface(placed)
+
+    @cached_property
+    def tileset_bytes(self) -> bytes:
+        return (self.directory / "tileset.json").read_bytes()
+
+    def tile_record(self, uri: str) -> TileRecord:
+        try:
+            key = TileKey.from_uri(uri)
+        except ValueError:
+            raise InvalidInputError("uri", f"{uri!r} is not a tile URI of the form tiles/LEVEL/COL/ROW.glb") from None
+        if key not in self.tiles:
+            raise NotFoundError(f"specimen {self.id!r} has no tile {uri!r}")
+        return self.tiles[key]
+
+    def tile_bytes(self, uri: str) -> bytes:
+        """The GLB of a tile named as in tileset.json."""
+        return (self.directory / self.tile_record(uri).key.uri).read_bytes()
+
+
+_CACHES: dict[Path, dict[str, tuple[float, "Specimen"]]] = {}
+_CACHES_LOCK = threading.Lock()
+
+
+class SpecimenStore:
+    """The specimens under `root/specimens`, cached in memory once read."""
+
+    def __init__(self, root: Path):
+        self.root = Path(root) / "specimens"
+        self.root.mkdir(parents=True, exist_ok=True)
+        # Stores of one directory in one process (the gRPC service and the HTTP endpoint) share
+        # what they have loaded, so a specimen's surface is read and held once.
+        with _CACHES_LOCK:
+            self._cache: dict[str, tuple[float, Specimen]] = _CACHES.setdefault(self.root.resolve(), {})
+        self._lock = _CACHES_LOCK
+
+    def discard_unfinished(self) -> int:
+        """Removes what builds of a killed process left behind (no reader ever sees it); only the
+        one writer may call this, when it starts. Returns how many were removed."""
+        leftovers = list(self.root.glob(".staging-*")) + list(self.root.glob(".retired-*"))
+        for leftover in leftovers:
+            shutil.rmtree(leftover, ignore_errors=True)
+        return len(leftovers)
+
+    def ids(self) -> list[str]:
+        return sorted(p.name for p in self.root.iterdir() if p.is_dir() and _ID.fullmatch(p.name) and (p / "specimen.json").is_file())
+
+    def load(self, specimen_id: str) -> Specimen:
+        validate_id(specimen_id, field="specimen_id")
+        description_path = self.root / specimen_id / "specimen.json"
+        try:
+            stamp = description_path.stat().st_mtime_ns
+        except FileNotFoundError:
+            raise NotFoundError(f"no specimen {specimen_id!r}") from None
+        with self._lock:
+            cached = self._cache.get(specimen_id)
+            if cached and cached[0] == stamp:
+                return cached[1]
+        specimen = Specimen(self.root / specimen_id, json.loads(description_path.read_text()), version=stamp)
+        with self._lock:
+            self._cache[specimen_id] = (stamp, specimen)
+        return specimen
+
+    @contextlib.contextmanager
+    def writing(self, specimen_id: str) -> Iterator[Path]:
+        """A staging folder to write a specimen into; on success it replaces the stored one at once,
+        on failure it is removed and the stored one stays as it was."""
+        staging = self.root / f".staging-{specimen_id}-{uuid.uuid4().hex}"
+        staging.mkdir()
+        try:
+            yield staging
+            target = self.root / specimen_id
+            retired = self.root / f".retired-{specimen_id}-{uuid.uuid4().hex}"
+            if target.exists():
+                target.rename(retired)
+            staging.rename(target)
+            shutil.rmtree(retired, ignore_errors=True)
+        finally:
+            shutil.rmtree(staging, ignore_errors=True)
+
+
+def write_description(directory: Path, *, specimen_id: str, request_id: str, rois: list[RoiEntry], layout: QuadtreeLayout, tiles: dict[TileKey, TileRecord]) -> None:
+    """specimen.json: everything about a specimen except arrays and tiles' bytes."""
+    description = {
+        "id": specimen_id,
+        "request_id": request_id,
+        "rois": [asdict(roi) for roi in rois],
+        "layout": {"origin_um": list(layout.origin_um), "size_um": layout.size_um},
+        "tiles": [record.to_json() for _, record in sorted(tiles.items())],
+    }
+    (directory / "specimen.json").write_text(json.dumps(description, indent=1))
+
+
+def write_roi_arrays(directory: Path, roi: PlacedRoi) -> None:
+    (directory / "rois").mkdir(exist_ok=True)
+    np.savez_compressed(directory / "rois" / f"{roi.id}.npz", z_um=roi.z_um, texture=roi.texture)

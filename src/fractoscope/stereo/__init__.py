@@ -1,0 +1,7 @@
+"""From SEM stereo pairs and tilt series to height maps (the matching service's work).
+
+`alignment` rectifies a pair (tilt axis vertical, global shift and rotation removed); `matching`
+drives dense matching (local contrast, strips, stitching) and `window_zncc` is the method that
+matches a strip; `geometry` and `tilt_series` turn disparities into heights and their
+uncertainty; `pipeline` runs the whole chain for one request.
+"""

@@ -1,0 +1,281 @@
+"""From a stereo pair of SEM images to a calibrated height map on the first image's pixel grid.
+
+Steps: calibration (explicit values over file metadata), data bar crop, rotation of the tilt
+axis to vertical, global alignment, dense ZNCC matching, heights by the parallel-projection
+formula, uncertainty, and the way back onto the first image's grid as stored.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from fractoscope.errors import InvalidInputError
+from fractoscope.progress import ProgressCallback, silent
+from fractoscope.sem.image import SemImage
+from fractoscope.stereo import alignment, geometry, matching, tilt_series
+from fractoscope.stereo.disparity import StripMatcher
+
+
+AXIS_WARNING_DEG = 2.0
+
+
+@dataclass(frozen=True)
+class MatchingOptions:
+    """Tuning of the matcher; see `matching.match_disparity` for the meaning of each."""
+
+    window_px: int = matching.DEFAULT_WINDOW_PX
+    max_disparity_px: int | None = None
+    min_confidence: float = matching.DEFAULT_MIN_CONFIDENCE
+    max_lr_difference_px: float = matching.DEFAULT_MAX_LR_DIFFERENCE_PX
+    normalize_local_contrast: bool = True
+    propagate_at_full_resolution: bool = False
+    tilt_uncertainty_deg: float = 0.5
+    calibrate_tilt: bool = False
+    strip_pixels: int = matching.DEFAULT_STRIP_PIXELS
+
+
+@dataclass(frozen=True)
+class HeightMapResult:
+    """A height map on the first image's stored grid (rows, cols), float32.
+
+    z_um: heights in µm, relative (arbitrary constant offset), NaN where unknown.
+    sigma_um: one-sigma uncertainty in µm, NaN where z_um is NaN.
+    confidence: peak ZNCC, 0 to 1.
+    report: alignment and quality figures (see MatchingReport in the protobuf API).
+    """
+
+    z_um: np.ndarray
+    sigma_um: np.ndarray
+    confidence: np.ndarray
+    report: dict = field(default_factory=dict)
+
+
+def compute_height_map(
+    first: SemImage,
+    second: SemImage,
+    *,
+    tilt_deg: tuple[float | None, float | None] = (None, None),
+    pixel_size_um: float | None = None,
+    tilt_axis_deg: float = 90.0,
+    options: MatchingOptions = MatchingOptions(),
+    progress: ProgressCallback | None = None,
+) -> HeightMapResult:
+    """Heights of the surface seen in `first`, from `first` and `second` taken at two stage tilts
+    (the two-view case of `compute_series_height_map`). Explicit `tilt_deg` entries and
+    `pixel_size_um` override what the files say."""
+    return compute_series_height_map(
+        [first, second], tilt_deg=tilt_deg, pixel_size_um=pixel_size_um, tilt_axis_deg=tilt_axis_deg, options=options, progress=progress
+    )
+
+
+def compute_series_height_map(
+    images: Sequence[SemImage],
+    *,
+    tilt_deg: Sequence[float | None] | None = None,
+    pixel_size_um: float | None = None,
+    tilt_axis_deg: float = 90.0,
+    options: MatchingOptions = MatchingOptions(),
+    strip_matcher: StripMatcher | None = None,
+    progress: ProgressCallback | None = None,
+) -> HeightMapResult:
+    """Heights of the surface seen in `images[0]` from a tilt series (two or more views about one
+    axis): every view is aligned to and densely matched with the first, and each pixel's height is
+    the least-squares solution over all views that matched it. With `options.calibrate_tilt` and
+    three or more views the tilts of all but the first are estimated from the images first
+    (see tilt_series). Explicit `tilt_deg` entries and `pixel_size_um` override the files. Dense
+    matching runs in strips of rows (`options.strip_pixels`), matched by `strip_matcher` (default:
+    here, one after another; see stereo.matching)."""
+    started = time.perf_counter()
+    report_progress = progress or silent
+    if len(images) < 2:
+        raise InvalidInputError("images", f"at least two images are needed, got {len(images)}")
+    if options.calibrate_tilt and len(images) < 3:
+        raise InvalidInputError("parameters.calibrate_tilt", "tilt calibration needs three or more images")
+    given = list(tilt_deg) if tilt_deg is not None else [None] * len(images)
+    if len(given) != len(images):
+        raise InvalidInputError("images[].tilt_deg", f"{len(given)} tilts for {len(images)} images")
+    nominal = [_resolve_tilt(image, explicit, index) for index, (image, explicit) in enumerate(zip(images, given))]
+    for index in range(1, len(images)):
+        geometry.validate_tilts((nominal[0], nominal[index]), field=f"images[{index}].tilt_deg")
+    pixel_size = _resolve_pixel_size(images[0], pixel_size_um)
+    for index in range(1, len(images)):
+        _validate(images[0], images[index], tilt_axis_deg, options, index=index)
+
+    bar_rows = max(image.data_bar_rows for image in images)
+    usable_rows = images[0].pixels.shape[0] - bar_rows
+    views = [image.pixels[:usable_rows].astype(np.float32) for image in images]
+    to_rectified, canvas = alignment.rotation_to_vertical_axis(views[0].shape, tilt_axis_deg)
+    rotated = abs(tilt_axis_deg - 90.0) > 1e-9
+    outside = np.zeros(views[0].shape, bool)
+    if rotated:
+        views = [alignment.apply_affine(view, to_rectified, canvas, fill=np.nan) for view in views]
+        outside = np.any([np.isnan(view) for view in views], axis=0)
+        fill = float(np.nanmean(views[0]))
+        views = [np.nan_to_num(view, nan=fill) for view in views]
+
+    # Reference columns from the tilt axis (the image centre), pixels.
+    columns_px = np.arange(views[0].shape[1], dtype=np.float64) - (views[0].shape[1] - 1) / 2.0
+    x1_px = np.broadcast_to(columns_px[None, :], views[0].shape)
+    disparities = [np.zeros(views[0].shape, np.float32)]
+    sigmas, confidences, placements, magnification_sigma = [], [], [], [0.0]
+    for index in range(1, len(views)):
+        def matching_progress(fraction: float, message: str, index=index) -> None:
+            report_progress(0.05 + 0.8 * (index - 1 + fraction) / (len(views) - 1), f"view {index}: {message}")
+
+        report_progress(0.05 + 0.8 * (index - 1) / (len(views) - 1), f"view {index}: aligning")
+        placement = alignment.estimate_alignment(views[0], views[index])
+        on_first = alignment.apply_affine(
+            views[index], alignment.second_to_first_matrix(placement, views[0].shape), views[0].shape, inverse=True
+        )
+        spread = placement.parallax_spread_px if np.isfinite(placement.parallax_spread_px) else views[0].shape[1] / 8
+        max_disparity_px = options.max_disparity_px or int(np.ceil(1.5 * spread + 8))
+        matched = matching.match_disparity(
+            views[0], on_first, window_px=options.window_px, max_disparity_px=max_disparity_px,
+            min_confidence=options.min_confidence, max_lr_difference_px=options.max_lr_difference_px,
+            normalize_local_contrast=options.normalize_local_contrast, propagate_at_full_resolution=options.propagate_at_full_resolution,
+            strip_pixels=options.strip_pixels, strip_matcher=strip_matcher, progress=matching_progress,
+        )
+        strip_count = len(matching.strip_bounds(
+            views[0].shape, window_px=options.window_px, max_disparity_px=max_disparity_px, strip_pixels=options.strip_pixels
+        ))
+        # A magnification error ε the alignment left makes disparities err by ε·x: measured on the
+        # matched images, it is taken out here rather than by matching again.
+        measured = alignment.residual_magnification(views[0], on_first, matched.disparity_px)
+        epsilon, epsilon_sigma = measured if measured else (0.0, placement.scale_sigma)
+        magnification_sigma.append(epsilon_sigma)
+        disparities.append(matched.disparity_px + placement.shift_parallel_px - (epsilon * columns_px).astype(np.float32))
+        placement = dataclasses.replace(placement, scale=placement.scale * (1.0 + epsilon))
+        sigmas.append(matched.sigma_px)
+        confidences.append(matched.confidence)
+        placements.append(placement)
+    disparities = np.stack(disparities)
+
+    tilts, offsets, calibration = np.array(nominal), None, {}
+    if options.calibrate_tilt:
+        report_progress(0.87, "calibrating tilts")
+        sample = (slice(None, None, 4), slice(None, None, 4))  # sparse points: neighbours' errors correlate
+        estimate = tilt_series.estimate_tilts(
+            x1_px[sample].ravel(), disparities[(slice(None), *sample)].reshape(len(views), -1), nominal,
+            magnification_sigma=magnification_sigma,
+        )
+        tilts, offsets = estimate.tilt_deg, estimate.offsets_px
+        calibration = {"tilt_deg_nominal": list(nominal), "tilt_sigma_deg": estimate.sigma_deg.tolist(), "tilt_residual_px": estimate.residual_px}
+    report_progress(0.92, "heights")
+    z_px, _ = tilt_series.heights_px(x1_px, disparities, tilts, offsets_px=offsets)
+    z_um = (z_px * pixel_size).astype(np.float32)
+    _, b = tilt_series.coefficients(tilts)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        # Information on the height from each view's disparity, 1/px² (none where unmatched).
+        information = sum(np.where(np.isfinite(sigma), (np.float32(b[index + 1]) / sigma) ** 2, np.float32(0)) for index, sigma in enumerate(sigmas))
+        disparity_sigma_um = np.float32(pixel_size) / np.sqrt(information)
+    widest = (float(tilts[0]), float(tilts[np.argmax(np.abs(b))]))
+    warnings = []
+    tilt_uncertainty = options.tilt_uncertainty_deg
+    if calibration:
+        calibrated_sigma = float(np.max(calibration["tilt_sigma_deg"]))
+        if np.isfinite(calibrated_sigma):
+            tilt_uncertainty = calibrated_sigma
+        else:  # a view's magnification could be measured neither on the matched images nor from features
+            warnings.append(
+                "the calibrated tilts' uncertainty is unknown (a view's magnification could not be measured); "
+                f"sigma_um uses the nominal tilt uncertainty of {options.tilt_uncertainty_deg:g} degrees"
+            )
+    relative = geometry.relative_height_error_from_tilt(tilt_deg=widest, tilt_uncertainty_deg=tilt_uncertainty)
+    finite = np.isfinite(z_um)
+    sample = z_um[::4, ::4]  # the median height, which the tilt error scales from, needs no more
+    sample = sample[np.isfinite(sample)]
+    reference_um = np.float32(np.median(sample)) if sample.size else np.float32(0)
+    sigma_um = np.hypot(disparity_sigma_um, np.float32(relative) * np.abs(z_um - reference_um))
+    sigma_um[~finite] = np.nan
+    confidence = confidences[0] if len(confidences) == 1 else np.nanmax(np.stack(confidences), axis=0)
+    if rotated:
+        z_um[outside] = np.nan
+        back = (images[0].pixels.shape[0] - bar_rows, images[0].pixels.shape[1])
+        z_um, sigma_um, confidence = (
+            alignment.apply_affine(values.astype(np.float32), to_rectified, back, inverse=True, fill=np.nan)
+            for values in (z_um, sigma_um, confidence)
+        )
+    z_um, sigma_um, confidence = (_pad_rows(values, bar_rows) for values in (z_um, sigma_um, confidence))
+    valid = np.isfinite(z_um)
+    first_placement = placements[0]
+    directions = [p.parallax_direction_deg for p in placements if np.isfinite(p.parallax_direction_deg)]
+    axis_estimated = float(tilt_axis_deg + np.median(directions)) if directions else float("nan")
+    if directions and abs(axis_estimated - tilt_axis_deg) > AXIS_WARNING_DEG:
+        warnings.append(
+            f"the parallax points to a tilt axis at {axis_estimated:.1f} degrees, {abs(axis_estimated - tilt_axis_deg):.1f} "
+            f"from the {tilt_axis_deg:g} used; heights may be wrong (give --tilt-axis-deg)"
+        )
+    report = {
+        "tilt_deg": [float(t) for t in tilts],
+        "tilt_axis_deg": float(tilt_axis_deg),
+        "pixel_size_um": pixel_size,
+        "shift_parallel_px": first_placement.shift_parallel_px,
+        "shift_across_px": first_placement.shift_across_px,
+        "rotation_deg": first_placement.rotation_deg,
+        "magnification_ratio": first_placement.scale,
+        "residual_vertical_parallax_px": max(p.residual_vertical_parallax_px for p in placements),
+        "valid_fraction": float(valid.mean()),
+        "min_disparity_px": float(np.nanmin(disparities[1])) if np.isfinite(disparities[1]).any() else float("nan"),
+        "max_disparity_px": float(np.nanmax(disparities[1])) if np.isfinite(disparities[1]).any() else float("nan"),
+        "data_bar_rows": int(bar_rows),
+        "elapsed_s": time.perf_counter() - started,
+        "tilt_axis_deg_estimated": axis_estimated,
+        "warnings": warnings,
+        "strip_count": strip_count,
+        **calibration,
+    }
+    report_progress(1.0, "done")
+    return HeightMapResult(z_um, sigma_um, np.nan_to_num(confidence).astype(np.float32), report)
+
+
+def _resolve_tilt(image: SemImage, explicit: float | None, index: int) -> float:
+    value = explicit if explicit is not None else image.tilt_deg
+    if value is None:
+        raise InvalidInputError(f"images[{index}].tilt_deg", "no tilt given and the image file carries no stage tilt metadata")
+    return float(value)
+
+
+def _resolve_pixel_size(first: SemImage, pixel_size_um: float | None) -> float:
+    value = pixel_size_um if pixel_size_um is not None else first.pixel_size_um
+    if value is None:
+        raise InvalidInputError("pixel_size_um", "no pixel size given and the image file carries no calibration")
+    return geometry.validate_pixel_size_um(value)
+
+
+def _validate(first: SemImage, second: SemImage, tilt_axis_deg: float, options: MatchingOptions, *, index: int = 1) -> None:
+    if first.pixels.shape != second.pixels.shape:
+        raise InvalidInputError(
+            f"images[{index}]", f"size {second.pixels.shape[::-1]} differs from the first image's {first.pixels.shape[::-1]}"
+        )
+    if not np.isfinite(tilt_axis_deg):
+        raise InvalidInputError("tilt_axis_deg", f"must be finite, got {tilt_axis_deg}")
+    validate_options(options, image_cols=first.pixels.shape[1])
+
+
+def validate_options(options: MatchingOptions, *, image_cols: int) -> None:
+    """Raises InvalidInputError naming the first out-of-range setting (field names as in the API)."""
+    if options.window_px < 5 or options.window_px % 2 == 0 or options.window_px > 101:
+        raise InvalidInputError("parameters.window_px", f"must be odd, 5 to 101, got {options.window_px}")
+    if not 0.0 <= options.min_confidence < 1.0:
+        raise InvalidInputError("parameters.min_confidence", f"must be in [0, 1), got {options.min_confidence}")
+    if not options.max_lr_difference_px > 0:
+        raise InvalidInputError("parameters.max_lr_difference_px", f"must be > 0, got {options.max_lr_difference_px}")
+    if options.strip_pixels < 1:
+        raise InvalidInputError("strip_pixels", f"must be positive, got {options.strip_pixels}")
+    if options.max_disparity_px is not None and not 1 <= options.max_disparity_px <= image_cols:
+        raise InvalidInputError("parameters.max_disparity_px", f"must be 1 to the image width, got {options.max_disparity_px}")
+    if not 0.0 <= options.tilt_uncertainty_deg < 45.0:
+        raise InvalidInputError("parameters.tilt_uncertainty_deg", f"must be in [0, 45), got {options.tilt_uncertainty_deg}")
+
+
+def _pad_rows(values: np.ndarray, rows: int) -> np.ndarray:
+    """Adds `rows` NaN rows at the bottom, where the data bar was."""
+    if rows == 0:
+        return values.astype(np.float32, copy=False)
+    padding = np.full((rows, values.shape[1]), np.nan, np.float32)
+    return np.vstack([values.astype(np.float32), padding])
