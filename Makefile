@@ -88,6 +88,7 @@ bench: install $(WRK) $(GHZ)
 	$(BIN)/python -m benchmarks.meshing --out bench-results
 	$(BIN)/python -m benchmarks.serving --out bench-results
 	$(BIN)/python -m benchmarks.scale_out --out bench-results --one-cpu-per-replica --peers 1 2
+	$(BIN)/python -m benchmarks.page_faults --out bench-results
 
 ## load: tiles over HTTP (wrk) and tiles, zooms and profiles over gRPC (ghz) at concurrency 50 for 60 s each, into bench-results/load.json
 load: install $(WRK) $(GHZ)

@@ -14,7 +14,7 @@ from concurrent import futures
 
 import grpc
 
-from fractoscope.services.server import settle_garbage_collector
+from fractoscope.services.runtime import settle_garbage_collector
 from fractoscope.v1 import tiles_pb2
 
 

@@ -24,7 +24,7 @@ from fractoscope import synthetic
 from fractoscope.stereo.matching import match_disparity
 from fractoscope.stereo.pipeline import compute_height_map
 from fractoscope.sem.image import SemImage
-from fractoscope.services.server import keep_freed_memory
+from fractoscope.services.runtime import keep_freed_memory
 
 PIXEL_SIZE_UM = 0.1
 TILTS_DEG = (-5.0, 5.0)

@@ -22,7 +22,8 @@ from fractoscope.synthetic.examples import write_multiscale_specimen
 from fractoscope.client.manifest import load_manifest
 from fractoscope.stereo.pipeline import MatchingOptions, compute_series_height_map
 from fractoscope.sem.image import read_sem_image
-from fractoscope.services.server import _SERVICES, build_parser, create_server
+from fractoscope.services.config import SERVICE_NAMES, build_parser
+from fractoscope.services.server import create_server
 from fractoscope.formats.tileset import content_uris
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -42,7 +43,7 @@ def test_kubernetes_deployments_are_probed_limited_and_unprivileged():
     documents = _k8s_documents()
     deployments = [d for d in documents if d["kind"] == "Deployment"]
     services = {d["metadata"]["name"]: d for d in documents if d["kind"] == "Service"}
-    assert {d["metadata"]["name"] for d in deployments} == set(_SERVICES)
+    assert {d["metadata"]["name"] for d in deployments} == set(SERVICE_NAMES)
     for deployment in deployments:
         pod = deployment["spec"]["template"]["spec"]
         assert pod["securityContext"]["runAsNonRoot"] is True
@@ -99,7 +100,7 @@ def test_kubeconform_refuses_a_misspelt_field_and_a_wrong_type():
 
 def test_compose_and_image_run_the_server_as_a_user():
     compose = yaml.safe_load((DEPLOY / "compose.yaml").read_text())
-    assert set(compose["services"]) == set(_SERVICES)
+    assert set(compose["services"]) == set(SERVICE_NAMES)
     for name, service in compose["services"].items():
         args = build_parser().parse_args(service["command"])
         assert args.services == name
@@ -136,7 +137,7 @@ class Stack:
     """The three services as separate `fracto-server` processes on loopback, as deployed."""
 
     def __init__(self, data: Path):
-        self.ports = {name: _free_port() for name in _SERVICES}
+        self.ports = {name: _free_port() for name in SERVICE_NAMES}
         self.commands = {
             "matching": ["--services", "matching"],
             "meshing": ["--services", "meshing"],
@@ -144,7 +145,7 @@ class Stack:
                       "--matching-address", f"dns:///127.0.0.1:{self.ports['matching']}",
                       "--meshing-address", f"127.0.0.1:{self.ports['meshing']}"],
         }
-        self.processes = {name: self._start(name) for name in _SERVICES}
+        self.processes = {name: self._start(name) for name in SERVICE_NAMES}
         self.wait_until_healthy()
 
     def _start(self, name: str) -> subprocess.Popen:
@@ -348,29 +349,10 @@ def test_a_serving_process_freezes_its_start_up_objects_and_collects_garbage_les
     """settle_garbage_collector, which fracto-server and `make run` call before serving (why: its
     docstring and the load figures in the README), run in a fresh interpreter."""
     probe = (
-        "import gc, json; from fractoscope.services.server import settle_garbage_collector;"
+        "import gc, json, fractoscope.services.server; from fractoscope.services.runtime import settle_garbage_collector;"
         "before = gc.get_threshold(); settle_garbage_collector();"
         "print(json.dumps([before, gc.get_threshold(), gc.get_freeze_count()]))"
     )
     before, after, frozen = json.loads(subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True).stdout)
     assert before == [700, 10, 10] and after == [50_000, 20, 10]
     assert frozen > 10_000  # the objects of start-up (modules, classes), no longer scanned
-
-
-def test_a_serving_process_reuses_freed_memory_instead_of_faulting_in_fresh_pages():
-    """keep_freed_memory, which fracto-server, `make run` and in-process `fracto` commands call
-    (why: its docstring): a 512² pair matched in a fresh interpreter, page faults counted over a
-    second match, with the C library's defaults and with the setting."""
-    def page_faults(keep: bool) -> int:
-        probe = (
-            "import json, resource, numpy as np, cv2; from fractoscope.stereo.matching import match_disparity;"
-            "from fractoscope.services.server import keep_freed_memory;"
-            f"{'keep_freed_memory();' if keep else ''}"
-            "image = cv2.GaussianBlur((np.random.default_rng(0).random((512, 512)) * 255).astype(np.uint8), (0, 0), 1.5);"
-            "pair = (image, np.roll(image, 3, axis=1)); match_disparity(*pair, max_disparity_px=16);"
-            "before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt; match_disparity(*pair, max_disparity_px=16);"
-            "print(json.dumps(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before))"
-        )
-        return json.loads(subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True).stdout)
-
-    assert page_faults(keep=True) < 0.1 * page_faults(keep=False)  # measured 23 and 8,800

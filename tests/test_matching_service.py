@@ -10,6 +10,7 @@ from grpc_reflection.v1alpha import reflection_pb2, reflection_pb2_grpc
 
 from conftest import fracture_pair, inner_mask, tiff_bytes
 from fractoscope.client import ClientError
+from fractoscope.services.matching.peers import StripPeers
 from fractoscope.stereo.disparity import StripTask
 
 
@@ -75,6 +76,13 @@ def test_bad_requests_get_invalid_argument_naming_the_field(client, case, field)
     assert "Traceback" not in str(error.value)
 
 
+@pytest.fixture()
+def peers(server_address):
+    """The loopback server as a strip peer, as a coordinating matching replica sees it."""
+    with StripPeers(server_address, timeout_s=120) as connected:
+        yield connected
+
+
 @pytest.mark.parametrize(
     "change, field",
     [
@@ -85,15 +93,15 @@ def test_bad_requests_get_invalid_argument_naming_the_field(client, case, field)
         (lambda task: dataclasses.replace(task, keep_rows=(10, 500)), "keep_to_row"),
     ],
 )
-def test_a_bad_strip_gets_invalid_argument_naming_the_field(client, change, field):
+def test_a_bad_strip_gets_invalid_argument_naming_the_field(peers, change, field):
     pair = fracture_pair(size_px=128)
     task = StripTask(pair.first.astype(np.float32), pair.second.astype(np.float32), 15, 16, 0.5, 1.0)
-    result, worker = client.match_strip(task)
+    result, worker = peers.match_strip(task)
     assert np.isfinite(result.disparity_px).mean() > 0.5 and worker
-    kept, _ = client.match_strip(dataclasses.replace(task, keep_rows=(8, 40)))  # only those rows come back
+    kept, _ = peers.match_strip(dataclasses.replace(task, keep_rows=(8, 40)))  # only those rows come back
     np.testing.assert_array_equal(kept.disparity_px, result.disparity_px[8:40])
     with pytest.raises(ClientError) as error:
-        client.match_strip(change(task))
+        peers.match_strip(change(task))
     assert error.value.code == grpc.StatusCode.INVALID_ARGUMENT and error.value.field == field
 
 

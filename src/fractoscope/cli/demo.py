@@ -3,18 +3,66 @@ known truth, and the real pollen pair from the shared data when it is present.""
 
 from __future__ import annotations
 
+import json
+import signal
+import threading
 from pathlib import Path
 
 import numpy as np
 from rich.console import Console
 from rich.table import Table
 
-from fractoscope.surface import roughness
-from fractoscope.synthetic.examples import write_multiscale_specimen
+from fractoscope.cli.common import UsageError
 from fractoscope.client import FractoscopeClient
 from fractoscope.client.manifest import load_manifest
+from fractoscope.services.runtime import keep_freed_memory, settle_garbage_collector
+from fractoscope.services.server import embedded_server
+from fractoscope.services.tiles.http import start_http_server
+from fractoscope.specimen.store import SpecimenStore
+from fractoscope.surface import roughness
+from fractoscope.synthetic.examples import write_multiscale_specimen
 
 REAL_SERIES = "real/potamogeton-tilt-series"
+
+
+def add_parsers(commands) -> None:
+    demo = commands.add_parser("demo", help="serve the demo specimens with the web viewer (the main job of make run)")
+    demo.add_argument("--data", default="./data", help="data directory (default ./data)")
+    demo.add_argument("--shared-data", default="../shared/data", help="shared test data, used when present")
+    demo.add_argument("--host", default="127.0.0.1", help="address to serve on (default loopback)")
+    demo.add_argument("--port", type=int, default=50051, help="gRPC port (default 50051; 0 = any free port)")
+    demo.add_argument("--http-port", type=int, default=8080, help="HTTP port of tiles and viewer (default 8080; 0 = any)")
+    demo.add_argument("--exit", action="store_true", help="stop after building the specimens instead of serving")
+    demo.set_defaults(run=command_demo)
+
+
+def command_demo(args) -> int:
+    console = Console()
+    data = Path(args.data)
+    keep_freed_memory()
+    store = SpecimenStore(data)  # one store, served over gRPC and HTTP
+    try:
+        http = start_http_server(store, args.host, args.http_port)
+    except OSError as error:
+        raise UsageError(f"cannot serve HTTP on {args.host}:{args.http_port}: {error.strerror}; choose another --http-port") from None
+    try:
+        with embedded_server(host=args.host, port=args.port, store=store) as address, FractoscopeClient(address) as client:
+            specimens = run_demo(client, data, shared_data=Path(args.shared_data), console=console)
+            url = f"http://{args.host}:{http.server_port}/viewer/?specimen={specimens[0]}"
+            console.print(f"viewer: [bold]{url}[/bold]", soft_wrap=True)
+            console.print(f"gRPC:   {address}   (e.g. fracto roughness {specimens[0]} --server {address})", soft_wrap=True)
+            console.print(f"data:   {data.resolve()}", soft_wrap=True)
+            if not args.exit:
+                settle_garbage_collector()
+                console.print("serving until Ctrl-C")
+                stop = threading.Event()
+                for signum in (signal.SIGINT, signal.SIGTERM):
+                    signal.signal(signum, lambda *_: stop.set())
+                stop.wait()
+                console.print("stopping")
+    finally:
+        http.shutdown()
+    return 0
 
 
 def run_demo(client: FractoscopeClient, data_dir: Path, *, shared_data: Path, console: Console) -> list[str]:
@@ -59,19 +107,9 @@ def run_demo(client: FractoscopeClient, data_dir: Path, *, shared_data: Path, co
 def _write_pollen_manifest(series: Path, directory: Path) -> Path:
     """A one-ROI specimen of the real pollen pair at -3/+3 degrees (tilts and pixel size from the
     Zeiss metadata)."""
-    import json
-
     directory.mkdir(parents=True, exist_ok=True)
     manifest = directory / "manifest.json"
     rois = [{"id": "pot-02-04", "left": str((series / "pot_02.tif").resolve()), "right": str((series / "pot_04.tif").resolve()),
              "magnification": 0}]
     manifest.write_text(json.dumps({"specimen": "pollen", "rois": rois}, indent=1))
     return manifest
-
-
-def write_tiles(tiles, directory: Path) -> None:
-    """GLB tiles as DIRECTORY/level_L/ROW_COL.glb."""
-    for tile in tiles:
-        path = directory / f"level_{tile.level}" / f"{tile.tile_row}_{tile.tile_col}.glb"
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_bytes(tile.glb)

@@ -1,8 +1,13 @@
-"""The one place where Fractoscope exceptions become gRPC statuses."""
+"""The one place where Fractoscope exceptions become gRPC statuses (servers) and statuses become
+exceptions again (callers: the client, and services calling each other)."""
 
 from __future__ import annotations
 
+import contextlib
+import functools
+import inspect
 import logging
+from collections.abc import Iterator
 
 import grpc
 from google.protobuf import any_pb2
@@ -12,6 +17,15 @@ from grpc_status import rpc_status
 from fractoscope.errors import CancelledError, FractoscopeError, InvalidInputError, NotFoundError, UnavailableError
 
 _log = logging.getLogger("fractoscope.services")
+
+
+class ClientError(Exception):
+    """A call failed; `code` is the gRPC status code, `field` the offending request field if any."""
+
+    def __init__(self, code: grpc.StatusCode, message: str, field: str | None = None):
+        super().__init__(message)
+        self.code = code
+        self.field = field
 
 
 def abort_with_error(context: grpc.ServicerContext, error: Exception) -> None:
@@ -33,3 +47,44 @@ def abort_with_error(context: grpc.ServicerContext, error: Exception) -> None:
         _log.exception("internal error")
         status = status_pb2.Status(code=code_pb2.INTERNAL, message=f"internal error ({type(error).__name__})")
     context.abort_with_status(rpc_status.to_status(status))
+
+
+def abort_on_error(method):
+    """Decorates a servicer method (unary or server-streaming): every exception it raises ends
+    the call through `abort_with_error`."""
+    if inspect.isgeneratorfunction(method):
+        @functools.wraps(method)
+        def streaming(self, request, context):
+            try:
+                yield from method(self, request, context)
+            except Exception as error:
+                abort_with_error(context, error)
+
+        return streaming
+
+    @functools.wraps(method)
+    def unary(self, request, context):
+        try:
+            return method(self, request, context)
+        except Exception as error:
+            abort_with_error(context, error)
+
+    return unary
+
+
+@contextlib.contextmanager
+def raised_as_client_errors() -> Iterator[None]:
+    """Turns a failed call's grpc.RpcError into ClientError, with the field a BadRequest detail
+    names."""
+    try:
+        yield
+    except grpc.RpcError as error:
+        status = rpc_status.from_call(error)
+        field = None
+        if status is not None:
+            for detail in status.details:
+                if detail.Is(error_details_pb2.BadRequest.DESCRIPTOR):
+                    bad_request = error_details_pb2.BadRequest()
+                    detail.Unpack(bad_request)
+                    field = bad_request.field_violations[0].field if bad_request.field_violations else None
+        raise ClientError(error.code(), error.details() or str(error.code()), field) from None

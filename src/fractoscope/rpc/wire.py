@@ -1,11 +1,14 @@
-"""Conversions between numpy arrays and the protobuf messages of the fractoscope.v1 API."""
+"""Conversions between plain values (numpy arrays, report dicts, regions, roughness and profile
+parameters by their ISO names) and the messages of the fractoscope.v1 API. Numpy and protobuf
+only: both ends of the wire use them."""
 
 from __future__ import annotations
 
 import numpy as np
+from google.protobuf import json_format
 
 from fractoscope.errors import InvalidInputError
-from fractoscope.v1 import common_pb2, matching_pb2
+from fractoscope.v1 import common_pb2, matching_pb2, tiles_pb2
 
 _DTYPES = {
     common_pb2.DATA_TYPE_FLOAT32: np.dtype("<f4"),
@@ -55,3 +58,55 @@ def report_to_message(report: dict) -> matching_pb2.MatchingReport:
 def message_to_report(message: matching_pb2.MatchingReport) -> dict:
     """A MatchingReport message to a plain dict (lists for repeated fields)."""
     return {key: list(getattr(message, key)) if key in _REPEATED_REPORT_FIELDS else getattr(message, key) for key in REPORT_FIELDS}
+
+
+Region = tuple[float, float, float, float]
+
+
+def region_message(region_um: Region) -> tiles_pb2.RegionUm:
+    """(x_min, y_min, x_max, y_max) µm to a RegionUm."""
+    x0, y0, x1, y1 = region_um
+    return tiles_pb2.RegionUm(min=common_pb2.PointUm(x_um=x0, y_um=y0), max=common_pb2.PointUm(x_um=x1, y_um=y1))
+
+
+def message_to_region(message: tiles_pb2.RegionUm) -> Region:
+    """A RegionUm to (x_min, y_min, x_max, y_max) µm, unchecked."""
+    return message.min.x_um, message.min.y_um, message.max.x_um, message.max.y_um
+
+
+# Optical: the tile's data is measured at its resolution; digital: coarser data upsampled.
+ZOOM_KINDS = {"optical": tiles_pb2.ZOOM_KIND_OPTICAL, "digital": tiles_pb2.ZOOM_KIND_DIGITAL}
+_ZOOM_NAMES = {kind: name for name, kind in ZOOM_KINDS.items()}
+
+
+def zoom_name(kind: int) -> str:
+    return _ZOOM_NAMES.get(kind, "unknown")
+
+
+# ISO names of the parameters (as the analysis modules return them) and their message fields.
+_ROUGHNESS_FIELDS = {
+    "Sa": "sa_um", "Sq": "sq_um", "Ssk": "ssk", "Sku": "sku", "Sp": "sp_um", "Sv": "sv_um", "Sz": "sz_um",
+    "Sdq": "sdq", "Sdr": "sdr_percent",
+}
+_ROUGHNESS_NAMES = {field: name for name, field in _ROUGHNESS_FIELDS.items()}
+_PROFILE_FIELDS = {"Ra": "ra_um", "Rq": "rq_um", "Rz": "rz_um", "Rsk": "rsk", "Rku": "rku"}
+
+
+def roughness_response(values: dict) -> tiles_pb2.GetRoughnessResponse:
+    """Areal parameters by ISO name (Sa ... Sdr) and fracture metrics to their response."""
+    return tiles_pb2.GetRoughnessResponse(**{_ROUGHNESS_FIELDS.get(key, key): value for key, value in values.items()})
+
+
+def response_to_roughness(response: tiles_pb2.GetRoughnessResponse) -> dict:
+    """A GetRoughnessResponse to a dict keyed by ISO names (every field, set or not)."""
+    values = json_format.MessageToDict(response, preserving_proto_field_name=True, always_print_fields_with_no_presence=True)
+    return {_ROUGHNESS_NAMES.get(key, key): value for key, value in values.items()}
+
+
+def profile_parameters_message(values: dict) -> tiles_pb2.ProfileParameters:
+    """Ra, Rq, Rz (µm), Rsk and Rku by ISO name to their message."""
+    return tiles_pb2.ProfileParameters(**{field: values[name] for name, field in _PROFILE_FIELDS.items()})
+
+
+def message_to_profile_parameters(message: tiles_pb2.ProfileParameters) -> dict:
+    return {name: getattr(message, field) for name, field in _PROFILE_FIELDS.items()}

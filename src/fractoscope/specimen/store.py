@@ -114,21 +114,16 @@ class Specimen:
         return (self.directory / self.tile_record(uri).key.uri).read_bytes()
 
 
-_CACHES: dict[Path, dict[str, tuple[float, "Specimen"]]] = {}
-_CACHES_LOCK = threading.Lock()
-
-
 class SpecimenStore:
-    """The specimens under `root/specimens`, cached in memory once read."""
+    """The specimens under `root/specimens`, cached in memory once read. A process makes one store
+    per directory and hands it to everything that serves it (the tile service and the HTTP
+    endpoint), so a specimen's surface is read and held once."""
 
     def __init__(self, root: Path):
         self.root = Path(root) / "specimens"
         self.root.mkdir(parents=True, exist_ok=True)
-        # Stores of one directory in one process (the gRPC service and the HTTP endpoint) share
-        # what they have loaded, so a specimen's surface is read and held once.
-        with _CACHES_LOCK:
-            self._cache: dict[str, tuple[float, Specimen]] = _CACHES.setdefault(self.root.resolve(), {})
-        self._lock = _CACHES_LOCK
+        self._cache: dict[str, tuple[int, Specimen]] = {}
+        self._lock = threading.Lock()
 
     def discard_unfinished(self) -> int:
         """Removes what builds of a killed process left behind (no reader ever sees it); only the

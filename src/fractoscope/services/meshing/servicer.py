@@ -4,110 +4,33 @@ from __future__ import annotations
 
 import logging
 
-import numpy as np
-
-from fractoscope.rpc import wire
-from fractoscope.errors import InvalidInputError
-from fractoscope.mesh.pipeline import MeshingOptions, mesh_height_map
-from fractoscope.rpc.status import abort_with_error
-from fractoscope.stereo.geometry import validate_pixel_size_um
+from fractoscope.mesh.pipeline import mesh_height_map
+from fractoscope.rpc import meshing as rpc_meshing
+from fractoscope.rpc.status import abort_on_error
 from fractoscope.services.streaming import stream_progress
-from fractoscope.mesh.levels import Simplification
 from fractoscope.v1 import common_pb2, meshing_pb2, meshing_pb2_grpc
 
-_log = logging.getLogger("fractoscope.mesh.pipeline")
-_METHODS = {
-    meshing_pb2.SIMPLIFICATION_METHOD_UNSPECIFIED: Simplification.VERTEX_CLUSTERING,
-    meshing_pb2.SIMPLIFICATION_METHOD_VERTEX_CLUSTERING: Simplification.VERTEX_CLUSTERING,
-    meshing_pb2.SIMPLIFICATION_METHOD_QUADRIC: Simplification.QUADRIC,
-}
-
-
-def options_from_request(request: meshing_pb2.BuildMeshRequest) -> MeshingOptions:
-    """BuildMeshRequest settings (zero = default) to MeshingOptions, validated."""
-    defaults = MeshingOptions()
-    parameters = request.filter
-    options = MeshingOptions(
-        outlier_threshold_sigma=parameters.outlier_threshold_sigma or defaults.outlier_threshold_sigma,
-        max_fill_distance_px=parameters.max_fill_distance_px or defaults.max_fill_distance_px,
-        smoothing_um=parameters.smoothing_um,
-        method=_METHODS.get(request.method, None) or _invalid("method", f"unknown method {request.method}"),
-        level_count=request.level_count or None,
-        plain_glb=request.plain_glb,
-    )
-    if not options.outlier_threshold_sigma > 0:
-        _invalid("filter.outlier_threshold_sigma", "must be > 0")
-    if not 0 <= options.max_fill_distance_px <= 1000:
-        _invalid("filter.max_fill_distance_px", "must be 0 to 1000")
-    if not (np.isfinite(options.smoothing_um) and options.smoothing_um >= 0):
-        _invalid("filter.smoothing_um", "must be >= 0")
-    if not 0 <= request.level_count <= 16:
-        _invalid("level_count", "must be 0 (automatic) to 16")
-    return options
-
-
-def _invalid(field: str, message: str):
-    raise InvalidInputError(field, message)
-
-
-def height_map_arrays(height_map: common_pb2.HeightMap, *, field: str = "height_map"):
-    """(z_um, texture, pixel_size_um) from a HeightMap message, validated."""
-    z_um = wire.raster_to_array(height_map.z_um, field=f"{field}.z_um")
-    if z_um.dtype != np.float32:
-        _invalid(f"{field}.z_um.data_type", "must be FLOAT32")
-    if height_map.HasField("texture"):
-        texture = wire.raster_to_array(height_map.texture, field=f"{field}.texture")
-        if texture.shape != z_um.shape:
-            _invalid(f"{field}.texture", f"shape {texture.shape} differs from z_um's {z_um.shape}")
-        if texture.dtype == np.uint16:
-            texture = (texture.astype(np.float32) / 257.0).astype(np.uint8)
-    else:
-        texture = np.full(z_um.shape, 128, np.uint8)
-    pixel_size_um = validate_pixel_size_um(height_map.pixel_size_um, field=f"{field}.pixel_size_um")
-    if min(z_um.shape) < 2:
-        _invalid(f"{field}.z_um", "needs at least 2 x 2 heights")
-    if not np.isfinite(z_um).any():
-        _invalid(f"{field}.z_um", "has no finite heights: nothing to mesh")
-    return z_um, texture, pixel_size_um
+_log = logging.getLogger("fractoscope.meshing")
 
 
 class MeshingServicer(meshing_pb2_grpc.MeshingServiceServicer):
     """Decodes the request, runs `mesh_height_map`, streams progress, tiles and the filter report."""
 
+    @abort_on_error
     def BuildMesh(self, request, context):
-        try:
-            z_um, texture, pixel_size_um = height_map_arrays(request.height_map)
-            options = options_from_request(request)
-            origin_um = (request.origin_um.x_um, request.origin_um.y_um)
-            if not np.all(np.isfinite(origin_um)):
-                _invalid("origin_um", "must be finite")
+        z_um, texture, pixel_size_um = rpc_meshing.height_map_arrays(request.height_map)
+        options = rpc_meshing.options_from_request(request)
+        origin_um = rpc_meshing.origin_from_request(request)
 
-            def work(progress):
-                return mesh_height_map(
-                    z_um, texture, pixel_size_um=pixel_size_um, origin_um=origin_um, options=options, progress=progress
-                )
+        def work(progress):
+            return mesh_height_map(z_um, texture, pixel_size_um=pixel_size_um, origin_um=origin_um, options=options, progress=progress)
 
-            for event in stream_progress(context, work):
-                if isinstance(event, common_pb2.Progress):
-                    yield meshing_pb2.BuildMeshResponse(progress=event)
-                    continue
-                tiles, report = event
-                for tile in tiles:
-                    response = meshing_pb2.BuildMeshResponse(
-                        tile=meshing_pb2.MeshTile(
-                            level=tile.level, tile_row=tile.tile_row, tile_col=tile.tile_col,
-                            geometric_error_m=tile.geometric_error_m, vertex_count=tile.vertex_count,
-                            triangle_count=tile.triangle_count,
-                        )
-                    )
-                    response.tile.glb = tile.glb  # set in place: nesting a message copies it
-                    yield response
-                yield meshing_pb2.BuildMeshResponse(
-                    filter_report=meshing_pb2.FilterReport(
-                        outliers_removed=report.outliers_removed, holes_filled=report.holes_filled,
-                        points_smoothed=report.points_smoothed,
-                    )
-                )
-                _log.info("mesh done", extra={"request_id": request.request_id})
-        except Exception as error:  # every failure becomes a gRPC status in one place
-            abort_with_error(context, error)
+        for event in stream_progress(context, work):
+            if isinstance(event, common_pb2.Progress):
+                yield meshing_pb2.BuildMeshResponse(progress=event)
+                continue
+            tiles, report = event
+            for tile in tiles:
+                yield rpc_meshing.tile_response(tile)
+            yield rpc_meshing.filter_report_response(report)
+            _log.info("mesh done", extra={"request_id": request.request_id})

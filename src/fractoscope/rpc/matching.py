@@ -1,0 +1,104 @@
+"""The matching service's messages to and from the stereo package's types: MatchingParameters and
+MatchingOptions, strips and their disparities, height map results."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from fractoscope.errors import InvalidInputError
+from fractoscope.rpc import wire
+from fractoscope.sem.image import MAX_IMAGE_PIXELS
+from fractoscope.stereo.disparity import DisparityResult, StripTask
+from fractoscope.stereo.pipeline import HeightMapResult, MatchingOptions, validate_options
+from fractoscope.v1 import matching_pb2
+
+
+def options_from_message(parameters: matching_pb2.MatchingParameters) -> MatchingOptions:
+    """MatchingParameters (zero or absent = default) to MatchingOptions."""
+    defaults = MatchingOptions()
+    return MatchingOptions(
+        window_px=parameters.window_px or defaults.window_px,
+        max_disparity_px=parameters.max_disparity_px or None,
+        min_confidence=parameters.min_confidence or defaults.min_confidence,
+        max_lr_difference_px=parameters.max_lr_difference_px or defaults.max_lr_difference_px,
+        tilt_uncertainty_deg=parameters.tilt_uncertainty_deg or defaults.tilt_uncertainty_deg,
+        calibrate_tilt=parameters.calibrate_tilt,
+        normalize_local_contrast=(
+            parameters.normalize_local_contrast if parameters.HasField("normalize_local_contrast") else defaults.normalize_local_contrast
+        ),
+        propagate_at_full_resolution=parameters.propagate_at_full_resolution,
+    )
+
+
+def strip_request(task: StripTask, *, request_id: str = "") -> matching_pb2.MatchStripRequest:
+    """MatchStrip of one strip; whole-number grey values travel as integers."""
+    first, stop = task.keep_rows or (0, 0)
+    request = matching_pb2.MatchStripRequest(
+        keep_from_row=first, keep_to_row=stop,
+        parameters=matching_pb2.MatchingParameters(
+            window_px=task.window_px, max_disparity_px=task.max_disparity_px,
+            min_confidence=task.min_confidence, max_lr_difference_px=task.max_lr_difference_px,
+            propagate_at_full_resolution=task.propagate_at_full_resolution,
+        ),
+        request_id=request_id,
+    )
+    wire.fill_raster(request.left, _exact_integers(task.left))
+    wire.fill_raster(request.right, _exact_integers(task.right))
+    return request
+
+
+def request_to_strip_task(request: matching_pb2.MatchStripRequest) -> StripTask:
+    """The strip a MatchStripRequest holds, validated (InvalidInputError names the field)."""
+    left = wire.raster_to_array(request.left, field="left").astype(np.float32)
+    right = wire.raster_to_array(request.right, field="right").astype(np.float32)
+    if left.shape != right.shape:
+        raise InvalidInputError("right", f"size {right.shape[::-1]} differs from the left strip's {left.shape[::-1]}")
+    if left.size > MAX_IMAGE_PIXELS:
+        raise InvalidInputError("left", f"{left.size} pixels is more than the limit of {MAX_IMAGE_PIXELS} (FRACTO_MAX_IMAGE_PIXELS)")
+    for name, values in (("left", left), ("right", right)):
+        if not np.isfinite(values).all():
+            raise InvalidInputError(name, "grey values must be finite")
+    options = options_from_message(request.parameters)
+    if options.max_disparity_px is None:
+        raise InvalidInputError("parameters.max_disparity_px", "is required for a strip")
+    validate_options(options, image_cols=left.shape[1])
+    keep_rows = None
+    if request.keep_from_row or request.keep_to_row:
+        if not 0 <= request.keep_from_row < request.keep_to_row <= left.shape[0]:
+            raise InvalidInputError("keep_to_row", f"rows [{request.keep_from_row}, {request.keep_to_row}) are not within the strip's {left.shape[0]}")
+        keep_rows = (request.keep_from_row, request.keep_to_row)
+    return StripTask(left, right, options.window_px, options.max_disparity_px, options.min_confidence, options.max_lr_difference_px,
+                     keep_rows=keep_rows, propagate_at_full_resolution=options.propagate_at_full_resolution)
+
+
+def strip_response(result: DisparityResult, *, worker: str) -> matching_pb2.MatchStripResponse:
+    response = matching_pb2.MatchStripResponse(worker=worker)
+    wire.fill_raster(response.disparity_px, result.disparity_px)
+    wire.fill_raster(response.confidence, result.confidence)
+    wire.fill_raster(response.sigma_px, result.sigma_px)
+    return response
+
+
+def response_to_disparity(response: matching_pb2.MatchStripResponse) -> DisparityResult:
+    return DisparityResult(*(wire.raster_to_array(raster) for raster in (response.disparity_px, response.confidence, response.sigma_px)))
+
+
+def height_map_response(result: HeightMapResult, texture: np.ndarray) -> matching_pb2.ComputeHeightMapResponse:
+    """The final ComputeHeightMap response: the maps, the reference image as texture, the report."""
+    response = matching_pb2.ComputeHeightMapResponse(report=wire.report_to_message(result.report))
+    height_map = response.height_map
+    height_map.pixel_size_um = result.report["pixel_size_um"]
+    for field, values in (("z_um", result.z_um), ("sigma_um", result.sigma_um), ("confidence", result.confidence), ("texture", texture)):
+        wire.fill_raster(getattr(height_map, field), values)
+    return response
+
+
+def _exact_integers(values: np.ndarray) -> np.ndarray:
+    """Float grey values that are whole numbers within 0..65535 as uint8 or uint16 (half or a
+    quarter of the bytes on the wire, the same values), others unchanged."""
+    if values.dtype.kind != "f" or values.size == 0:
+        return values
+    low, high = float(values.min()), float(values.max())
+    if low < 0 or high > 65535 or not np.array_equal(values, np.rint(values)):
+        return values
+    return values.astype(np.uint8 if high <= 255 else np.uint16)
