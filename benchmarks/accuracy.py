@@ -26,8 +26,8 @@ import cv2
 import numpy as np
 
 from fractoscope import synthetic
-from fractoscope.stereo.pipeline import MatchingOptions, compute_height_map
 from fractoscope.sem.image import SemImage
+from fractoscope.stereo.pipeline import MatchingOptions, compute_height_map
 
 SIZE_PX = 640
 MARGIN_PX = 64

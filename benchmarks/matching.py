@@ -21,10 +21,10 @@ import cv2
 import numpy as np
 
 from fractoscope import synthetic
-from fractoscope.stereo.matching import match_disparity
-from fractoscope.stereo.pipeline import compute_height_map
 from fractoscope.sem.image import SemImage
 from fractoscope.services.runtime import keep_freed_memory
+from fractoscope.stereo.matching import match_disparity
+from fractoscope.stereo.pipeline import compute_height_map
 
 PIXEL_SIZE_UM = 0.1
 TILTS_DEG = (-5.0, 5.0)

@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 
 from fractoscope import synthetic
-from fractoscope.mesh.pipeline import MeshingOptions, mesh_height_map
 from fractoscope.mesh.levels import Simplification
+from fractoscope.mesh.pipeline import MeshingOptions, mesh_height_map
 
 PIXEL_SIZE_UM = 0.1
 TIMING_REPEATS = 2

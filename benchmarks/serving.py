@@ -33,9 +33,9 @@ import grpc
 import numpy as np
 
 from fractoscope.client import FractoscopeClient
-from fractoscope.synthetic.examples import write_multiscale_specimen
 from fractoscope.client.manifest import load_manifest
 from fractoscope.formats.tileset import content_uris
+from fractoscope.synthetic.examples import write_multiscale_specimen
 
 ROOT = Path(__file__).resolve().parents[1]
 GHZ = ROOT / ".tools" / "bin" / "ghz"

@@ -18,13 +18,13 @@ import yaml
 
 from conftest import fracture_pair, tiff_bytes
 from fractoscope.client import ClientError, FractoscopeClient
-from fractoscope.synthetic.examples import write_multiscale_specimen
 from fractoscope.client.manifest import load_manifest
-from fractoscope.stereo.pipeline import MatchingOptions, compute_series_height_map
+from fractoscope.formats.tileset import content_uris
 from fractoscope.sem.image import read_sem_image
 from fractoscope.services.config import SERVICE_NAMES, build_parser
 from fractoscope.services.server import create_server
-from fractoscope.formats.tileset import content_uris
+from fractoscope.stereo.pipeline import MatchingOptions, compute_series_height_map
+from fractoscope.synthetic.examples import write_multiscale_specimen
 
 ROOT = Path(__file__).resolve().parents[1]
 DEPLOY = ROOT / "deploy"

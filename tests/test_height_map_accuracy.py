@@ -5,8 +5,8 @@ import pytest
 
 from conftest import cleavage_pair, dimple_pair, fracture_pair, inner_mask
 from fractoscope import synthetic
-from fractoscope.stereo.pipeline import MatchingOptions, compute_height_map
 from fractoscope.sem.image import SemImage
+from fractoscope.stereo.pipeline import MatchingOptions, compute_height_map
 
 
 def _reconstruct(pair, tilt_deg, **kwargs):

@@ -6,13 +6,13 @@ import pytest
 from matplotlib import tri
 
 from conftest import decode_glb, validate_glbs
+from fractoscope.client import ClientError
 from fractoscope.formats import glb as glb_format
 from fractoscope.mesh import levels as mesh_levels
 from fractoscope.mesh import pipeline
 from fractoscope.surface import filtering
-from fractoscope.client import ClientError
-from fractoscope.units import METRES_PER_UM
 from fractoscope.synthetic import self_affine_surface
+from fractoscope.units import METRES_PER_UM
 from fractoscope.v1 import meshing_pb2
 
 PIXEL_SIZE_UM = 0.1

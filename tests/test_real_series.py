@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from fractoscope.stereo.pipeline import compute_height_map
 from fractoscope.sem.image import read_sem_image
+from fractoscope.stereo.pipeline import compute_height_map
 
 pytestmark = pytest.mark.real_data
 

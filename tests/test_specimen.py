@@ -19,12 +19,12 @@ from scipy import ndimage
 from conftest import fracture_pair, tiff_bytes, validate_glbs
 from fractoscope import synthetic
 from fractoscope.client import ClientError, FractoscopeClient
-from fractoscope.synthetic.examples import MULTISCALE_MAGNIFICATIONS, write_multiscale_specimen
 from fractoscope.client.manifest import load_manifest
+from fractoscope.formats.tileset import content_uris
 from fractoscope.services.server import create_server
 from fractoscope.services.tiles.http import start_http_server
 from fractoscope.specimen.store import SpecimenStore
-from fractoscope.formats.tileset import content_uris
+from fractoscope.synthetic.examples import MULTISCALE_MAGNIFICATIONS, write_multiscale_specimen
 
 OVERVIEW_MAG, ZOOM_MAG = MULTISCALE_MAGNIFICATIONS
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fractoscope.stereo import geometry, tilt_series
+from fractoscope.stereo import tilt_series
 
 
 def _views(true_tilt_deg, *, noise_px=0.05, points=20_000, seed=0):
@@ -49,7 +49,8 @@ def test_two_views_reduce_to_the_pair_formula():
     tilts = (-4.0, 6.0)
     _, _, seen_first, disparities = _views(np.array(tilts), noise_px=0.0)
     z_px, _ = tilt_series.heights_px(seen_first, disparities, tilts)
-    pair = geometry.heights_um(seen_first, disparities[1], tilt_deg=tilts, pixel_size_um=1.0)
+    t1, t2 = np.radians(tilts)
+    pair = ((seen_first + disparities[1]) * np.cos(t1) - seen_first * np.cos(t2)) / np.sin(t2 - t1)  # z = (x2 cos t1 - x1 cos t2) / sin(t2 - t1)
     assert np.allclose(z_px - z_px.mean(), pair - pair.mean(), atol=1e-9)
 
 
@@ -62,8 +63,8 @@ def test_two_views_cannot_be_calibrated():
 def test_three_synthetic_sem_views_with_wrong_nominal_tilts():
     """-5/0/+5 degree views of a known surface; the nominal tilts are off by up to 0.5 degree."""
     from fractoscope import synthetic
-    from fractoscope.stereo.pipeline import MatchingOptions, compute_series_height_map
     from fractoscope.sem.image import SemImage
+    from fractoscope.stereo.pipeline import MatchingOptions, compute_series_height_map
 
     true = (-5.0, 0.0, 5.0)
     surface = synthetic.self_affine_surface((704, 704), hurst=0.8, rms_um=2.5, seed=5)
@@ -101,8 +102,8 @@ def test_three_synthetic_sem_views_with_wrong_nominal_tilts():
 @pytest.mark.parametrize("true_axis_deg, given_axis_deg, warned", [(60.0, 60.0, False), (60.0, 64.0, True), (90.0, 87.0, True)])
 def test_tilt_axis_is_estimated_from_the_parallax_and_a_wrong_one_is_flagged(true_axis_deg, given_axis_deg, warned):
     from conftest import fracture_pair
-    from fractoscope.stereo.pipeline import compute_height_map
     from fractoscope.sem.image import SemImage
+    from fractoscope.stereo.pipeline import compute_height_map
 
     pair = fracture_pair(tilt_axis_deg=true_axis_deg, seed=2)
     result = compute_height_map(
@@ -120,9 +121,9 @@ def test_unknown_magnification_uncertainty_keeps_sigma_and_warns(monkeypatch):
     import dataclasses
 
     from fractoscope import synthetic
+    from fractoscope.sem.image import SemImage
     from fractoscope.stereo import alignment
     from fractoscope.stereo.pipeline import MatchingOptions, compute_series_height_map
-    from fractoscope.sem.image import SemImage
 
     true = (-5.0, 0.0, 5.0)
     surface = synthetic.self_affine_surface((384, 384), hurst=0.8, rms_um=2.5, seed=5)

@@ -113,70 +113,16 @@ def mesh_glb(
     count = len(positions_m)
     # 16-bit indices when they stay below 65535, which glTF reserves for primitive restart.
     indices = np.ascontiguousarray(triangles, np.uint16 if count <= 65535 else np.uint32).ravel()
-    if grid is None:
-        attributes = [np.ascontiguousarray(values, np.float32) for values in (positions_m, normals, uvs)]
-    else:
-        quantized = np.zeros((count, 4), np.uint16)  # x, y, z and the padding to 4-byte vertices
-        quantized[:, :3] = grid.quantize(positions_m)
-        normals_i8 = np.zeros((count, 4), np.int8)
-        normals_i8[:, :3] = np.rint(np.clip(normals, -1.0, 1.0) * 127)
-        uvs_u16 = np.rint(np.clip(uvs, 0.0, 1.0) * 65535).astype(np.uint16)
-        attributes = [quantized, normals_i8, uvs_u16]
-        meshoptimizer.encode_vertex_version(0)  # the version EXT_meshopt_compression specifies
-    axes = [attributes[0][:, axis] for axis in range(3)]  # one column at a time: 17x quicker than axis=0
-    position_bounds = [values.min().item() for values in axes], [values.max().item() for values in axes]
-
-    parts, views, offset, decoded_offset = [], [], 0, 0
-    for values, target in [(indices, pygltflib.ELEMENT_ARRAY_BUFFER)] + [(a, pygltflib.ARRAY_BUFFER) for a in attributes]:
-        if grid is None:
-            data = values.tobytes()
-            views.append(pygltflib.BufferView(buffer=0, byteOffset=offset, byteLength=len(data), target=target))
-        else:
-            if target == pygltflib.ELEMENT_ARRAY_BUFFER:
-                data = meshoptimizer.encode_index_buffer(values.astype(np.uint32), values.size, count)
-                stride, elements, mode = values.itemsize, values.size, "TRIANGLES"
-            else:
-                data = meshoptimizer.encode_vertex_buffer(values)
-                stride, elements, mode = values.strides[0], count, "ATTRIBUTES"
-            # The view itself lies in the data-less buffer 1, where the decoder writes it.
-            views.append(pygltflib.BufferView(
-                buffer=1, byteOffset=decoded_offset, byteLength=values.nbytes, target=target,
-                byteStride=stride if mode == "ATTRIBUTES" else None,
-                extensions={MESHOPT: {"buffer": 0, "byteOffset": offset, "byteLength": len(data),
-                                      "byteStride": stride, "count": elements, "mode": mode}},
-            ))
-            decoded_offset += values.nbytes + -values.nbytes % 4
-        parts += [data, b"\0" * (-len(data) % 4)]
-        offset += len(data) + -len(data) % 4
-    image_view = len(views)
-    views.append(pygltflib.BufferView(buffer=0, byteOffset=offset, byteLength=len(texture_jpeg)))
-    parts += [texture_jpeg, b"\0" * (-len(texture_jpeg) % 4)]
-    blob = b"".join(parts)
-
-    normalized = grid is not None  # integer normals and texture coordinates stand for [-1, 1] and [0, 1]
-    accessors = [
-        pygltflib.Accessor(bufferView=0, componentType=_COMPONENT_TYPES[indices.dtype], count=int(indices.size), type=pygltflib.SCALAR),
-        pygltflib.Accessor(bufferView=1, componentType=_COMPONENT_TYPES[attributes[0].dtype], count=count, type=pygltflib.VEC3,
-                           min=position_bounds[0], max=position_bounds[1]),
-        pygltflib.Accessor(bufferView=2, componentType=_COMPONENT_TYPES[attributes[1].dtype], normalized=normalized or None,
-                           count=count, type=pygltflib.VEC3),
-        pygltflib.Accessor(bufferView=3, componentType=_COMPONENT_TYPES[attributes[2].dtype], normalized=normalized or None,
-                           count=count, type=pygltflib.VEC2),
-    ]
-    primitive = pygltflib.Primitive(
-        attributes=pygltflib.Attributes(POSITION=1, NORMAL=2, TEXCOORD_0=3), indices=0, material=0, mode=pygltflib.TRIANGLES
-    )
-    material = pygltflib.Material(
-        pbrMetallicRoughness=pygltflib.PbrMetallicRoughness(
-            baseColorTexture=pygltflib.TextureInfo(index=0), metallicFactor=0.0, roughnessFactor=1.0
-        ),
-        doubleSided=True,
-    )
+    attributes = _vertex_attributes(positions_m, normals, uvs, grid)
+    geometry = _GeometryBuffers.of(indices, attributes, count, compressed=grid is not None)
+    image_view = len(geometry.views)
+    views = geometry.views + [pygltflib.BufferView(buffer=0, byteOffset=geometry.size, byteLength=len(texture_jpeg))]
+    blob = b"".join(geometry.parts + [texture_jpeg, b"\0" * (-len(texture_jpeg) % 4)])
     buffers = [pygltflib.Buffer(byteLength=len(blob))]
     node = pygltflib.Node(mesh=0, extras=extras or {})
     extensions = []
     if grid is not None:
-        buffers.append(pygltflib.Buffer(byteLength=decoded_offset, extensions={MESHOPT: {"fallback": True}}))
+        buffers.append(pygltflib.Buffer(byteLength=geometry.decoded_size, extensions={MESHOPT: {"fallback": True}}))
         node.translation, node.scale = list(grid.origin_m), list(grid.step_m)
         extensions = [MESHOPT, QUANTIZATION]
     gltf = pygltflib.GLTF2(
@@ -186,16 +132,96 @@ def mesh_glb(
         scene=0,
         scenes=[pygltflib.Scene(nodes=[0])],
         nodes=[node],
-        meshes=[pygltflib.Mesh(primitives=[primitive])],
-        materials=[material],
+        meshes=[pygltflib.Mesh(primitives=[_PRIMITIVE])],
+        materials=[_MATERIAL],
         textures=[pygltflib.Texture(source=0, sampler=0)],
         samplers=[pygltflib.Sampler(magFilter=pygltflib.LINEAR, minFilter=pygltflib.LINEAR, wrapS=pygltflib.CLAMP_TO_EDGE, wrapT=pygltflib.CLAMP_TO_EDGE)],
         images=[pygltflib.Image(bufferView=image_view, mimeType="image/jpeg")],
-        accessors=accessors,
+        accessors=_accessors(indices, attributes, count, normalized=grid is not None),
         bufferViews=views,
         buffers=buffers,
     )
     return _glb(gltf, blob)
+
+
+# Accessors 0 to 3 (indices, positions, normals, texture coordinates) in buffer views 0 to 3.
+_PRIMITIVE = pygltflib.Primitive(
+    attributes=pygltflib.Attributes(POSITION=1, NORMAL=2, TEXCOORD_0=3), indices=0, material=0, mode=pygltflib.TRIANGLES
+)
+_MATERIAL = pygltflib.Material(
+    pbrMetallicRoughness=pygltflib.PbrMetallicRoughness(baseColorTexture=pygltflib.TextureInfo(index=0), metallicFactor=0.0, roughnessFactor=1.0),
+    doubleSided=True,
+)
+
+
+def _vertex_attributes(positions_m, normals, uvs, grid: PositionGrid | None) -> list[np.ndarray]:
+    """Positions, normals and texture coordinates as stored: float32, or on `grid` 16-bit
+    positions and texture coordinates and 8-bit normals (positions and normals padded to 4-byte
+    vertices, as meshopt's codec wants)."""
+    if grid is None:
+        return [np.ascontiguousarray(values, np.float32) for values in (positions_m, normals, uvs)]
+    count = len(positions_m)
+    quantized = np.zeros((count, 4), np.uint16)  # x, y, z and the padding to 4-byte vertices
+    quantized[:, :3] = grid.quantize(positions_m)
+    normals_i8 = np.zeros((count, 4), np.int8)
+    normals_i8[:, :3] = np.rint(np.clip(normals, -1.0, 1.0) * 127)
+    uvs_u16 = np.rint(np.clip(uvs, 0.0, 1.0) * 65535).astype(np.uint16)
+    meshoptimizer.encode_vertex_version(0)  # the version EXT_meshopt_compression specifies
+    return [quantized, normals_i8, uvs_u16]
+
+
+@dataclass(frozen=True)
+class _GeometryBuffers:
+    """Buffer views 0 to 3 (indices, then the attributes) and their bytes in buffer 0 (`parts`,
+    each padded to 4 bytes, `size` in all); compressed views decode into buffer 1, of
+    `decoded_size` bytes."""
+
+    views: list
+    parts: list[bytes]
+    size: int
+    decoded_size: int
+
+    @classmethod
+    def of(cls, indices: np.ndarray, attributes: list[np.ndarray], count: int, *, compressed: bool) -> _GeometryBuffers:
+        parts, views, offset, decoded_offset = [], [], 0, 0
+        for values, target in [(indices, pygltflib.ELEMENT_ARRAY_BUFFER)] + [(a, pygltflib.ARRAY_BUFFER) for a in attributes]:
+            if not compressed:
+                data = values.tobytes()
+                views.append(pygltflib.BufferView(buffer=0, byteOffset=offset, byteLength=len(data), target=target))
+            else:
+                if target == pygltflib.ELEMENT_ARRAY_BUFFER:
+                    data = meshoptimizer.encode_index_buffer(values.astype(np.uint32), values.size, count)
+                    stride, elements, mode = values.itemsize, values.size, "TRIANGLES"
+                else:
+                    data = meshoptimizer.encode_vertex_buffer(values)
+                    stride, elements, mode = values.strides[0], count, "ATTRIBUTES"
+                # The view itself lies in the data-less buffer 1, where the decoder writes it.
+                views.append(pygltflib.BufferView(
+                    buffer=1, byteOffset=decoded_offset, byteLength=values.nbytes, target=target,
+                    byteStride=stride if mode == "ATTRIBUTES" else None,
+                    extensions={MESHOPT: {"buffer": 0, "byteOffset": offset, "byteLength": len(data),
+                                          "byteStride": stride, "count": elements, "mode": mode}},
+                ))
+                decoded_offset += values.nbytes + -values.nbytes % 4
+            parts += [data, b"\0" * (-len(data) % 4)]
+            offset += len(data) + -len(data) % 4
+        return cls(views, parts, offset, decoded_offset)
+
+
+def _accessors(indices: np.ndarray, attributes: list[np.ndarray], count: int, *, normalized: bool) -> list:
+    """Accessors of the indices and the three attributes; integer normals and texture
+    coordinates (`normalized`) stand for [-1, 1] and [0, 1]."""
+    axes = [attributes[0][:, axis] for axis in range(3)]  # one column at a time: 17x quicker than axis=0
+    low, high = [values.min().item() for values in axes], [values.max().item() for values in axes]
+    return [
+        pygltflib.Accessor(bufferView=0, componentType=_COMPONENT_TYPES[indices.dtype], count=int(indices.size), type=pygltflib.SCALAR),
+        pygltflib.Accessor(bufferView=1, componentType=_COMPONENT_TYPES[attributes[0].dtype], count=count, type=pygltflib.VEC3,
+                           min=low, max=high),
+        pygltflib.Accessor(bufferView=2, componentType=_COMPONENT_TYPES[attributes[1].dtype], normalized=normalized or None,
+                           count=count, type=pygltflib.VEC3),
+        pygltflib.Accessor(bufferView=3, componentType=_COMPONENT_TYPES[attributes[2].dtype], normalized=normalized or None,
+                           count=count, type=pygltflib.VEC2),
+    ]
 
 
 def _glb(gltf: pygltflib.GLTF2, blob: bytes) -> bytes:

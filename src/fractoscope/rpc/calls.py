@@ -15,8 +15,6 @@ from fractoscope.rpc.status import ClientError
 from fractoscope.v1 import common_pb2, matching_pb2, meshing_pb2
 
 
-
-
 @dataclass(frozen=True)
 class HeightMap:
     """A height map on the first image's grid: arrays (rows, cols) float32, heights in µm."""

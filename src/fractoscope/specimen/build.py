@@ -13,14 +13,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from fractoscope.errors import InvalidInputError
 from fractoscope.formats.tileset import tileset_json
 from fractoscope.progress import silent
 from fractoscope.specimen import registration
-from fractoscope.surface import filtering
-from fractoscope.errors import InvalidInputError
 from fractoscope.specimen.fusion import FusedSurface, PlacedRoi
+from fractoscope.specimen.quadtree import QuadtreeLayout, TileKey, TileRecord, build_tiles
 from fractoscope.specimen.store import RoiEntry, Specimen, SpecimenStore, validate_id, write_description, write_roi_arrays
-from fractoscope.specimen.quadtree import QuadtreeLayout, TileKey, build_tiles
+from fractoscope.surface import filtering
 
 
 @dataclass(frozen=True)
@@ -94,8 +94,24 @@ def reconstruct_specimen(
     for index, roi in enumerate(ordered):
         report(0.6 * index / len(ordered), f"matching ROI {roi.id}")
         measured[roi.id] = measure(roi)
-
     report(0.6, "placing ROIs")
+    placed, entries = _place(ordered, measured)
+    surface = FusedSurface(list(placed.values()))
+    layout = QuadtreeLayout.covering(surface)
+    with store.writing(specimen_id) as staging:
+        records = _write_tiles(staging, surface, layout, mesh_tile, report)
+        for roi in placed.values():
+            write_roi_arrays(staging, roi)
+        (staging / "tileset.json").write_text(json.dumps(tileset_json(layout, records)))
+        write_description(staging, specimen_id=specimen_id, request_id=request_id, rois=entries, layout=layout, tiles=records)
+    report(1.0, "stored")
+    return store.load(specimen_id)
+
+
+def _place(ordered: list[RoiRequest], measured: dict[str, MeasuredHeights]) -> tuple[dict[str, PlacedRoi], list[RoiEntry]]:
+    """Every ROI's filtered heights and texture placed in the specimen frame, parents first: a
+    child is registered in its parent (unless its centre is given), its heights brought onto the
+    parent's by a fitted plane and its texture onto the parent's brightness and contrast."""
     placed: dict[str, PlacedRoi] = {}
     entries: list[RoiEntry] = []
     for roi in ordered:
@@ -113,35 +129,32 @@ def reconstruct_specimen(
             entry.alignment_residual_um = alignment.residual_um
         placed[roi.id] = PlacedRoi(roi.id, roi.magnification, heights.pixel_size_um, entry.origin_um, z_um, texture)
         entries.append(entry)
+    return placed, entries
 
-    surface = FusedSurface(list(placed.values()))
-    layout = QuadtreeLayout.covering(surface)
-    with store.writing(specimen_id) as staging:
-        meshers = ThreadPoolExecutor(max_workers=2)
-        pending, failures = [], []
 
-        def emit(key: TileKey, z_um, texture, cell_um, origin_um) -> None:
-            if failures:  # fail fast: a mesher that cannot be reached will not come back mid-build
-                raise failures[0]
-            job = meshers.submit(mesh_tile, z_um, texture, cell_um, origin_um)
-            job.add_done_callback(lambda done: done.exception() and failures.append(done.exception()))
-            pending.append((key, job))
-            report(0.65 + 0.3 * (1 - 0.5 ** (len(pending) / 16)), f"tile {key.uri}")
+def _write_tiles(staging, surface: FusedSurface, layout: QuadtreeLayout, mesh_tile: TileMesher, report) -> dict[TileKey, TileRecord]:
+    """Walks the quadtree, meshes its tiles two at a time and writes their GLBs under `staging`;
+    the first failed tile stops the walk."""
+    meshers = ThreadPoolExecutor(max_workers=2)
+    pending, failures = [], []
 
-        try:
-            records = build_tiles(surface, layout, emit)
-            for key, glb in pending:
-                path = staging / key.uri
-                path.parent.mkdir(parents=True, exist_ok=True)
-                path.write_bytes(glb.result())
-        finally:
-            meshers.shutdown(wait=True, cancel_futures=True)
-        for roi in placed.values():
-            write_roi_arrays(staging, roi)
-        (staging / "tileset.json").write_text(json.dumps(tileset_json(layout, records)))
-        write_description(staging, specimen_id=specimen_id, request_id=request_id, rois=entries, layout=layout, tiles=records)
-    report(1.0, "stored")
-    return store.load(specimen_id)
+    def emit(key: TileKey, z_um, texture, cell_um, origin_um) -> None:
+        if failures:  # fail fast: a mesher that cannot be reached will not come back mid-build
+            raise failures[0]
+        job = meshers.submit(mesh_tile, z_um, texture, cell_um, origin_um)
+        job.add_done_callback(lambda done: done.exception() and failures.append(done.exception()))
+        pending.append((key, job))
+        report(0.65 + 0.3 * (1 - 0.5 ** (len(pending) / 16)), f"tile {key.uri}")
+
+    try:
+        records = build_tiles(surface, layout, emit)
+        for key, glb in pending:
+            path = staging / key.uri
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_bytes(glb.result())
+    finally:
+        meshers.shutdown(wait=True, cancel_futures=True)
+    return records
 
 
 def _child_origin(roi: RoiRequest, parent: PlacedRoi, texture: np.ndarray, heights: MeasuredHeights) -> tuple[tuple[float, float], float]:

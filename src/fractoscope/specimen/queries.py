@@ -7,9 +7,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fractoscope.surface import profiles, roughness
 from fractoscope.errors import InvalidInputError
 from fractoscope.specimen.store import Specimen
+from fractoscope.surface import profiles, roughness
 
 MAX_REGION_SAMPLES = 2048 * 2048
 MAX_PROFILE_SAMPLES = 1_000_000

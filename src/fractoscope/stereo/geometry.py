@@ -4,13 +4,18 @@ A surface point at lateral position x (perpendicular to the tilt axis) and heigh
 ``x_i = x cos t_i + z sin t_i`` in the image taken at stage tilt t_i. Two views give
 ``z = (x2 cos t1 - x1 cos t2) / sin(t2 - t1)``; for eucentric ±α this is ``z = d p / (2 sin α)``
 with disparity d = x2 - x1 in pixels of size p. Positions are measured from the tilt axis.
+Heights are solved by tilt_series (for any number of views); this module checks the inputs and
+holds the error model.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 from fractoscope.errors import InvalidInputError
+from fractoscope.stereo import tilt_series
 
 
 def validate_tilts(tilt_deg: tuple[float, float], *, field: str = "tilt_deg") -> None:
@@ -29,23 +34,6 @@ def validate_pixel_size_um(value: float, *, field: str = "pixel_size_um") -> flo
     return float(value)
 
 
-def heights_um(
-    x1_px: np.ndarray, disparity_px: np.ndarray, *, tilt_deg: tuple[float, float], pixel_size_um: float
-) -> np.ndarray:
-    """Heights from the general formula; x1_px is the first view's position from the tilt axis,
-    x1_px + disparity_px the second's (pixels). Returns µm, same shape."""
-    t1, t2 = np.radians(tilt_deg)
-    x2_px = x1_px + disparity_px
-    return (x2_px * np.cos(t1) - x1_px * np.cos(t2)) / np.sin(t2 - t1) * pixel_size_um
-
-
-def height_per_disparity_um(*, tilt_deg: tuple[float, float], pixel_size_um: float) -> float:
-    """Height change for one pixel of disparity, µm/px: p cos t1 / sin(t2 - t1)
-    (p / (2 sin α) for ±α: 0.0287 µm at 0.005 µm/px and 5.74 µm at 1 µm/px for α = 5°)."""
-    t1, t2 = np.radians(tilt_deg)
-    return float(abs(pixel_size_um * np.cos(t1) / np.sin(t2 - t1)))
-
-
 def relative_height_error_from_tilt(*, tilt_deg: tuple[float, float], tilt_uncertainty_deg: float) -> float:
     """Relative height error ε_z = δα / tan α for a half tilt difference α known to ±δα
     (0.0999 for α = 5°, δα = 0.5°: the paper's 10 %)."""
@@ -55,18 +43,34 @@ def relative_height_error_from_tilt(*, tilt_deg: tuple[float, float], tilt_uncer
 
 def height_sigma_um(
     z_um: np.ndarray,
-    disparity_sigma_px: np.ndarray,
+    disparity_sigma_px: Sequence[np.ndarray],
     *,
-    tilt_deg: tuple[float, float],
+    tilt_deg: Sequence[float],
     pixel_size_um: float,
     tilt_uncertainty_deg: float,
 ) -> np.ndarray:
-    """One-sigma height uncertainty per pixel, µm: the disparity error through
-    `height_per_disparity_um` combined with the tilt error ε_z |z - median(z)| (a tilt error scales
-    heights about the reference level, taken as the median)."""
-    from_disparity = disparity_sigma_px * height_per_disparity_um(tilt_deg=tilt_deg, pixel_size_um=pixel_size_um)
-    relative = relative_height_error_from_tilt(tilt_deg=tilt_deg, tilt_uncertainty_deg=tilt_uncertainty_deg)
-    finite = np.isfinite(z_um)
-    reference_um = float(np.median(z_um[finite])) if finite.any() else 0.0
-    from_tilt = relative * np.abs(z_um - reference_um)
-    return np.hypot(from_disparity, from_tilt)
+    """One-sigma height uncertainty per pixel, µm, float32 (NaN where z_um is NaN), as the
+    pipeline reports it. z_um: (rows, cols) float32 heights; disparity_sigma_px: each view's
+    disparity uncertainty to the reference view (tilt_deg[0]), (rows, cols), NaN where unmatched,
+    one per view but the reference.
+
+    Each view's disparity error becomes a height error through its height per pixel of
+    disparity (p cos t_r / sin(t_i - t_r): 0.0287 µm at 0.005 µm/px and 5.74 µm at 1 µm/px for
+    ±5°); the views combine by their information. The tilt error adds ε_z |z - z_ref| for the
+    widest pair (`relative_height_error_from_tilt`): a tilt error scales heights about a reference
+    level, the median height (of every 4th row and column, which tell it well enough)."""
+    _, b = tilt_series.coefficients(tilt_deg)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        # Information on the height from each view's disparity, 1/px² (none where unmatched).
+        information = sum(
+            np.where(np.isfinite(sigma), (np.float32(b[index + 1]) / sigma) ** 2, np.float32(0)) for index, sigma in enumerate(disparity_sigma_px)
+        )
+        disparity_sigma_um = np.float32(pixel_size_um) / np.sqrt(information)
+    widest = (float(tilt_deg[0]), float(tilt_deg[np.argmax(np.abs(b))]))
+    relative = relative_height_error_from_tilt(tilt_deg=widest, tilt_uncertainty_deg=tilt_uncertainty_deg)
+    sample = z_um[::4, ::4]
+    sample = sample[np.isfinite(sample)]
+    reference_um = np.float32(np.median(sample)) if sample.size else np.float32(0)
+    sigma_um = np.hypot(disparity_sigma_um, np.float32(relative) * np.abs(z_um - reference_um))
+    sigma_um[~np.isfinite(z_um)] = np.nan
+    return sigma_um

@@ -20,8 +20,9 @@ from fractoscope.sem.image import SemImage
 from fractoscope.stereo import alignment, geometry, matching, tilt_series
 from fractoscope.stereo.disparity import StripMatcher
 
-
 AXIS_WARNING_DEG = 2.0
+# Tilt axis direction in the image, degrees from the column axis: vertical, parallax along rows.
+DEFAULT_TILT_AXIS_DEG = 90.0
 
 
 @dataclass(frozen=True)
@@ -61,7 +62,7 @@ def compute_height_map(
     *,
     tilt_deg: tuple[float | None, float | None] = (None, None),
     pixel_size_um: float | None = None,
-    tilt_axis_deg: float = 90.0,
+    tilt_axis_deg: float = DEFAULT_TILT_AXIS_DEG,
     options: MatchingOptions = MatchingOptions(),
     progress: ProgressCallback | None = None,
 ) -> HeightMapResult:
@@ -78,7 +79,7 @@ def compute_series_height_map(
     *,
     tilt_deg: Sequence[float | None] | None = None,
     pixel_size_um: float | None = None,
-    tilt_axis_deg: float = 90.0,
+    tilt_axis_deg: float = DEFAULT_TILT_AXIS_DEG,
     options: MatchingOptions = MatchingOptions(),
     strip_matcher: StripMatcher | None = None,
     progress: ProgressCallback | None = None,
@@ -92,6 +93,33 @@ def compute_series_height_map(
     here, one after another; see stereo.matching)."""
     started = time.perf_counter()
     report_progress = progress or silent
+    nominal, pixel_size = _calibration(images, tilt_deg, pixel_size_um, tilt_axis_deg, options)
+    rectified = _rectify(images, tilt_axis_deg)
+    matched = _match_views(rectified.views, options, strip_matcher, report_progress)
+    tilts, offsets, calibration = _tilts(rectified.x1_px, matched, nominal, options, report_progress)
+    report_progress(0.92, "heights")
+    z_px, _ = tilt_series.heights_px(rectified.x1_px, matched.disparities, tilts, offsets_px=offsets)
+    z_um = (z_px * pixel_size).astype(np.float32)
+    warnings = []
+    tilt_uncertainty = _tilt_uncertainty_deg(options, calibration, warnings)
+    sigma_um = geometry.height_sigma_um(
+        z_um, matched.sigmas, tilt_deg=tilts, pixel_size_um=pixel_size, tilt_uncertainty_deg=tilt_uncertainty
+    )
+    confidence = matched.confidences[0] if len(matched.confidences) == 1 else np.nanmax(np.stack(matched.confidences), axis=0)
+    z_um, sigma_um, confidence = _on_stored_grid(rectified, images[0], z_um, sigma_um, confidence)
+    axis_estimated = _estimated_tilt_axis_deg(matched.placements, tilt_axis_deg, warnings)
+    report = _report(
+        tilts=tilts, tilt_axis_deg=tilt_axis_deg, pixel_size=pixel_size, matched=matched, z_um=z_um,
+        bar_rows=rectified.bar_rows, axis_estimated=axis_estimated, warnings=warnings, calibration=calibration,
+    )
+    report["elapsed_s"] = time.perf_counter() - started
+    report_progress(1.0, "done")
+    return HeightMapResult(z_um, sigma_um, np.nan_to_num(confidence).astype(np.float32), report)
+
+
+def _calibration(images, tilt_deg, pixel_size_um, tilt_axis_deg, options) -> tuple[list[float], float]:
+    """The nominal tilt of every view and the pixel size (explicit values over metadata),
+    validated with the images and options."""
     if len(images) < 2:
         raise InvalidInputError("images", f"at least two images are needed, got {len(images)}")
     if options.calibrate_tilt and len(images) < 3:
@@ -105,7 +133,24 @@ def compute_series_height_map(
     pixel_size = _resolve_pixel_size(images[0], pixel_size_um)
     for index in range(1, len(images)):
         _validate(images[0], images[index], tilt_axis_deg, options, index=index)
+    return nominal, pixel_size
 
+
+@dataclass(frozen=True)
+class _Rectified:
+    """The views without data bar, float32, turned so that the tilt axis is vertical (on a larger
+    canvas, `outside` marking what no view covers, when the axis was not vertical already), and
+    the reference columns' positions from the tilt axis (the image centre), pixels."""
+
+    views: list[np.ndarray]
+    bar_rows: int
+    to_rectified: np.ndarray
+    rotated: bool
+    outside: np.ndarray
+    x1_px: np.ndarray
+
+
+def _rectify(images: Sequence[SemImage], tilt_axis_deg: float) -> _Rectified:
     bar_rows = max(image.data_bar_rows for image in images)
     usable_rows = images[0].pixels.shape[0] - bar_rows
     views = [image.pixels[:usable_rows].astype(np.float32) for image in images]
@@ -117,10 +162,26 @@ def compute_series_height_map(
         outside = np.any([np.isnan(view) for view in views], axis=0)
         fill = float(np.nanmean(views[0]))
         views = [np.nan_to_num(view, nan=fill) for view in views]
-
-    # Reference columns from the tilt axis (the image centre), pixels.
     columns_px = np.arange(views[0].shape[1], dtype=np.float64) - (views[0].shape[1] - 1) / 2.0
     x1_px = np.broadcast_to(columns_px[None, :], views[0].shape)
+    return _Rectified(views, bar_rows, to_rectified, rotated, outside, x1_px)
+
+
+@dataclass(frozen=True)
+class _MatchedViews:
+    """Every view matched to the reference: disparities (views, rows, cols) with the reference's
+    row zero, and per view but the reference its disparity sigma, confidence and placement; the
+    relative magnification uncertainty of every view (0 for the reference)."""
+
+    disparities: np.ndarray
+    sigmas: list[np.ndarray]
+    confidences: list[np.ndarray]
+    placements: list[alignment.Alignment]
+    magnification_sigma: list[float]
+    strip_count: int
+
+
+def _match_views(views, options: MatchingOptions, strip_matcher, report_progress) -> _MatchedViews:
     disparities = [np.zeros(views[0].shape, np.float32)]
     sigmas, confidences, placements, magnification_sigma = [], [], [], [0.0]
     for index in range(1, len(views)):
@@ -128,81 +189,87 @@ def compute_series_height_map(
             report_progress(0.05 + 0.8 * (index - 1 + fraction) / (len(views) - 1), f"view {index}: {message}")
 
         report_progress(0.05 + 0.8 * (index - 1) / (len(views) - 1), f"view {index}: aligning")
-        placement = alignment.estimate_alignment(views[0], views[index])
-        on_first = alignment.apply_affine(
-            views[index], alignment.second_to_first_matrix(placement, views[0].shape), views[0].shape, inverse=True
-        )
-        spread = placement.parallax_spread_px if np.isfinite(placement.parallax_spread_px) else views[0].shape[1] / 8
-        max_disparity_px = options.max_disparity_px or int(np.ceil(1.5 * spread + 8))
-        matched = matching.match_disparity(
-            views[0], on_first, window_px=options.window_px, max_disparity_px=max_disparity_px,
-            min_confidence=options.min_confidence, max_lr_difference_px=options.max_lr_difference_px,
-            normalize_local_contrast=options.normalize_local_contrast, propagate_at_full_resolution=options.propagate_at_full_resolution,
-            strip_pixels=options.strip_pixels, strip_matcher=strip_matcher, progress=matching_progress,
-        )
-        strip_count = len(matching.strip_bounds(
-            views[0].shape, window_px=options.window_px, max_disparity_px=max_disparity_px, strip_pixels=options.strip_pixels
-        ))
-        # A magnification error ε the alignment left makes disparities err by ε·x: measured on the
-        # matched images, it is taken out here rather than by matching again.
-        measured = alignment.residual_magnification(views[0], on_first, matched.disparity_px)
-        epsilon, epsilon_sigma = measured if measured else (0.0, placement.scale_sigma)
+        disparity, matched, placement, epsilon_sigma, strip_count = _match_view(views[0], views[index], options, strip_matcher, matching_progress)
+        disparities.append(disparity)
         magnification_sigma.append(epsilon_sigma)
-        disparities.append(matched.disparity_px + placement.shift_parallel_px - (epsilon * columns_px).astype(np.float32))
-        placement = dataclasses.replace(placement, scale=placement.scale * (1.0 + epsilon))
         sigmas.append(matched.sigma_px)
         confidences.append(matched.confidence)
         placements.append(placement)
-    disparities = np.stack(disparities)
+    return _MatchedViews(np.stack(disparities), sigmas, confidences, placements, magnification_sigma, strip_count)
 
-    tilts, offsets, calibration = np.array(nominal), None, {}
-    if options.calibrate_tilt:
-        report_progress(0.87, "calibrating tilts")
-        sample = (slice(None, None, 4), slice(None, None, 4))  # sparse points: neighbours' errors correlate
-        estimate = tilt_series.estimate_tilts(
-            x1_px[sample].ravel(), disparities[(slice(None), *sample)].reshape(len(views), -1), nominal,
-            magnification_sigma=magnification_sigma,
-        )
-        tilts, offsets = estimate.tilt_deg, estimate.offsets_px
-        calibration = {"tilt_deg_nominal": list(nominal), "tilt_sigma_deg": estimate.sigma_deg.tolist(), "tilt_residual_px": estimate.residual_px}
-    report_progress(0.92, "heights")
-    z_px, _ = tilt_series.heights_px(x1_px, disparities, tilts, offsets_px=offsets)
-    z_um = (z_px * pixel_size).astype(np.float32)
-    _, b = tilt_series.coefficients(tilts)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        # Information on the height from each view's disparity, 1/px² (none where unmatched).
-        information = sum(np.where(np.isfinite(sigma), (np.float32(b[index + 1]) / sigma) ** 2, np.float32(0)) for index, sigma in enumerate(sigmas))
-        disparity_sigma_um = np.float32(pixel_size) / np.sqrt(information)
-    widest = (float(tilts[0]), float(tilts[np.argmax(np.abs(b))]))
-    warnings = []
-    tilt_uncertainty = options.tilt_uncertainty_deg
-    if calibration:
-        calibrated_sigma = float(np.max(calibration["tilt_sigma_deg"]))
-        if np.isfinite(calibrated_sigma):
-            tilt_uncertainty = calibrated_sigma
-        else:  # a view's magnification could be measured neither on the matched images nor from features
-            warnings.append(
-                "the calibrated tilts' uncertainty is unknown (a view's magnification could not be measured); "
-                f"sigma_um uses the nominal tilt uncertainty of {options.tilt_uncertainty_deg:g} degrees"
-            )
-    relative = geometry.relative_height_error_from_tilt(tilt_deg=widest, tilt_uncertainty_deg=tilt_uncertainty)
-    finite = np.isfinite(z_um)
-    sample = z_um[::4, ::4]  # the median height, which the tilt error scales from, needs no more
-    sample = sample[np.isfinite(sample)]
-    reference_um = np.float32(np.median(sample)) if sample.size else np.float32(0)
-    sigma_um = np.hypot(disparity_sigma_um, np.float32(relative) * np.abs(z_um - reference_um))
-    sigma_um[~finite] = np.nan
-    confidence = confidences[0] if len(confidences) == 1 else np.nanmax(np.stack(confidences), axis=0)
-    if rotated:
-        z_um[outside] = np.nan
-        back = (images[0].pixels.shape[0] - bar_rows, images[0].pixels.shape[1])
+
+def _match_view(reference: np.ndarray, view: np.ndarray, options: MatchingOptions, strip_matcher, progress):
+    """One view aligned to and matched with the reference: its disparity to the reference (the
+    global shift and the magnification error the alignment left taken out), the matcher's result,
+    the placement, the magnification's uncertainty and the number of strips."""
+    placement = alignment.estimate_alignment(reference, view)
+    on_first = alignment.apply_affine(view, alignment.second_to_first_matrix(placement, reference.shape), reference.shape, inverse=True)
+    spread = placement.parallax_spread_px if np.isfinite(placement.parallax_spread_px) else reference.shape[1] / 8
+    max_disparity_px = options.max_disparity_px or int(np.ceil(1.5 * spread + 8))
+    matched = matching.match_disparity(
+        reference, on_first, window_px=options.window_px, max_disparity_px=max_disparity_px,
+        min_confidence=options.min_confidence, max_lr_difference_px=options.max_lr_difference_px,
+        normalize_local_contrast=options.normalize_local_contrast, propagate_at_full_resolution=options.propagate_at_full_resolution,
+        strip_pixels=options.strip_pixels, strip_matcher=strip_matcher, progress=progress,
+    )
+    strip_count = len(matching.strip_bounds(
+        reference.shape, window_px=options.window_px, max_disparity_px=max_disparity_px, strip_pixels=options.strip_pixels
+    ))
+    # A magnification error ε the alignment left makes disparities err by ε·x: measured on the
+    # matched images, it is taken out here rather than by matching again.
+    columns_px = np.arange(reference.shape[1], dtype=np.float64) - (reference.shape[1] - 1) / 2.0
+    measured = alignment.residual_magnification(reference, on_first, matched.disparity_px)
+    epsilon, epsilon_sigma = measured if measured else (0.0, placement.scale_sigma)
+    disparity = matched.disparity_px + placement.shift_parallel_px - (epsilon * columns_px).astype(np.float32)
+    placement = dataclasses.replace(placement, scale=placement.scale * (1.0 + epsilon))
+    return disparity, matched, placement, epsilon_sigma, strip_count
+
+
+def _tilts(x1_px, matched: _MatchedViews, nominal, options: MatchingOptions, report_progress):
+    """The tilts heights are computed with: the nominal ones, or with `options.calibrate_tilt`
+    those estimated from the disparities, with the views' offsets and the calibration report."""
+    if not options.calibrate_tilt:
+        return np.array(nominal), None, {}
+    report_progress(0.87, "calibrating tilts")
+    sample = (slice(None, None, 4), slice(None, None, 4))  # sparse points: neighbours' errors correlate
+    estimate = tilt_series.estimate_tilts(
+        x1_px[sample].ravel(), matched.disparities[(slice(None), *sample)].reshape(len(matched.disparities), -1), nominal,
+        magnification_sigma=matched.magnification_sigma,
+    )
+    calibration = {"tilt_deg_nominal": list(nominal), "tilt_sigma_deg": estimate.sigma_deg.tolist(), "tilt_residual_px": estimate.residual_px}
+    return estimate.tilt_deg, estimate.offsets_px, calibration
+
+
+def _tilt_uncertainty_deg(options: MatchingOptions, calibration: dict, warnings: list[str]) -> float:
+    """The tilt uncertainty sigma_um uses: the calibrated tilts' where known, else the nominal one."""
+    if not calibration:
+        return options.tilt_uncertainty_deg
+    calibrated_sigma = float(np.max(calibration["tilt_sigma_deg"]))
+    if np.isfinite(calibrated_sigma):
+        return calibrated_sigma
+    # A view's magnification could be measured neither on the matched images nor from features.
+    warnings.append(
+        "the calibrated tilts' uncertainty is unknown (a view's magnification could not be measured); "
+        f"sigma_um uses the nominal tilt uncertainty of {options.tilt_uncertainty_deg:g} degrees"
+    )
+    return options.tilt_uncertainty_deg
+
+
+def _on_stored_grid(rectified: _Rectified, first: SemImage, z_um, sigma_um, confidence):
+    """The maps turned back onto the first image's grid as stored, NaN rows where its data bar was."""
+    if rectified.rotated:
+        z_um[rectified.outside] = np.nan
+        back = (first.pixels.shape[0] - rectified.bar_rows, first.pixels.shape[1])
         z_um, sigma_um, confidence = (
-            alignment.apply_affine(values.astype(np.float32), to_rectified, back, inverse=True, fill=np.nan)
+            alignment.apply_affine(values.astype(np.float32), rectified.to_rectified, back, inverse=True, fill=np.nan)
             for values in (z_um, sigma_um, confidence)
         )
-    z_um, sigma_um, confidence = (_pad_rows(values, bar_rows) for values in (z_um, sigma_um, confidence))
-    valid = np.isfinite(z_um)
-    first_placement = placements[0]
+    return tuple(_pad_rows(values, rectified.bar_rows) for values in (z_um, sigma_um, confidence))
+
+
+def _estimated_tilt_axis_deg(placements: list[alignment.Alignment], tilt_axis_deg: float, warnings: list[str]) -> float:
+    """The tilt axis the features' parallax points to (NaN when none tells); a warning when it is
+    more than AXIS_WARNING_DEG from the one used."""
     directions = [p.parallax_direction_deg for p in placements if np.isfinite(p.parallax_direction_deg)]
     axis_estimated = float(tilt_axis_deg + np.median(directions)) if directions else float("nan")
     if directions and abs(axis_estimated - tilt_axis_deg) > AXIS_WARNING_DEG:
@@ -210,7 +277,15 @@ def compute_series_height_map(
             f"the parallax points to a tilt axis at {axis_estimated:.1f} degrees, {abs(axis_estimated - tilt_axis_deg):.1f} "
             f"from the {tilt_axis_deg:g} used; heights may be wrong (give --tilt-axis-deg)"
         )
-    report = {
+    return axis_estimated
+
+
+def _report(*, tilts, tilt_axis_deg, pixel_size, matched: _MatchedViews, z_um, bar_rows, axis_estimated, warnings, calibration) -> dict:
+    """The MatchingReport's figures (see the protobuf API), but for the elapsed time."""
+    first_placement = matched.placements[0]
+    first_disparity = matched.disparities[1]
+    measured = np.isfinite(first_disparity).any()
+    return {
         "tilt_deg": [float(t) for t in tilts],
         "tilt_axis_deg": float(tilt_axis_deg),
         "pixel_size_um": pixel_size,
@@ -218,19 +293,16 @@ def compute_series_height_map(
         "shift_across_px": first_placement.shift_across_px,
         "rotation_deg": first_placement.rotation_deg,
         "magnification_ratio": first_placement.scale,
-        "residual_vertical_parallax_px": max(p.residual_vertical_parallax_px for p in placements),
-        "valid_fraction": float(valid.mean()),
-        "min_disparity_px": float(np.nanmin(disparities[1])) if np.isfinite(disparities[1]).any() else float("nan"),
-        "max_disparity_px": float(np.nanmax(disparities[1])) if np.isfinite(disparities[1]).any() else float("nan"),
+        "residual_vertical_parallax_px": max(p.residual_vertical_parallax_px for p in matched.placements),
+        "valid_fraction": float(np.isfinite(z_um).mean()),
+        "min_disparity_px": float(np.nanmin(first_disparity)) if measured else float("nan"),
+        "max_disparity_px": float(np.nanmax(first_disparity)) if measured else float("nan"),
         "data_bar_rows": int(bar_rows),
-        "elapsed_s": time.perf_counter() - started,
         "tilt_axis_deg_estimated": axis_estimated,
         "warnings": warnings,
-        "strip_count": strip_count,
+        "strip_count": matched.strip_count,
         **calibration,
     }
-    report_progress(1.0, "done")
-    return HeightMapResult(z_um, sigma_um, np.nan_to_num(confidence).astype(np.float32), report)
 
 
 def _resolve_tilt(image: SemImage, explicit: float | None, index: int) -> float:

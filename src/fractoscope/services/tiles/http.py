@@ -24,11 +24,11 @@ from pathlib import Path
 from aiohttp import web
 from google.protobuf import json_format
 
-from fractoscope.specimen import queries as specimen_queries
 from fractoscope.errors import FractoscopeError, InvalidInputError, NotFoundError
+from fractoscope.rpc.tiles import specimen_message
 from fractoscope.services.auth import TokenTable
 from fractoscope.services.caches import BoundedCache
-from fractoscope.rpc.tiles import specimen_message
+from fractoscope.specimen import queries as specimen_queries
 from fractoscope.specimen.store import SpecimenStore
 
 _ROUTE = re.compile(r"^/specimens/(?P<specimen>[A-Za-z0-9_-]{1,64})/(?P<path>tileset\.json|tiles/\d{1,6}/\d{1,6}/\d{1,6}\.glb)$")
