@@ -14,7 +14,9 @@ import tifffile
 
 from fractoscope import synthetic
 from fractoscope.client import FractoscopeClient
+from fractoscope.client.manifest import load_manifest
 from fractoscope.services.server import create_server
+from fractoscope.synthetic.examples import write_multiscale_specimen
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 POLLEN_SERIES = SHARED_DATA / "real" / "potamogeton-tilt-series"
@@ -92,6 +94,21 @@ def client(server_address):
         yield connected
 
 
+@pytest.fixture(scope="session")
+def built(tmp_path_factory):
+    """(truth, client, data directory, summary) with the example specimen (synthetic.examples)
+    reconstructed by a loopback server, for the tile service's and the browser's tests."""
+    root = tmp_path_factory.mktemp("specimen")
+    truth = write_multiscale_specimen(root / "input")
+    server, port = create_server("127.0.0.1:0", data_dir=root / "data")
+    server.start()
+    with FractoscopeClient(f"127.0.0.1:{port}", timeout_s=300) as client:
+        specimen_id, rois = load_manifest(root / "input" / "manifest.json")
+        summary = client.reconstruct_specimen(specimen_id, rois, request_id="first")
+        yield truth, client, root / "data", summary
+    server.stop(grace=None)
+
+
 @dataclass(frozen=True)
 class DecodedGlb:
     """A GLB's one mesh as a client sees it: positions (N, 3) metres after the node's transform,
@@ -136,6 +153,21 @@ def decode_glb(glb: bytes) -> DecodedGlb:
     return DecodedGlb(
         positions_m, values(primitive.attributes.NORMAL), values(primitive.attributes.TEXCOORD_0), values(primitive.indices).reshape(-1, 3)
     )
+
+
+def rough_with_hole(size=600):
+    """A rough surface (H = 0.8, 2 µm RMS) with a 60 x 80 px hole, float32 µm, and a texture from its heights."""
+    z = synthetic.self_affine_surface((size, size), hurst=0.8, rms_um=2.0, seed=4).astype(np.float32)
+    z[200:260, 300:380] = np.nan
+    texture = np.clip((z - np.nanmin(z)) / (np.nanmax(z) - np.nanmin(z)) * 255, 0, 255)
+    return z, np.nan_to_num(texture).astype(np.uint8)
+
+
+def rotated_to_lowest_first(triangles: np.ndarray) -> np.ndarray:
+    """Each triangle rotated (winding kept) to start at its lowest index: the index codec may
+    rotate triangles."""
+    shift = np.argmin(triangles, axis=1)[:, None]
+    return np.take_along_axis(triangles, (shift + np.arange(3)) % 3, axis=1)
 
 
 VALIDATOR = Path(__file__).resolve().parent / "js" / "validate_gltf.mjs"

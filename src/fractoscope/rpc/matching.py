@@ -7,7 +7,7 @@ import numpy as np
 
 from fractoscope.errors import InvalidInputError
 from fractoscope.rpc import wire
-from fractoscope.sem.image import MAX_IMAGE_PIXELS
+from fractoscope.sem import image as sem_image
 from fractoscope.stereo.disparity import DisparityResult, StripTask
 from fractoscope.stereo.pipeline import HeightMapResult, MatchingOptions, validate_options
 from fractoscope.v1 import matching_pb2
@@ -53,8 +53,8 @@ def request_to_strip_task(request: matching_pb2.MatchStripRequest) -> StripTask:
     right = wire.raster_to_array(request.right, field="right").astype(np.float32)
     if left.shape != right.shape:
         raise InvalidInputError("right", f"size {right.shape[::-1]} differs from the left strip's {left.shape[::-1]}")
-    if left.size > MAX_IMAGE_PIXELS:
-        raise InvalidInputError("left", f"{left.size} pixels is more than the limit of {MAX_IMAGE_PIXELS} (FRACTO_MAX_IMAGE_PIXELS)")
+    if left.size > sem_image.MAX_IMAGE_PIXELS:
+        raise InvalidInputError("left", f"{left.size} pixels is more than the limit of {sem_image.MAX_IMAGE_PIXELS} (FRACTO_MAX_IMAGE_PIXELS)")
     for name, values in (("left", left), ("right", right)):
         if not np.isfinite(values).all():
             raise InvalidInputError(name, "grey values must be finite")

@@ -47,6 +47,7 @@ def test_height_writes_the_npz_contract(pair_files, tmp_path):
         assert np.nanstd(error[16:-16, 16:-16]) < 0.03 * np.ptp(pair.z_seen_um)
 
 
+@pytest.mark.slow
 def test_height_against_a_running_server(pair_files, tmp_path, server_address):
     (left, right), _ = pair_files
     out = tmp_path / "out.npz"
@@ -102,6 +103,7 @@ def test_missing_file_and_unreachable_server(pair_files, tmp_path):
     assert done.returncode == 3 and done.stderr.startswith("error:")
 
 
+@pytest.mark.slow
 def test_height_then_mesh_writes_valid_glb_levels(pair_files, tmp_path):
     from conftest import validate_glbs
 
@@ -126,6 +128,7 @@ def test_height_then_mesh_writes_valid_glb_levels(pair_files, tmp_path):
     assert done.returncode == 2 and done.stderr.startswith("error: height_map.pixel_size_um")
 
 
+@pytest.mark.slow
 def test_demo_builds_the_specimens_and_prints_the_viewer_url(tmp_path):
     done = _run("demo", "--data", tmp_path / "data", "--shared-data", tmp_path / "none", "--port", 0, "--http-port", 0, "--exit")
     assert done.returncode == 0, done.stderr
@@ -134,6 +137,7 @@ def test_demo_builds_the_specimens_and_prints_the_viewer_url(tmp_path):
     assert (tmp_path / "data" / "specimens" / "synthetic" / "tileset.json").is_file()
 
 
+@pytest.mark.slow
 def test_specimen_commands_from_a_manifest(tmp_path):
     from fractoscope.synthetic.examples import write_multiscale_specimen
 
@@ -159,6 +163,7 @@ def test_specimen_commands_from_a_manifest(tmp_path):
     assert missing.returncode == 4 and missing.stderr.count("\n") == 1
 
 
+@pytest.mark.slow
 def test_height_png_is_a_picture(pair_files, tmp_path):
     (left, right), _ = pair_files
     done = _run("height", left, right, "--tilt", -5, 5, "--pixel-size-um", 0.1, "-o", tmp_path / "h.npz", "--png", tmp_path / "h.png", "--json")
@@ -171,6 +176,7 @@ def test_height_png_is_a_picture(pair_files, tmp_path):
     assert json.loads(done.stdout)["png"] == str(tmp_path / "h.png")
 
 
+@pytest.mark.slow
 def test_demo_serves_until_stopped_and_then_exits_cleanly(tmp_path):
     import signal
     import time
@@ -197,6 +203,7 @@ def test_demo_serves_until_stopped_and_then_exits_cleanly(tmp_path):
             process.kill()
 
 
+@pytest.mark.slow
 def test_height_of_a_tilt_series_with_calibrated_tilts(tmp_path):
     from fractoscope import synthetic
 

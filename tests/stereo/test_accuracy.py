@@ -8,6 +8,8 @@ from fractoscope import synthetic
 from fractoscope.sem.image import SemImage
 from fractoscope.stereo.pipeline import MatchingOptions, compute_height_map
 
+pytestmark = pytest.mark.slow  # accuracy on 640² pairs: `pytest -m "not slow"` leaves it out
+
 
 def _reconstruct(pair, tilt_deg, **kwargs):
     first, second = (SemImage(image, None, None, 0) for image in (pair.first, pair.second))

@@ -26,7 +26,7 @@ from fractoscope.services.server import create_server
 from fractoscope.stereo.pipeline import MatchingOptions, compute_series_height_map
 from fractoscope.synthetic.examples import write_multiscale_specimen
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 DEPLOY = ROOT / "deploy"
 TOOLS = ROOT / ".tools"  # installed by `make test`
 
@@ -168,6 +168,7 @@ class Stack:
         return [process.wait(timeout=60) for process in self.processes.values()]
 
 
+@pytest.mark.slow
 def test_three_processes_build_a_specimen_and_answer_health_checks(tmp_path):
     stack = Stack(tmp_path / "data")
     try:
@@ -181,6 +182,7 @@ def test_three_processes_build_a_specimen_and_answer_health_checks(tmp_path):
         assert stack.stop() == [0, 0, 0]  # SIGTERM: graceful stop
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("victim, during", [("matching", "matching ROI overview"), ("meshing", "tile"), ("tiles", "tile")])
 def test_a_service_killed_mid_reconstruction_leaves_nothing_half_written(tmp_path, victim, during):
     """One service dies mid-reconstruction (matching while the overview is matched, meshing or
@@ -232,6 +234,7 @@ def test_a_service_killed_mid_reconstruction_leaves_nothing_half_written(tmp_pat
         stack.stop()
 
 
+@pytest.mark.slow
 def test_matching_replicas_share_the_strips_of_a_pair_and_the_stitched_map_is_exact():
     """A matching process with two strip peers (round-robin over their addresses) farms the strips
     of a pair out and stitches them: the height map is the one a single process computes, to

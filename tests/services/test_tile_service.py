@@ -6,10 +6,8 @@ from __future__ import annotations
 import gzip
 import json
 import os
-import subprocess
 import urllib.error
 import urllib.request
-from pathlib import Path
 
 import grpc
 import numpy as np
@@ -19,28 +17,13 @@ from scipy import ndimage
 from conftest import fracture_pair, tiff_bytes, validate_glbs
 from fractoscope import synthetic
 from fractoscope.client import ClientError, FractoscopeClient
-from fractoscope.client.manifest import load_manifest
 from fractoscope.formats.tileset import content_uris
 from fractoscope.services.server import create_server
 from fractoscope.services.tiles.http import start_http_server
 from fractoscope.specimen.store import SpecimenStore
-from fractoscope.synthetic.examples import MULTISCALE_MAGNIFICATIONS, write_multiscale_specimen
+from fractoscope.synthetic.examples import MULTISCALE_MAGNIFICATIONS
 
 OVERVIEW_MAG, ZOOM_MAG = MULTISCALE_MAGNIFICATIONS
-
-
-@pytest.fixture(scope="module")
-def built(tmp_path_factory):
-    """(truth, client, data directory) with the specimen reconstructed by a loopback server."""
-    root = tmp_path_factory.mktemp("specimen")
-    truth = write_multiscale_specimen(root / "input")
-    server, port = create_server("127.0.0.1:0", data_dir=root / "data")
-    server.start()
-    with FractoscopeClient(f"127.0.0.1:{port}", timeout_s=300) as client:
-        specimen_id, rois = load_manifest(root / "input" / "manifest.json")
-        summary = client.reconstruct_specimen(specimen_id, rois, request_id="first")
-        yield truth, client, root / "data", summary
-    server.stop(grace=None)
 
 
 def true_heights(truth: synthetic.MultiscaleSpecimen, x_um: np.ndarray, y_um: np.ndarray) -> np.ndarray:
@@ -297,44 +280,6 @@ def test_http_endpoint_serves_tiles_with_cors_etag_and_gzip(built):
             assert missing.value.code == 404
     finally:
         http.shutdown()
-
-
-def _in_chromium(script: str, data: Path, path: str, screenshot: Path) -> dict:
-    """Runs tests/js/SCRIPT against `path` on an HTTP endpoint serving `data`; its JSON result."""
-    http = start_http_server(SpecimenStore(data))
-    runner = Path(__file__).resolve().parent / "js" / script
-    try:
-        done = subprocess.run(
-            ["node", str(runner), f"http://127.0.0.1:{http.server_port}{path}", str(screenshot)],
-            capture_output=True, text=True, timeout=240, cwd=runner.parents[2],
-        )
-    finally:
-        http.shutdown()
-    assert done.returncode == 0, done.stderr[-2000:]
-    return json.loads(done.stdout.splitlines()[-1])
-
-
-def test_tileset_loads_in_3d_tiles_renderer_in_headless_chromium(built, tmp_path):
-    _, _, data, _ = built
-    result = _in_chromium("load_tileset.mjs", data, "/specimens/synthetic/tileset.json", tmp_path / "view.png")
-    assert result["tilesetLoaded"] and not result["failed"] and not result["errors"], result
-    assert result["loaded"] >= 5  # the root and refining levels streamed in
-    assert result["litFraction"] > 0.3  # the textured surface fills much of the view
-
-
-def test_web_viewer_streams_tiles_and_measures_a_profile(built, tmp_path):
-    """The viewer page, served by the tile endpoint, in headless Chromium: tiles requested and
-    drawn, the profile tool (two clicks) and the roughness panel return numbers."""
-    _, _, data, _ = built
-    result = _in_chromium("check_viewer.mjs", data, "/viewer/?specimen=synthetic", tmp_path / "viewer.png")
-    assert not result["errors"] and result["status"]["failed"] == 0, result
-    assert result["tileRequests"] >= 5 and result["status"]["loaded"] >= 5
-    assert result["litFraction"] > 0.2
-    assert result["profile"]["samples"] > 100 and result["profile"]["parameters"]["Ra"] > 0
-    assert "Ra" in result["profile"]["text"]
-    assert result["roughness"]["Sa"] > 0 and 0 < result["roughness"]["hurst_exponent"] < 1.5
-    assert result["scaleBar"].endswith("µm")
-    assert result["heightColourSpread"] > 0.3  # heights from the dequantized positions span the ramp
 
 
 def test_http_json_api_names_bad_parameters(built):

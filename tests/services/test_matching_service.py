@@ -24,6 +24,7 @@ def test_health_and_reflection(server_address):
         assert "fractoscope.v1.MatchingService" in names and "grpc.health.v1.Health" in names
 
 
+@pytest.mark.slow
 def test_height_map_of_images_larger_than_four_mib_with_progress(client):
     pair = fracture_pair(size_px=1536, bits=16, seed=3)
     files = [tiff_bytes(image) for image in (pair.first, pair.second)]

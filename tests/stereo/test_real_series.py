@@ -6,7 +6,7 @@ import pytest
 from fractoscope.sem.image import read_sem_image
 from fractoscope.stereo.pipeline import compute_height_map
 
-pytestmark = pytest.mark.real_data
+pytestmark = [pytest.mark.real_data, pytest.mark.slow]
 
 # In the stored orientation the grain's centre is near row 1070, column 730, radius about 500 px.
 GRAIN_CENTRE_PX, GRAIN_TOP_RADIUS_PX, SUBSTRATE_FROM_PX = (1070, 730), 300, 700

@@ -60,6 +60,7 @@ def test_two_views_cannot_be_calibrated():
         tilt_series.estimate_tilts(seen_first, disparities, (-5.0, 5.0))
 
 
+@pytest.mark.slow
 def test_three_synthetic_sem_views_with_wrong_nominal_tilts():
     """-5/0/+5 degree views of a known surface; the nominal tilts are off by up to 0.5 degree."""
     from fractoscope import synthetic
@@ -99,6 +100,7 @@ def test_three_synthetic_sem_views_with_wrong_nominal_tilts():
     assert rms_percent < 1.5
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("true_axis_deg, given_axis_deg, warned", [(60.0, 60.0, False), (60.0, 64.0, True), (90.0, 87.0, True)])
 def test_tilt_axis_is_estimated_from_the_parallax_and_a_wrong_one_is_flagged(true_axis_deg, given_axis_deg, warned):
     from conftest import fracture_pair
