@@ -105,7 +105,7 @@ def test_mesh_requests_decode_to_their_options_arrays_and_origin():
     z_um = np.arange(12, dtype=np.float32).reshape(3, 4)
     texture = (np.arange(12, dtype=np.uint16) * 257).reshape(3, 4)
     request = calls.mesh_request(z_um, texture, pixel_size_um=0.5, origin_um=(1.0, 2.0), method=meshing_pb2.SIMPLIFICATION_METHOD_QUADRIC,
-                                 level_count=3, filter_parameters=meshing_pb2.FilterParameters(smoothing_um=0.2), plain_glb=True)
+                                 level_count=3, filter=meshing_pb2.FilterParameters(smoothing_um=0.2), plain_glb=True)
     assert rpc_meshing.options_from_request(request) == MeshingOptions(
         smoothing_um=np.float32(0.2), method=Simplification.QUADRIC, level_count=3, plain_glb=True,
     )

@@ -29,7 +29,7 @@ from google.protobuf import json_format
 
 from fractoscope.rpc import calls, wire
 from fractoscope.rpc.calls import HeightMap, ProgressCallback
-from fractoscope.rpc.channel import open_channel
+from fractoscope.rpc.channel import ChannelOwner, open_channel
 from fractoscope.rpc.limits import DEFAULT_MAX_MESSAGE_MB
 from fractoscope.rpc.status import ClientError, raised_as_client_errors
 from fractoscope.rpc.wire import Region
@@ -49,7 +49,7 @@ class Profile:
     parameters: dict
 
 
-class FractoscopeClient:
+class FractoscopeClient(ChannelOwner):
     """Typed methods over one channel to a Fractoscope server."""
 
     def __init__(
@@ -68,15 +68,6 @@ class FractoscopeClient:
         self._meshing = meshing_pb2_grpc.MeshingServiceStub(self._channel)
         self._tiles = tiles_pb2_grpc.TileServiceStub(self._channel)
         self._timeout_s = timeout_s
-
-    def __enter__(self) -> FractoscopeClient:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-    def close(self) -> None:
-        self._channel.close()
 
     def compute_height_map(
         self,
@@ -132,8 +123,8 @@ class FractoscopeClient:
         vertex_count, triangle_count) and the filter report. `plain_glb`: float32 GLBs without extensions, for tools
         that lack a meshopt decoder (about five times larger)."""
         request = calls.mesh_request(
-            z_um, texture, pixel_size_um=pixel_size_um, origin_um=origin_um, method=method, level_count=level_count,
-            filter_parameters=filter_parameters, request_id=request_id, plain_glb=plain_glb,
+            z_um, texture, pixel_size_um=pixel_size_um, origin_um=origin_um,
+            method=method, level_count=level_count, filter=filter_parameters, request_id=request_id, plain_glb=plain_glb,
         )
         with raised_as_client_errors():
             return calls.read_mesh(self._meshing.BuildMesh(request, timeout=self._timeout_s), on_progress)

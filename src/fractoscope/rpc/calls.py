@@ -81,22 +81,12 @@ def read_height_map(responses: Iterable[matching_pb2.ComputeHeightMapResponse], 
 
 
 def mesh_request(
-    z_um: np.ndarray,
-    texture: np.ndarray | None,
-    *,
-    pixel_size_um: float,
-    origin_um: tuple[float, float] = (0.0, 0.0),
-    method: int = meshing_pb2.SIMPLIFICATION_METHOD_VERTEX_CLUSTERING,
-    level_count: int = 0,
-    filter_parameters: meshing_pb2.FilterParameters | None = None,
-    request_id: str = "",
-    plain_glb: bool = False,
+    z_um: np.ndarray, texture: np.ndarray | None, *, pixel_size_um: float, origin_um: tuple[float, float] = (0.0, 0.0), **settings
 ) -> meshing_pb2.BuildMeshRequest:
-    """BuildMesh of a height map ((rows, cols) µm, NaN unknown) and a grey texture of its shape."""
-    request = meshing_pb2.BuildMeshRequest(
-        filter=filter_parameters, method=method, level_count=level_count, request_id=request_id, plain_glb=plain_glb,
-        origin_um=common_pb2.PointUm(x_um=origin_um[0], y_um=origin_um[1]),
-    )
+    """BuildMesh of a height map ((rows, cols) µm, NaN unknown) and a grey texture of its shape
+    (None: flat grey), pixel (0, 0) at `origin_um` (x, y); `settings` are the request's other
+    fields (method, level_count, filter, request_id, plain_glb)."""
+    request = meshing_pb2.BuildMeshRequest(origin_um=common_pb2.PointUm(x_um=origin_um[0], y_um=origin_um[1]), **settings)
     request.height_map.pixel_size_um = pixel_size_um
     wire.fill_raster(request.height_map.z_um, np.asarray(z_um, np.float32))
     if texture is not None:

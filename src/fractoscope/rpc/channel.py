@@ -46,6 +46,22 @@ def open_channel(
     return grpc.intercept_channel(channel, _BearerToken(token)) if token else channel
 
 
+class ChannelOwner:
+    """Something that calls over its own channel (`self._channel`): closed by close() or at the
+    end of a with block."""
+
+    _channel: grpc.Channel
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self._channel.close()
+
+
 class _BearerToken(grpc.UnaryUnaryClientInterceptor, grpc.UnaryStreamClientInterceptor):
     """Adds `authorization: Bearer TOKEN` to every call."""
 

@@ -9,13 +9,13 @@ import grpc
 
 from fractoscope.errors import FractoscopeError, UnavailableError
 from fractoscope.rpc import matching as rpc_matching
-from fractoscope.rpc.channel import open_channel
+from fractoscope.rpc.channel import ChannelOwner, open_channel
 from fractoscope.rpc.status import ClientError, raised_as_client_errors
 from fractoscope.stereo.disparity import DisparityResult, StripTask
 from fractoscope.v1 import matching_pb2_grpc
 
 
-class StripPeers:
+class StripPeers(ChannelOwner):
     """The matching replicas behind one gRPC target (several addresses or a `dns:///` name are
     balanced round-robin); every call has a deadline of `timeout_s`."""
 
@@ -23,15 +23,6 @@ class StripPeers:
         self._channel = open_channel(address)
         self._stub = matching_pb2_grpc.MatchingServiceStub(self._channel)
         self._timeout_s = timeout_s
-
-    def __enter__(self) -> StripPeers:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-    def close(self) -> None:
-        self._channel.close()
 
     def match_strip(self, task: StripTask, *, request_id: str = "") -> tuple[DisparityResult, str]:
         """Dense disparity of one strip of a rectified pair, matched by a peer; returns it with the
