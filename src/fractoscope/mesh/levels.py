@@ -5,9 +5,9 @@ of measured pixels. Level k clusters the pixels into cells of 2**k x 2**k and ke
 cell, the centroid of its measured pixels (the paper's hierarchical space decomposition); with
 the quadric method, each tile of level k >= 1 is that grid further decimated to half its
 triangles by quadric error collapses (fast-simplification), which spends triangles where the
-surface bends. Each level is cut into tiles of at most LOD_TILE_MAX_CELLS x LOD_TILE_MAX_CELLS cells;
-neighbouring tiles share their border vertices exactly (decimation keeps tile borders), so there
-are no cracks. A tile of level k+1 covers the area of the four tiles of level k below it (to
+surface bends. Each level is cut into tiles of at most LOD_TILE_MAX_CELLS x LOD_TILE_MAX_CELLS
+cells; neighbouring tiles share their border vertices exactly (decimation keeps tile borders), so
+there are no cracks. A tile of level k+1 covers the area of the four tiles of level k below it (to
 within half a cell).
 
 Pixel positions (row_px, col_px) count from the centre of the top-left pixel.

@@ -1,1 +1,2 @@
-"""SEM images and their calibration (stage tilt, pixel size, data bar) read from TIFF and PNG files."""
+"""SEM images read from TIFF and PNG files (`image`) with their calibration from the vendors'
+metadata (`metadata`): stage tilt, pixel size, data bar."""

@@ -1,8 +1,8 @@
 """Reading SEM images and their calibration (stage tilt, pixel size) from TIFF and PNG files.
 
 Supported metadata: Zeiss SmartSEM (TIFF tag 34118) and FEI / Thermo Fisher (tags 34680, 34682),
-both decoded by tifffile. Pixels are returned as stored (rows, cols); an instrument data bar at
-the bottom is detected and reported, not silently kept as image content.
+both decoded by tifffile and read by `metadata`. Pixels are returned as stored (rows, cols); an
+instrument data bar at the bottom is detected and reported, not silently kept as image content.
 """
 
 from __future__ import annotations
@@ -17,6 +17,7 @@ import tifffile
 from PIL import Image
 
 from fractoscope.errors import InvalidInputError
+from fractoscope.sem.metadata import fei_calibration, zeiss_calibration
 
 # Corrupt files are reported to the caller as InvalidInputError; tifffile's own log lines about
 # them would only repeat that on the server's stderr.
@@ -24,7 +25,6 @@ logging.getLogger("tifffile").setLevel(logging.CRITICAL)
 
 # Largest image accepted, pixels: a small file may declare a huge image (a decompression bomb).
 MAX_IMAGE_PIXELS = int(os.environ.get("FRACTO_MAX_IMAGE_PIXELS", 16384 * 16384))
-_LENGTH_TO_UM = {"pm": 1e-6, "nm": 1e-3, "µm": 1.0, "um": 1.0, "μm": 1.0, "mm": 1e3, "m": 1e6}
 
 
 @dataclass(frozen=True)
@@ -95,10 +95,10 @@ def _read_tiff(content: bytes, field: str):
         raise InvalidInputError(field, f"unreadable TIFF, corrupt or truncated ({type(exc).__name__}: {exc})") from None
     pixels = _as_grey_integer(pixels, field)
     if zeiss:
-        tilt_deg, pixel_size_um = _zeiss_calibration(zeiss, pixels.shape)
+        tilt_deg, pixel_size_um = zeiss_calibration(zeiss, pixels.shape)
         return pixels, tilt_deg, pixel_size_um, None
     if fei:
-        tilt_deg, pixel_size_um, image_rows = _fei_calibration(fei)
+        tilt_deg, pixel_size_um, image_rows = fei_calibration(fei)
         bar_rows = pixels.shape[0] - image_rows if image_rows and 0 < image_rows < pixels.shape[0] else None
         return pixels, tilt_deg, pixel_size_um, bar_rows
     return pixels, None, None, None
@@ -132,44 +132,6 @@ def _as_grey_integer(pixels: np.ndarray, field: str) -> np.ndarray:
         span = high - low if high > low else 1.0
         return np.round((values - low) / span * 65535.0).astype(np.uint16)
     raise InvalidInputError(field, f"unsupported pixel type {pixels.dtype}")
-
-
-def _length_um(entry) -> float | None:
-    """A Zeiss (name, value, unit) entry as micrometres."""
-    if not isinstance(entry, tuple) or len(entry) < 3:
-        return None
-    value, unit = entry[1], str(entry[2])
-    if not isinstance(value, (int, float)) or unit not in _LENGTH_TO_UM or value <= 0:
-        return None
-    return float(value) * _LENGTH_TO_UM[unit]
-
-
-def _zeiss_calibration(metadata: dict, shape: tuple[int, int]) -> tuple[float | None, float | None]:
-    """Stage tilt from ``Stage at T`` and pixel size from ``Image Pixel Size`` (or Width / scan line).
-
-    ``Tilt Angle`` is the tilt-correction setting and ``Pixel Size`` refers to the screen store
-    resolution, so neither is used.
-    """
-    tilt = metadata.get("ap_stage_at_t")
-    tilt_deg = float(tilt[1]) if isinstance(tilt, tuple) and isinstance(tilt[1], (int, float)) else None
-    pixel_size_um = _length_um(metadata.get("ap_image_pixel_size"))
-    if pixel_size_um is None:
-        width_um = _length_um(metadata.get("ap_width"))
-        if width_um is not None:
-            pixel_size_um = width_um / max(shape)
-    return tilt_deg, pixel_size_um
-
-
-def _fei_calibration(metadata: dict) -> tuple[float | None, float | None, int | None]:
-    """Stage tilt (``[Stage] StageT``, radians), pixel size (``[Scan] PixelWidth``, metres) and the
-    image height without data bar (``[Image] ResolutionY``)."""
-    stage, scan, image = (metadata.get(name) or {} for name in ("Stage", "Scan", "Image"))
-    tilt_rad = stage.get("StageT")
-    tilt_deg = float(np.degrees(tilt_rad)) if isinstance(tilt_rad, (int, float)) else None
-    pixel_m = scan.get("PixelWidth")
-    pixel_size_um = float(pixel_m) * 1e6 if isinstance(pixel_m, (int, float)) and pixel_m > 0 else None
-    rows = image.get("ResolutionY")
-    return tilt_deg, pixel_size_um, int(rows) if isinstance(rows, int) else None
 
 
 def detect_data_bar_rows(pixels: np.ndarray, *, max_fraction: float = 0.2) -> int:

@@ -1,10 +1,11 @@
 """A specimen's fused surface as a quadtree of tiles (written as 3D Tiles by formats.tileset).
 
 The root tile spans the union of the ROIs (a square in the specimen frame); each level halves the
-tile side, and every tile holds QUADTREE_TILE_CELLS x QUADTREE_TILE_CELLS cells. A tile is refined (four children,
-REPLACE) while some ROI under it has pixels finer than its cells, so the tree goes deep only where
-high-magnification data exists: children there are "optical", their siblings outside the ROI are
-"digital" (coarser data upsampled). Tile URIs are `tiles/{level}/{col}/{row}.glb`.
+tile side, and every tile holds QUADTREE_TILE_CELLS x QUADTREE_TILE_CELLS cells. A tile is refined
+(four children, REPLACE) while some ROI under it has pixels finer than its cells, so the tree goes
+deep only where high-magnification data exists: children there are "optical", their siblings
+outside the ROI are "digital" (coarser data upsampled). Tile URIs are
+`tiles/{level}/{col}/{row}.glb`.
 """
 
 from __future__ import annotations
