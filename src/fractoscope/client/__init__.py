@@ -163,7 +163,7 @@ class FractoscopeClient(ChannelOwner):
         with raised_as_client_errors():
             return self._tiles.GetTile(tiles_pb2.GetTileRequest(specimen_id=specimen_id, uri=uri), timeout=self._timeout_s).tile.glb
 
-    def stream_view(self, specimen_id: str, region_um: Region, *, viewport_px: int = 1024) -> Iterator[tiles_pb2.Tile]:
+    def stream_view(self, specimen_id: str, region_um: Region, *, viewport_px: int = wire.DEFAULT_VIEWPORT_PX) -> Iterator[tiles_pb2.Tile]:
         """The tiles that show a region (x0, y0, x1, y1) µm on a screen `viewport_px` wide, coarse first."""
         request = tiles_pb2.StreamViewRequest(specimen_id=specimen_id, region=wire.region_message(region_um), viewport_px=viewport_px)
         with raised_as_client_errors():

@@ -32,8 +32,8 @@ class EncodedTile:
 class MeshingOptions:
     """Filtering and simplification settings (see surface.filtering and mesh.levels)."""
 
-    outlier_threshold_sigma: float = 8.0
-    max_fill_distance_px: int = 8
+    outlier_threshold_sigma: float = filtering.OUTLIER_THRESHOLD_SIGMA
+    max_fill_distance_px: int = filtering.MAX_FILL_DISTANCE_PX
     smoothing_um: float = 0.0
     method: levels.Simplification = levels.Simplification.VERTEX_CLUSTERING
     level_count: int | None = None

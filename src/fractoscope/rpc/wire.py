@@ -74,6 +74,9 @@ def message_to_region(message: tiles_pb2.RegionUm) -> Region:
     return message.min.x_um, message.min.y_um, message.max.x_um, message.max.y_um
 
 
+# The screen width StreamView assumes when a request leaves it out, pixels.
+DEFAULT_VIEWPORT_PX = 1024
+
 # Optical: the tile's data is measured at its resolution; digital: coarser data upsampled.
 ZOOM_KINDS = {"optical": tiles_pb2.ZOOM_KIND_OPTICAL, "digital": tiles_pb2.ZOOM_KIND_DIGITAL}
 _ZOOM_NAMES = {kind: name for name, kind in ZOOM_KINDS.items()}

@@ -8,6 +8,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+OUTLIER_THRESHOLD_SIGMA = 8.0
+MAX_FILL_DISTANCE_PX = 8
+
 
 @dataclass(frozen=True)
 class FilterReport:
@@ -31,8 +34,8 @@ class FilteredHeights:
 def filter_heights(
     z_um: np.ndarray,
     *,
-    outlier_threshold_sigma: float = 8.0,
-    max_fill_distance_px: int = 8,
+    outlier_threshold_sigma: float = OUTLIER_THRESHOLD_SIGMA,
+    max_fill_distance_px: int = MAX_FILL_DISTANCE_PX,
     smoothing_um: float = 0.0,
 ) -> FilteredHeights:
     """Removes isolated peaks (points outside the range of their eight neighbours by more than

@@ -114,7 +114,7 @@ class TileServicer(tiles_pb2_grpc.TileServiceServicer):
     def StreamView(self, request, context):
         specimen = self.store.load(request.specimen_id)
         region = rpc_tiles.region(request.region, "region")
-        viewport_px = request.viewport_px or 1024
+        viewport_px = request.viewport_px or wire.DEFAULT_VIEWPORT_PX
         if not 1 <= viewport_px <= 65536:
             raise InvalidInputError("viewport_px", "must be 1 to 65536")
         for record in quadtree.tiles_for_view(specimen.layout, specimen.tiles, region, viewport_px=viewport_px):
