@@ -27,6 +27,7 @@ import tifffile
 from benchmarks.matching import PIXEL_SIZE_UM, TILTS_DEG, make_pair
 from benchmarks.serving import free_port
 from fractoscope.client import FractoscopeClient
+from fractoscope.stereo.matching import DEFAULT_STRIP_PIXELS
 
 REPEATS = 2
 
@@ -85,7 +86,7 @@ def main() -> None:
     parser.add_argument("--out", default="bench-results")
     parser.add_argument("--size-px", type=int, default=4096)
     parser.add_argument("--peers", type=int, nargs="+", default=[1, 2, 4])
-    parser.add_argument("--strip-pixels", type=int, default=2_000_000)
+    parser.add_argument("--strip-pixels", type=int, default=DEFAULT_STRIP_PIXELS)
     parser.add_argument("--one-cpu-per-replica", action="store_true")
     parser.add_argument("--name", default="scale_out")
     args = parser.parse_args()
