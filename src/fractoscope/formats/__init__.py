@@ -1,0 +1,1 @@
+"""Ways a surface leaves Fractoscope: standard file formats for heights and meshes."""
