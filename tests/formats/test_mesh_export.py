@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from fractoscope.formats import mesh_export
 from fractoscope.formats.mesh_export import area_average, height_map_mesh, write_mesh
 
 ROWS, COLS, PIXEL_SIZE_UM = 30, 40, 0.5
@@ -133,7 +134,9 @@ def test_solid_fills_holes_with_the_nearest_measured_height():
     np.testing.assert_allclose(top[measured, 2], 0.5 * surface_col[measured] + 1.0)
 
 
-def test_our_stl_packs_what_trimesh_writes(tmp_path):
+@pytest.mark.parametrize("block_triangles", [1 << 20, 200])
+def test_our_stl_packs_what_trimesh_writes(tmp_path, monkeypatch, block_triangles):
+    monkeypatch.setattr(mesh_export, "_STL_BLOCK_TRIANGLES", block_triangles)  # 200: strips of 2 rows
     z_um = with_hole(wavy())
     path = tmp_path / "ours.stl"
     write_mesh(path, z_um, pixel_size_um=PIXEL_SIZE_UM, solid=True)
@@ -142,9 +145,15 @@ def test_our_stl_packs_what_trimesh_writes(tmp_path):
     ours = trimesh.load(path, process=False)
     theirs = trimesh.load(io.BytesIO(by_trimesh), file_type="stl", process=False)
 
-    np.testing.assert_array_equal(ours.triangles, theirs.triangles)
+    # The same triangles, each with the same corners in the same turn, in whatever order.
+    def ordered(mesh):
+        keys = mesh.triangles.reshape(len(mesh.triangles), -1)
+        return np.lexsort(keys.T[::-1])
+    np.testing.assert_array_equal(ours.triangles[ordered(ours)], theirs.triangles[ordered(theirs)])
     stored = np.frombuffer(path.read_bytes()[84:], dtype=[("normal", "<f4", 3), ("vertices", "<f4", (3, 3)), ("attr", "<u2")])
-    np.testing.assert_allclose(stored["normal"], theirs.face_normals, atol=1e-6)
+    unit_normals, _ = trimesh.triangles.normals(stored["vertices"].astype(np.float64))
+    np.testing.assert_allclose(stored["normal"], unit_normals, atol=1e-6)
+    assert load(path).is_watertight
 
 
 @pytest.mark.parametrize("factor", [4, 2.5])

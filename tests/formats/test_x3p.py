@@ -96,6 +96,7 @@ def test_comment_holds_the_calibration_with_sources_and_sigma(tmp_path):
     assert comment["calibration"]["tilt_calibrated"] is True
     assert comment["calibration"]["tilt_sigma_deg"] == [0.5, 0.02, None]
     assert comment["grid_step_um"] == PIXEL_SIZE_UM
+    assert comment["z_unit"] == "m"  # the point data; the grid step is given in µm
     back = Calibration.from_dict(comment["calibration"])
     assert back.tilt_deg == calibration.tilt_deg
     assert back.tilt_source == calibration.tilt_source

@@ -8,8 +8,9 @@ point data: for IEEE 754 data types that is how ISO 25178-72 marks invalid point
 reference library does, and both Gwyddion and surfalize read it; `bindata/valid.bin` is needed only
 for integer data, which this module reads but never writes.
 
-Array row r, column c is the point X = c·Δ, Y = r·Δ (CX and CY are incremental axes, offset 0),
-the order every X3P reader uses, so the surface shows as the SEM image does.
+Array row r, column c is the point X = c·Δ, Y = r·Δ (CX and CY are incremental axes, offset 0), the
+point order Gwyddion and surfalize read, so that Gwyddion shows the surface as the SEM image (row 0
+at the top).
 
 References: ISO 25178-72:2017, Geometrical product specifications (GPS) - Surface texture: Areal -
 Part 72: XML file format x3p; the openGPS ISO 5436-2 XML schema, https://www.opengps.eu/2008/ISO5436_2
@@ -76,7 +77,7 @@ def write_x3p(
     if block_rows < 1:
         raise ValueError(f"block_rows: must be at least 1, got {block_rows}")
     rows, cols = z_um.shape
-    description = export_description(calibration, grid_step_um=float(pixel_size_um), height_unit="m")
+    description = export_description(calibration, grid_step_um=float(pixel_size_um), z_unit="m")
     method = zipfile.ZIP_DEFLATED if compress else zipfile.ZIP_STORED
     with zipfile.ZipFile(file, "w", compression=method, compresslevel=1 if compress else None) as archive:
         digest = hashlib.md5()
