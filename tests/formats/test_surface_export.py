@@ -54,11 +54,12 @@ def test_tiff_resolution_tags_give_the_pixel_size_in_centimetres(tmp_path):
 
 def test_tiff_description_holds_the_calibration(tmp_path):
     path = tmp_path / "z.tif"
-    write_height_tiff(path, heights(), pixel_size_um=0.1234, calibration=CALIBRATION)
+    write_height_tiff(path, heights(), pixel_size_um=0.1234, origin_um=(50.0, 7.5), calibration=CALIBRATION)
 
     with tifffile.TiffFile(path) as tiff:
         description = json.loads(tiff.pages[0].description)
     assert description["z_unit"] == "um"
+    assert description["origin_um"] == [50.0, 7.5]
     assert description["grid_step_um"] == 0.1234
     assert Calibration.from_dict(description["calibration"]) == CALIBRATION
 

@@ -6,6 +6,7 @@ import hashlib
 import json
 import math
 import zipfile
+from xml.etree import ElementTree
 
 import numpy as np
 import pytest
@@ -114,6 +115,18 @@ def test_uncalibrated_export_says_so(tmp_path):
     assert json.loads(read_x3p(path).comment)["calibration"] is None
 
 
+def test_origin_is_the_offset_of_the_x_and_y_axes(tmp_path):
+    path = tmp_path / "region.x3p"
+    write_x3p(path, sine_surface(), pixel_size_um=PIXEL_SIZE_UM, origin_um=(120.5, -3.25))
+
+    with zipfile.ZipFile(path) as archive:
+        axes = ElementTree.fromstring(archive.read("main.xml")).find("Record1/Axes")
+    assert float(axes.find("CX/Offset").text) == pytest.approx(120.5e-6, rel=1e-12)
+    assert float(axes.find("CY/Offset").text) == pytest.approx(-3.25e-6, rel=1e-12)
+    assert read_x3p(path).origin_um == (pytest.approx(120.5), pytest.approx(-3.25))
+    assert Surface.load(path).data.shape == sine_surface().shape
+
+
 def test_block_size_does_not_change_the_file_content(tmp_path):
     z_um = np.random.default_rng(3).normal(size=(37, 23)).astype(np.float32)
     one, many = tmp_path / "one.x3p", tmp_path / "many.x3p"
@@ -211,6 +224,12 @@ def test_reader_rejects_point_data_whose_checksum_differs(tmp_path):
 def test_bad_arguments_are_named(tmp_path, z_um, pixel_size_um, named):
     with pytest.raises(ValueError, match=f"^{named}:"):
         write_x3p(tmp_path / "x.x3p", z_um, pixel_size_um=pixel_size_um)
+
+
+@pytest.mark.parametrize("origin_um", [(1.0,), (0.0, math.inf), "here"])
+def test_bad_origin_is_named(tmp_path, origin_um):
+    with pytest.raises(ValueError, match="^origin_um:"):
+        write_x3p(tmp_path / "x.x3p", np.zeros((2, 2)), pixel_size_um=0.1, origin_um=origin_um)
 
 
 def test_calibration_rejects_an_unknown_source():

@@ -27,3 +27,14 @@ def positive(value: float, name: str) -> None:
         ok = False
     if not ok:
         raise ValueError(f"{name}: must be positive and finite, got {value!r}")
+
+
+def origin(origin_um) -> tuple[float, float]:
+    """`origin_um` as (x0, y0) floats, µm, after checking it is two finite numbers."""
+    try:
+        x0, y0 = (float(v) for v in origin_um)
+    except (TypeError, ValueError):
+        raise ValueError(f"origin_um: need (x0, y0) in µm, got {origin_um!r}") from None
+    if not (math.isfinite(x0) and math.isfinite(y0)):
+        raise ValueError(f"origin_um: must be finite, got {origin_um!r}")
+    return x0, y0

@@ -247,8 +247,9 @@ def _triangle_strips(grid: _Grid, *, triangles: int) -> Iterator[tuple[np.ndarra
         points = grid.points(start, stop + 1)
         yield points, faces
         if grid.base_z is not None:
-            points[:, 2] = grid.base_z
-            yield points, faces[:, ::-1]
+            base = points.copy()
+            base[:, 2] = grid.base_z
+            yield base, faces[:, ::-1]
     if grid.base_z is not None:
         border = _border(rows, cols)
         ring = np.empty((2, len(border), 3), dtype=np.float32)

@@ -13,7 +13,7 @@ from typing import TextIO
 import numpy as np
 import tifffile
 
-from fractoscope.formats._validate import height_grid
+from fractoscope.formats._validate import height_grid, origin
 from fractoscope.formats.calibration import Calibration, export_description
 
 CSV_COLUMNS = ("x_um", "y_um", "z_um", "sigma_um")
@@ -25,6 +25,7 @@ def write_height_tiff(
     z_um: np.ndarray,
     *,
     pixel_size_um: float,
+    origin_um: tuple[float, float] = (0.0, 0.0),
     calibration: Calibration | None = None,
 ) -> None:
     """Write heights as a single-page float32 TIFF.
@@ -32,11 +33,12 @@ def write_height_tiff(
     z_um: (rows, cols) heights, µm, NaN where unknown (stored as NaN).
     pixel_size_um: grid step, µm: stored in the resolution tags as pixels per centimetre (the
         finest unit TIFF has) and in the description.
+    origin_um: (x0, y0), µm, the position of pixel (0, 0), in the description.
     calibration: in the ImageDescription, the JSON of `export_description`, with "z_unit": "um".
     """
     z_um = height_grid(z_um, pixel_size_um)
     per_cm = UM_PER_CM / pixel_size_um
-    description = export_description(calibration, grid_step_um=float(pixel_size_um), z_unit="um")
+    description = export_description(calibration, grid_step_um=float(pixel_size_um), origin_um=list(origin(origin_um)), z_unit="um")
     tifffile.imwrite(
         path,
         np.asarray(z_um, dtype=np.float32),
@@ -72,7 +74,7 @@ def write_height_csv(
         raise ValueError(f"sigma_um: shape {np.shape(sigma_um)} differs from z_um's {z_um.shape}")
     if block_rows < 1:
         raise ValueError(f"block_rows: must be at least 1, got {block_rows}")
-    x0, y0 = (float(v) for v in origin_um)
+    x0, y0 = origin(origin_um)
     rows, cols = z_um.shape
     x_um = x0 + np.arange(cols) * float(pixel_size_um)
     written = 0

@@ -8,9 +8,9 @@ point data: for IEEE 754 data types that is how ISO 25178-72 marks invalid point
 reference library does, and both Gwyddion and surfalize read it; `bindata/valid.bin` is needed only
 for integer data, which this module reads but never writes.
 
-Array row r, column c is the point X = c·Δ, Y = r·Δ (CX and CY are incremental axes, offset 0), the
-point order Gwyddion and surfalize read, so that Gwyddion shows the surface as the SEM image (row 0
-at the top).
+Array row r, column c is the point X = x0 + c·Δ, Y = y0 + r·Δ (CX and CY are incremental axes whose
+offsets place a region in its specimen), the point order Gwyddion and surfalize read, so that
+Gwyddion shows the surface as the SEM image (row 0 at the top).
 
 References: ISO 25178-72:2017, Geometrical product specifications (GPS) - Surface texture: Areal -
 Part 72: XML file format x3p; the openGPS ISO 5436-2 XML schema, https://www.opengps.eu/2008/ISO5436_2
@@ -29,7 +29,7 @@ from xml.etree import ElementTree
 import numpy as np
 
 from fractoscope.errors import InvalidInputError
-from fractoscope.formats._validate import height_grid
+from fractoscope.formats._validate import height_grid, origin
 from fractoscope.formats.calibration import Calibration, export_description, software
 
 NAMESPACE = "http://www.opengps.eu/2008/ISO5436_2"
@@ -46,12 +46,14 @@ class X3pSurface:
 
     z_um: (rows, cols) float64 heights, µm, NaN where invalid; row r is Y index r.
     step_x_um, step_y_um: grid increments along columns (X) and rows (Y), µm.
+    origin_um: (x0, y0), the position of point (0, 0), µm (the CX and CY offsets).
     comment: Record2's Comment, "" when absent (Fractoscope writes `export_description` JSON).
     """
 
     z_um: np.ndarray
     step_x_um: float
     step_y_um: float
+    origin_um: tuple[float, float]
     comment: str
 
 
@@ -60,6 +62,7 @@ def write_x3p(
     z_um: np.ndarray,
     *,
     pixel_size_um: float,
+    origin_um: tuple[float, float] = (0.0, 0.0),
     calibration: Calibration | None = None,
     compress: bool = False,
     block_rows: int = 256,
@@ -68,12 +71,14 @@ def write_x3p(
 
     z_um: (rows, cols) heights, µm, NaN (or ±inf) where unknown; any real dtype.
     pixel_size_um: grid step along rows and columns, µm (CX and CY increments, in metres in the file).
+    origin_um: (x0, y0), µm, the position of pixel (0, 0) in the specimen (CX and CY offsets).
     calibration: recorded in Record2's Comment as JSON (`export_description`), null when None.
     compress: deflate the point data; float heights shrink little and deflating costs seconds per
         hundred megabytes, so it is off by default.
     Memory beyond `z_um` is one block of float64 rows.
     """
     z_um = height_grid(z_um, pixel_size_um)
+    x0_um, y0_um = origin(origin_um)
     if block_rows < 1:
         raise ValueError(f"block_rows: must be at least 1, got {block_rows}")
     rows, cols = z_um.shape
@@ -88,7 +93,7 @@ def write_x3p(
                 flat = block.reshape(-1)
                 digest.update(flat)
                 member.write(flat)
-        main_xml = _main_xml(rows, cols, pixel_size_um * M_PER_UM, digest.hexdigest(), description)
+        main_xml = _main_xml(rows, cols, pixel_size_um * M_PER_UM, (x0_um * M_PER_UM, y0_um * M_PER_UM), digest.hexdigest(), description)
         archive.writestr("main.xml", main_xml)
         archive.writestr(CHECKSUM_PATH, f"{hashlib.md5(main_xml).hexdigest()} *main.xml\n")
 
@@ -136,10 +141,11 @@ def read_x3p(file: str | os.PathLike | BinaryIO) -> X3pSurface:
             # One bit per point in point order, least significant bit first, set where valid.
             z_um[~np.unpackbits(bits, count=rows * cols, bitorder="little").reshape(rows, cols).astype(bool)] = np.nan
         step_x_um, step_y_um = (float(text(f"Record1/Axes/{a}/Increment") or 1) / M_PER_UM for a in ("CX", "CY"))
-        return X3pSurface(z_um, step_x_um, step_y_um, text("Record2/Comment") or "")
+        origin_um = tuple(float(text(f"Record1/Axes/{a}/Offset") or 0) / M_PER_UM for a in ("CX", "CY"))
+        return X3pSurface(z_um, step_x_um, step_y_um, origin_um, text("Record2/Comment") or "")
 
 
-def _main_xml(rows: int, cols: int, step_m: float, data_md5: str, comment: str) -> bytes:
+def _main_xml(rows: int, cols: int, step_m: float, origin_m: tuple[float, float], data_md5: str, comment: str) -> bytes:
     """main.xml of ISO 25178-72:2017 (Revision "ISO5436 - 2000"): the root element in the openGPS
     namespace, its children unqualified as the schema has them."""
     root = ElementTree.Element("p:ISO5436_2", {"xmlns:p": NAMESPACE})
@@ -154,12 +160,12 @@ def _main_xml(rows: int, cols: int, step_m: float, data_md5: str, comment: str) 
     add(record1, "Revision", "ISO5436 - 2000")
     add(record1, "FeatureType", "SUR")
     axes = add(record1, "Axes")
-    for name in ("CX", "CY"):
+    for name, offset_m in zip(("CX", "CY"), origin_m):
         axis = add(axes, name)
         add(axis, "AxisType", "I")
         add(axis, "DataType", "D")
         add(axis, "Increment", repr(float(step_m)))
-        add(axis, "Offset", "0")
+        add(axis, "Offset", repr(float(offset_m)))
     cz = add(axes, "CZ")
     add(cz, "AxisType", "A")
     add(cz, "DataType", "D")
