@@ -124,7 +124,7 @@ def write_mesh(
         area-averaged onto it first (`area_average`); None keeps the map's grid.
     units, solid, base_thickness_um: as in `height_map_mesh`.
     PLY and OBJ are trimesh's writers, from the whole mesh. Binary STL, a list of triangles, is
-    packed here from strips of grid rows, in bounded memory: trimesh's STL writer takes 35 to 46 s
+    packed here from strips of grid rows, in bounded memory: trimesh's STL writer takes 35 to 53 s
     and 10 GB for a 4096² grid (33 million triangles).
     """
     file_type = Path(path).suffix.lower().lstrip(".")
