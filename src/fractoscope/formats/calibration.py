@@ -1,0 +1,95 @@
+"""The calibration record that exported files carry: what the heights were computed with and where
+each value came from, as JSON that X3P comments and TIFF descriptions hold alike."""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from importlib import metadata
+
+from fractoscope.formats._validate import positive
+
+SOURCES = ("metadata", "argument", "tilt_calibration")
+"""Where a calibration value came from: the SEM file's metadata, the caller's argument, or the
+tilt calibration of a series (which also gives its sigma)."""
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """Calibration of one height map.
+
+    tilt_deg: stage tilt of each view, degrees, in view order.
+    tilt_source: where each tilt came from, one of `SOURCES`.
+    tilt_sigma_deg: one-sigma uncertainty of each tilt, degrees: the calibration's estimate where
+        `tilt_source` is "tilt_calibration", the nominal tilt uncertainty otherwise; NaN if unknown.
+    pixel_size_um: lateral pixel size of the SEM images, µm.
+    pixel_size_source: where the pixel size came from, "metadata" or "argument".
+    """
+
+    tilt_deg: tuple[float, ...]
+    tilt_source: tuple[str, ...]
+    tilt_sigma_deg: tuple[float, ...]
+    pixel_size_um: float
+    pixel_size_source: str
+
+    def __post_init__(self):
+        for name in ("tilt_deg", "tilt_source", "tilt_sigma_deg"):
+            object.__setattr__(self, name, tuple(getattr(self, name)))
+        views = len(self.tilt_deg)
+        if views < 2 or not all(math.isfinite(t) for t in self.tilt_deg):
+            raise ValueError(f"tilt_deg: need two or more finite tilts, got {self.tilt_deg}")
+        for name in ("tilt_source", "tilt_sigma_deg"):
+            if len(getattr(self, name)) != views:
+                raise ValueError(f"{name}: {len(getattr(self, name))} entries for {views} tilts")
+        bad = [s for s in self.tilt_source if s not in SOURCES]
+        if bad:
+            raise ValueError(f"tilt_source: {bad[0]!r} is none of {SOURCES}")
+        if any(s < 0 for s in self.tilt_sigma_deg):  # NaN (unknown) passes
+            raise ValueError(f"tilt_sigma_deg: must not be negative, got {self.tilt_sigma_deg}")
+        positive(self.pixel_size_um, "pixel_size_um")
+        if self.pixel_size_source not in SOURCES[:2]:
+            raise ValueError(f"pixel_size_source: {self.pixel_size_source!r} is none of {SOURCES[:2]}")
+
+    @property
+    def tilt_calibrated(self) -> bool:
+        """Whether any tilt comes from the tilt calibration rather than a nominal value."""
+        return "tilt_calibration" in self.tilt_source
+
+    def to_dict(self) -> dict:
+        """JSON-ready: NaN (an unknown sigma) becomes None."""
+        return {
+            "tilt_deg": list(self.tilt_deg),
+            "tilt_source": list(self.tilt_source),
+            "tilt_sigma_deg": [s if math.isfinite(s) else None for s in self.tilt_sigma_deg],
+            "tilt_calibrated": self.tilt_calibrated,
+            "pixel_size_um": self.pixel_size_um,
+            "pixel_size_source": self.pixel_size_source,
+        }
+
+    @classmethod
+    def from_dict(cls, values: dict) -> Calibration:
+        """The inverse of `to_dict`."""
+        return cls(
+            tilt_deg=tuple(values["tilt_deg"]),
+            tilt_source=tuple(values["tilt_source"]),
+            tilt_sigma_deg=tuple(math.nan if s is None else s for s in values["tilt_sigma_deg"]),
+            pixel_size_um=values["pixel_size_um"],
+            pixel_size_source=values["pixel_size_source"],
+        )
+
+
+def software() -> str:
+    """"Fractoscope <version>", naming the writer in exported files."""
+    try:
+        return f"Fractoscope {metadata.version('fractoscope')}"
+    except metadata.PackageNotFoundError:
+        return "Fractoscope"
+
+
+def export_description(calibration: Calibration | None, **fields) -> str:
+    """The JSON document an exported file carries: the software, `fields` (e.g. the grid step) and
+    the calibration (null when unknown). Parse it with `json.loads`; `Calibration.from_dict` reads
+    its "calibration" entry back."""
+    document = {"software": software(), **fields, "calibration": calibration.to_dict() if calibration else None}
+    return json.dumps(document, allow_nan=False)
