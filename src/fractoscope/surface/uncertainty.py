@@ -85,22 +85,25 @@ def areal_uncertainty(
     if unknown:
         raise ValueError(f"parameters: not areal parameters: {', '.join(unknown)}")
 
+    wanted = set(parameters)
+    # Derivatives in single precision: they only scale uncertainties, and at 4096² the maps are
+    # memory-bound.
+    z32 = z.astype(np.float32)
+    slopes = _slope_terms(z32, pixel_size_um, wanted) if wanted & {"Sdq", "Sdr"} else None
     u_tilt = {}
     for name, value in parameters.items():
         if name == "Sdr":
-            u_tilt[name] = abs(_sdr_scale_derivative(z, pixel_size_um)) * tilt_rel_uncertainty
+            u_tilt[name] = abs(slopes.sdr_scale_derivative) * tilt_rel_uncertainty
         elif name in SCALES_WITH_HEIGHT:
             u_tilt[name] = abs(value) * tilt_rel_uncertainty
         else:
             u_tilt[name] = 0.0
 
-    weights = _height_family_weights(z)
-    weights |= _slope_weights(z, pixel_size_um)
-    if any(name in parameters for name in MATERIAL_RATIO_FAMILY):
-        weights |= _material_ratio_weights(z)
-    u_noise = {
-        name: _propagated(w, sigma, correlation_px) for name, w in weights.items() if name in parameters
-    }
+    sigma_known = np.where(known, sigma, 0.0).astype(np.float32)
+    u_noise = _extremes_noise(z, sigma, correlation_px)
+    # One derivative map at a time: at 4096² each is 128 MB.
+    for name, weights in _derivative_maps(z32, wanted, slopes):
+        u_noise[name] = _propagated(weights, sigma_known, correlation_px)
     if monte_carlo_samples > 0:
         wanted = [name for name in NOT_DIFFERENTIABLE if name in parameters]
         if wanted:
@@ -159,76 +162,100 @@ def _spatial_and_features(z: np.ndarray, pixel_size_um: float, wanted: list[str]
 
 
 def _propagated(weights: np.ndarray, sigma: np.ndarray, correlation_px: float) -> float:
-    """sqrt(sum_ij a_i a_j rho(i - j)), a = sigma dP/dz, rho the autocorrelation of a box of
-    ``correlation_px`` (a triangle, 1 - |d| / width per axis): two box filters, times the width²."""
-    a = np.nan_to_num(sigma * weights)
+    """sqrt(sum_ij a_i a_j rho(i - j)), a = sigma dP/dz (sigma 0 at unknown points, single
+    precision: this is an uncertainty), rho the autocorrelation of a box B of
+    ``correlation_px``: rho = width² B^T B, so the sum is width² |B a|², one box filter over a
+    padded a."""
+    a = sigma * weights.astype(np.float32, copy=False)
     width = max(1, int(round(correlation_px)))
-    smoothed = a
     if width > 1:
-        # Two passes; for an even width the second is shifted by one so that the triangle is centred.
-        smoothed = ndimage.uniform_filter(a, size=width, mode="constant")
-        smoothed = ndimage.uniform_filter(smoothed, size=width, mode="constant", origin=-1 if width % 2 == 0 else 0)
-        smoothed *= width**2
-    return float(np.sqrt(max(np.sum(a * smoothed), 0.0)))
+        a = ndimage.uniform_filter(np.pad(a, width), size=width, mode="constant")
+    return float(width * np.sqrt(np.sum(a.astype(np.float64) ** 2)))
 
 
-def _height_family_weights(z: np.ndarray) -> dict[str, np.ndarray]:
-    """dP/dz_i of Sa, Sq, Ssk, Sku, Sp, Sv, Sz, as (rows, cols) maps (0 at unknown points)."""
+def _correlation(offset: np.ndarray, correlation_px: float) -> float:
+    """rho between two pixels this far apart (rows, cols): the box's triangle."""
+    width = max(1, int(round(correlation_px)))
+    return float(np.prod(np.clip(1.0 - np.abs(offset) / width, 0.0, None)))
+
+
+def _extremes_noise(z: np.ndarray, sigma: np.ndarray, correlation_px: float) -> dict[str, float]:
+    """Sp, Sv and Sz move with the one pixel at each extreme (the mean's shift is negligible)."""
     known = np.isfinite(z)
-    h = np.where(known, z - z[known].mean(), 0.0)
+    highest = np.unravel_index(np.argmax(np.where(known, z, -np.inf)), z.shape)
+    lowest = np.unravel_index(np.argmin(np.where(known, z, np.inf)), z.shape)
+    sp, sv = float(sigma[highest]), float(sigma[lowest])
+    rho = _correlation(np.subtract(highest, lowest), correlation_px)
+    return {"Sp": sp, "Sv": sv, "Sz": float(np.sqrt(max(sp**2 + sv**2 - 2 * rho * sp * sv, 0.0)))}
+
+
+def _derivative_maps(z: np.ndarray, wanted: set[str], slopes: _SlopeTerms | None):
+    """(name, dP/dz as a (rows, cols) map, 0 at unknown points) for each wanted parameter that has
+    an analytic derivative, one at a time."""
+    known = np.isfinite(z)
     n = np.count_nonzero(known)
-    m2, m3, m4 = (np.sum(h**p) / n for p in (2, 3, 4))
+    h = np.where(known, z - z[known].mean(), 0.0)
+    h2 = h * h
+    m2, m3, m4 = (float(np.sum(moment, dtype=np.float64)) / n for moment in (h2, h2 * h, h2 * h2))
     sq = np.sqrt(m2)
-    sign = np.sign(h)
-    ssk, sku = m3 / sq**3, m4 / m2**2
-    weights = {
-        "Sa": np.where(known, sign - sign.sum() / n, 0.0) / n,
-        "Sq": h / (n * sq),
-        # Derivatives of the central moments include the shift of the mean: d m3 / dz_i = 3 (h_i² - m2) / n.
-        "Ssk": np.where(known, 3.0 / n * ((h**2 - m2) / sq**3 - ssk * h / sq**2), 0.0),
-        "Sku": np.where(known, 4.0 / n * ((h**3 - m3) / sq**4 - sku * h / sq**2), 0.0),
-    }
-    highest = np.unravel_index(np.argmax(np.where(known, h, -np.inf)), z.shape)
-    lowest = np.unravel_index(np.argmin(np.where(known, h, np.inf)), z.shape)
-    for name, points in (("Sp", {highest: 1.0}), ("Sv", {lowest: -1.0}), ("Sz", {highest: 1.0, lowest: -1.0})):
-        weights[name] = np.zeros(z.shape)
-        for point, value in points.items():
-            weights[name][point] += value
-    return weights
+    if "Sa" in wanted:
+        sign = np.sign(h)
+        yield "Sa", np.where(known, sign - sign.sum() / n, 0.0) / n
+    if "Sq" in wanted:
+        yield "Sq", h / (n * sq)
+    # Derivatives of the central moments include the shift of the mean: d m3 / dz_i = 3 (h_i² - m2) / n.
+    if "Ssk" in wanted:
+        yield "Ssk", np.where(known, 3.0 / n * ((h2 - m2) / sq**3 - m3 / sq**3 * h / sq**2), 0.0)
+    if "Sku" in wanted:
+        yield "Sku", np.where(known, 4.0 / n * ((h2 * h - m3) / sq**4 - m4 / m2**2 * h / sq**2), 0.0)
+    del h, h2
+    if slopes is not None:
+        yield from slopes.weights.items()
+    if wanted & set(MATERIAL_RATIO_FAMILY):
+        yield from _material_ratio_weights(z, wanted)
 
 
-def _slope_weights(z: np.ndarray, pixel_size_um: float) -> dict[str, np.ndarray]:
-    """dP/dz_i of Sdq and Sdr: derivatives with respect to each edge's slope, carried to the pixels
-    at its ends."""
+@dataclass(frozen=True)
+class _SlopeTerms:
+    """dP/dz maps of Sdq and Sdr, and d Sdr / d ln(s) for all heights scaled by s."""
+
+    weights: dict[str, np.ndarray]
+    sdr_scale_derivative: float
+
+
+def _slope_terms(z: np.ndarray, pixel_size_um: float, wanted: set[str]) -> _SlopeTerms:
+    """Sdq and Sdr differentiated with respect to each edge's slope, carried to the pixels at its
+    ends. Sdr = 100 (mean over cells of a quarter of the summed corner terms T = sqrt(gx² + gy² + 1))
+    - 100, each cell having a top and a bottom x edge and a left and a right y edge: dT/dgx = gx / T,
+    and for heights scaled by s, dT/d ln(s) = (gx² + gy²) / T."""
     gx = np.diff(z, axis=1) / pixel_size_um  # (rows, cols - 1)
     gy = np.diff(z, axis=0) / pixel_size_um  # (rows - 1, cols)
-    mx, my = np.count_nonzero(np.isfinite(gx)), np.count_nonzero(np.isfinite(gy))
-    sdq = np.sqrt(np.nanmean(gx**2) + np.nanmean(gy**2))
-    dsdq_x = np.nan_to_num(gx / (mx * sdq))
-    dsdq_y = np.nan_to_num(gy / (my * sdq))
-    # Sdr = 100 (mean over cells of a quarter of the summed corner terms T = sqrt(gx² + gy² + 1)) - 100;
-    # dT/dgx = gx / T. Each cell has a top and a bottom x edge and a left and a right y edge.
-    top, bottom = gx[:-1, :], gx[1:, :]
-    left, right = gy[:, :-1], gy[:, 1:]
-    corners = {(a, b): np.sqrt(ex**2 + ey**2 + 1.0) for a, ex in (("t", top), ("b", bottom)) for b, ey in (("l", left), ("r", right))}
-    cells = np.count_nonzero(np.isfinite(corners[("t", "l")]))
-    scale = 100.0 * 0.25 / cells
-    dsdr_x = np.zeros_like(gx)
-    dsdr_y = np.zeros_like(gy)
-    dsdr_x[:-1, :] += np.nan_to_num(scale * top * (1 / corners[("t", "l")] + 1 / corners[("t", "r")]))
-    dsdr_x[1:, :] += np.nan_to_num(scale * bottom * (1 / corners[("b", "l")] + 1 / corners[("b", "r")]))
-    dsdr_y[:, :-1] += np.nan_to_num(scale * left * (1 / corners[("t", "l")] + 1 / corners[("b", "l")]))
-    dsdr_y[:, 1:] += np.nan_to_num(scale * right * (1 / corners[("t", "r")] + 1 / corners[("b", "r")]))
-    return {
-        "Sdq": _edge_to_pixel(dsdq_x, dsdq_y, pixel_size_um),
-        "Sdr": _edge_to_pixel(dsdr_x, dsdr_y, pixel_size_um),
-    }
+    known_x, known_y = np.isfinite(gx), np.isfinite(gy)
+    gx[~known_x] = 0.0
+    gy[~known_y] = 0.0
+    sdq = np.sqrt(np.sum(gx * gx, dtype=np.float64) / known_x.sum() + np.sum(gy * gy, dtype=np.float64) / known_y.sum())
+    dsdq_x, dsdq_y = gx / (known_x.sum() * sdq), gy / (known_y.sum() * sdq)
+    complete = known_x[:-1, :] & known_x[1:, :] & known_y[:, :-1] & known_y[:, 1:]
+    scale = 100.0 * 0.25 / complete.sum()
+    dsdr_x, dsdr_y = np.zeros_like(gx), np.zeros_like(gy)
+    scale_derivative = 0.0
+    for x_edge in (np.s_[:-1, :], np.s_[1:, :]):  # top, bottom
+        for y_edge in (np.s_[:, :-1], np.s_[:, 1:]):  # left, right
+            ex, ey = gx[x_edge], gy[y_edge]
+            squares = ex * ex + ey * ey
+            inverse = np.where(complete, 1.0 / np.sqrt(squares + 1.0, dtype=np.float32), np.float32(0.0))
+            dsdr_x[x_edge] += scale * ex * inverse
+            dsdr_y[y_edge] += scale * ey * inverse
+            scale_derivative += scale * float(np.sum(squares * inverse, dtype=np.float64))
+    maps = {"Sdq": (dsdq_x, dsdq_y), "Sdr": (dsdr_x, dsdr_y)}
+    weights = {name: _edge_to_pixel(*maps[name], pixel_size_um) for name in maps if name in wanted}
+    return _SlopeTerms(weights=weights, sdr_scale_derivative=scale_derivative)
 
 
 def _edge_to_pixel(d_x: np.ndarray, d_y: np.ndarray, pixel_size_um: float) -> np.ndarray:
     """dP/dz from dP/d(slope) of each edge: slope = (z[end] - z[start]) / pixel_size_um."""
     rows, cols = d_x.shape[0], d_y.shape[1]
-    weights = np.zeros((rows, cols))
+    weights = np.zeros((rows, cols), dtype=d_x.dtype)
     weights[:, 1:] += d_x
     weights[:, :-1] -= d_x
     weights[1:, :] += d_y
@@ -236,33 +263,22 @@ def _edge_to_pixel(d_x: np.ndarray, d_y: np.ndarray, pixel_size_um: float) -> np
     return weights / pixel_size_um
 
 
-def _sdr_scale_derivative(z: np.ndarray, pixel_size_um: float) -> float:
-    """d Sdr / d ln(s) at s = 1 for heights scaled by s: 100 mean over cells of sum (g²/T) / 4."""
-    gx = np.diff(z, axis=1) / pixel_size_um
-    gy = np.diff(z, axis=0) / pixel_size_um
-    total = np.zeros((z.shape[0] - 1, z.shape[1] - 1))
-    for ex in (gx[:-1, :], gx[1:, :]):
-        for ey in (gy[:, :-1], gy[:, 1:]):
-            g2 = ex**2 + ey**2
-            total += g2 / np.sqrt(g2 + 1.0)
-    return float(100.0 * 0.25 * np.nanmean(total))
-
-
-def _material_ratio_weights(z: np.ndarray) -> dict[str, np.ndarray]:
-    """dP/dz_i of the material-ratio family: moving every pixel of a 1 % class of the curve by d
-    moves that class of the curve by d; the parameters' derivative with respect to each class, from
-    central differences with the class moved up and down, is shared equally among its pixels."""
+def _material_ratio_weights(z: np.ndarray, wanted: set[str]):
+    """(name, dP/dz map) for the material-ratio family: moving every pixel of a 1 % class of the
+    curve by d moves that class of the curve by d; the parameters' derivative with respect to each
+    class, from central differences with the class moved up and down, is shared equally among its
+    pixels."""
     curve = areal_parameters.material_ratio_curve(z)
     ratio, height = curve.material_ratio_percent, curve.height_um
     known = np.isfinite(z)
-    heights = z[known] - z[known].mean()
     # Each pixel's material ratio, from its height on the (decreasing) curve.
-    pixel_ratio = np.interp(heights, height[::-1], ratio[::-1])
+    pixel_ratio = np.interp(z[known] - z[known].mean(), height[::-1], ratio[::-1])
     width = 100.0 / _CLASSES
     classes = np.minimum((pixel_ratio / width).astype(np.int64), _CLASSES - 1)
+    del pixel_ratio
     counts = np.bincount(classes, minlength=_CLASSES)
     step = float(np.ptp(height)) * 1e-6 or 1e-12
-    names = list(areal_parameters.functional_parameters_of_curve(curve))
+    names = [name for name in areal_parameters.functional_parameters_of_curve(curve) if name in wanted]
     derivative = {name: np.zeros(_CLASSES) for name in names}
     for k in np.flatnonzero(counts):
         shift = step * ((ratio >= k * width) & (ratio < (k + 1) * width))
@@ -270,8 +286,7 @@ def _material_ratio_weights(z: np.ndarray) -> dict[str, np.ndarray]:
         down = areal_parameters.functional_parameters_of_curve(areal_parameters.MaterialRatioCurve(ratio, height - shift))
         for name in names:
             derivative[name][k] = (up[name] - down[name]) / (2 * step) / counts[k]
-    weights = {}
     for name in names:
-        weights[name] = np.zeros(z.shape)
-        weights[name][known] = derivative[name][classes]
-    return weights
+        weights = np.zeros(z.shape, dtype=np.float32)
+        weights[known] = derivative[name][classes]
+        yield name, weights
