@@ -64,12 +64,13 @@ def test_holes_stay_holes_and_leave_distant_points_alone():
 
 def test_a_level_surface_stays_level_up_to_the_edges_and_around_holes():
     """Normalized convolution: the mean surface of a constant is that constant everywhere known,
-    edges and holes included (a zero-padded filter would sag towards zero there)."""
+    edges and holes included (a zero-padded filter would sag towards zero there), to double
+    precision on the direct path and single precision on the FFT path."""
     z = np.full((200, 260), 3.0)
     z[50:70, 80:120] = np.nan
-    for cutoff in (0.4, 10.0):
+    for cutoff, rtol in ((0.4, 1e-12), (10.0, 1e-6)):
         mean = iso_filters.gaussian_mean_surface(z, pixel_size_um=0.1, cutoff_um=cutoff)
-        assert np.allclose(mean[np.isfinite(z)], 3.0, rtol=1e-12)
+        assert np.allclose(mean[np.isfinite(z)], 3.0, rtol=rtol)
 
 
 def test_scale_limited_surface_reports_its_cutoffs():

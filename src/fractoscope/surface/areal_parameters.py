@@ -34,13 +34,16 @@ WOLF_PRUNING_PERCENT = 5.0  # of Sz, ISO 25178-3 default for the feature paramet
 _HISTOGRAM_BINS = 65_536
 
 
-def areal_parameters(z_um: np.ndarray, *, pixel_size_um: float, features: bool = True) -> dict[str, float]:
+def areal_parameters(
+    z_um: np.ndarray, *, pixel_size_um: float, features: bool = True, max_lag_px: int | None = None
+) -> dict[str, float]:
     """Every parameter of this module (see ``UNITS`` for the keys); ``features=False`` leaves out Spd
-    and Spc, whose watershed segmentation costs about as much as all the others together."""
+    and Spc, whose watershed segmentation costs about as much as all the others together;
+    ``max_lag_px`` bounds the autocorrelation (see ``spatial_parameters``)."""
     z = _validated(z_um, pixel_size_um)
     values = height_parameters(z)
     values |= hybrid_parameters(z, pixel_size_um=pixel_size_um)
-    values |= spatial_parameters(z, pixel_size_um=pixel_size_um)
+    values |= spatial_parameters(z, pixel_size_um=pixel_size_um, max_lag_px=max_lag_px)
     values |= functional_parameters(z)
     if features:
         values |= feature_parameters(z, pixel_size_um=pixel_size_um)
@@ -162,9 +165,10 @@ def spatial_parameters(
     """Sal (µm), Str (1) and Std (deg), ISO 25178-2 4.2.
 
     Sal is the shortest lag at which f_ACF decays to ``threshold``, Str the ratio of that to the
-    longest such decay over all directions: NaN when f_ACF does not decay within ``max_lag_px`` in
-    some direction (a lay longer than half the field leaves Str undetermined). Each direction is a
-    ray through the ACF every 0.5°, sampled every half pixel, its first crossing interpolated
+    longest such decay over all directions: NaN when f_ACF does not decay within ``max_lag_px``
+    (default half the field) in some direction, as along a lay longer than that. After an L-filter,
+    lambda_c / pixel_size_um is a cheaper bound: no longer correlation survives it. Each direction
+    is a ray through the ACF every 0.5°, sampled every half pixel, its first crossing interpolated
     linearly. Std is the direction of the largest angular amplitude density of the Fourier spectrum
     (a Hann window keeps the field's edges from putting a false lay at 0° and 90°): the direction in
     which heights vary fastest, perpendicular to the lay.
