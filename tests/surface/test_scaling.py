@@ -15,7 +15,8 @@ HURSTS = (0.5, 0.6, 0.7, 0.8, 0.9)
 METHODS = ("hhc", "psd")
 
 
-def _errors(z: np.ndarray, hurst: float, window_px: float, method: str) -> list[scaling.ScalingFit]:
+def _errors(z: np.ndarray, hurst: float, window_px: float, method: str) -> list[tuple[float, float]]:
+    """(H - hurst, standard error) along rows and along columns."""
     fits = [scaling.hurst_exponent(z, pixel_size_um=PIXEL_UM, window_px=window_px, method=method, direction_deg=d) for d in (0.0, 90.0)]
     return [(fit.hurst - hurst, fit.hurst_stderr) for fit in fits]
 

@@ -45,7 +45,7 @@ class FormFit:
     residual_um: np.ndarray
     form_um: np.ndarray
     form: str
-    parameters: dict[str, float | list[float]] = field(default_factory=dict)
+    parameters: dict[str, float | int | bool | list[float]] = field(default_factory=dict)
     fit_points: int = 0
     inlier_fraction: float = 1.0
 

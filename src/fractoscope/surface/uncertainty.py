@@ -8,16 +8,17 @@ non-linearly (its derivative is taken exactly); shape, lateral and ratio paramet
 Str, Std, Smr1, Smr2, Spd: the pruning threshold is a share of Sz) do not change.
 
 Matching noise. First-order propagation, u² = sum_ij (dP/dz_i) (dP/dz_j) cov_ij, for errors that
-are white noise averaged over a ``correlation_px`` box (a matcher's window): cov_ij = sigma_i
-sigma_j rho(i - j) with rho the box's triangular autocorrelation, applied as two box filters. The
-derivatives are analytic for the height family, Sdq and Sdr; for the material-ratio family they are
-taken on the material ratio curve (a pixel's error moves the curve at its rank: 100 one-percent
-classes, each moved in turn, the class's derivative shared among its pixels): against Monte Carlo
-at a noise of 4 % of Sq this is within 10 % for Sk, overestimates Spk, Svk and the volumes by up to
-1.5 x and underestimates Smr1 and Smr2 by about 40 %, which count pixels crossing a level and so
-are not linear in the noise at all. Sal, Str, Std, Spd and
-Spc have no such derivative; their noise part is NaN unless ``monte_carlo_samples`` asks for paired
-Monte-Carlo draws of the noise (``monte_carlo_uncertainty``).
+are white noise averaged over a ``correlation_px`` box B (a matcher's window): cov_ij = sigma_i
+sigma_j rho(i - j), rho = width² B^T B the box's triangular autocorrelation, so that u² =
+width² |B (sigma dP/dz)|², one box filter per parameter. The derivatives are analytic for the
+height family, Sdq and Sdr; for the material-ratio family they are taken on the material ratio
+curve (a pixel's error moves the curve at its rank: 100 one-percent classes, each moved in turn,
+the class's derivative shared among its pixels). Against Monte Carlo at a noise of 4 % of Sq the
+height family, Sdq and Sdr agree within 8 %, Sk within 10 %; Spk, Svk and the volumes come out up to
+1.5 x high and Smr1 and Smr2 about 40 % low (they count pixels crossing a level, which is not
+linear in the noise at all). Sal, Str, Std, Spd and Spc have no such derivative; their noise part
+is NaN unless ``monte_carlo_samples`` asks for paired Monte-Carlo draws of the noise
+(``monte_carlo_uncertainty``).
 
 Bias. Noise adds its variance to the heights': Sq² = Sq_true² + mean(sigma²). ``noise_bias`` is
 the excess of Sq (and of Sa, assuming the height distribution keeps its shape) that this implies.
