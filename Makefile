@@ -87,6 +87,7 @@ bench: install $(WRK) $(GHZ)
 	$(BIN)/python -m benchmarks.accuracy --out bench-results
 	$(BIN)/python -m benchmarks.meshing --out bench-results
 	$(BIN)/python -m benchmarks.exports --out bench-results
+	$(BIN)/python -m benchmarks.surface_analysis --out bench-results
 	$(BIN)/python -m benchmarks.serving --out bench-results
 	$(BIN)/python -m benchmarks.scale_out --out bench-results --one-cpu-per-replica --peers 1 2
 	$(BIN)/python -m benchmarks.page_faults --out bench-results
