@@ -51,7 +51,7 @@ def test_small_islands_among_masked_pixels_are_speckles():
     disparity = np.full((100, 100), np.nan, np.float32)
     disparity[:, :60] = 2.0  # a large consistent region
     disparity[40:45, 80:85] = 9.0  # a 25-pixel island
-    speckles = window_zncc._speckles(disparity, np.isfinite(disparity), max_pixels=100)
+    speckles = window_zncc.speckles(disparity, np.isfinite(disparity), max_pixels=100)
     assert speckles[40:45, 80:85].all()
     assert not speckles[:, :60].any()
 

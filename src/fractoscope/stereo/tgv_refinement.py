@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import os
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
 
 import numba
 import numpy as np
@@ -50,18 +49,6 @@ _STEP_RATIO = 0.2
 _THREADS = min(2, os.cpu_count() or 1)
 
 
-@dataclass(frozen=True)
-class RefinedDisparity:
-    """disparity_px: (rows, cols) float32, the refined field (finite everywhere).
-    score: (rows, cols) float32, the data window's ZNCC at the last warp.
-    precision: (rows, cols) float32, the data term's weight 1/σ² at the last warp, 1/px² (0 where
-    the ZNCC had no peak)."""
-
-    disparity_px: np.ndarray
-    score: np.ndarray
-    precision: np.ndarray
-
-
 def refine_disparity(
     left: np.ndarray,
     right: np.ndarray,
@@ -72,22 +59,22 @@ def refine_disparity(
     kink_weight: float = KINK_WEIGHT,
     warps: int = WARPS,
     iterations_per_warp: int = ITERATIONS_PER_WARP,
-) -> RefinedDisparity:
+) -> np.ndarray:
     """Refines `initial_px` (rows, cols float32, finite; e.g. a window matcher's result with its
     holes filled) for `left` and `right`, (rows, cols) float32 images normalized to zero mean and
-    unit variance, rectified so that parallax runs along rows."""
+    unit variance, rectified so that parallax runs along rows. Returns the refined disparities,
+    (rows, cols) float32."""
     left_stats = correlation.window_stats(left, window_px)
     state = _State.starting_at(initial_px)
-    score = precision = None
     for _ in range(warps):
-        target, precision, score = _data_term(left, left_stats, right, state.disparity, window_px)
+        target, precision = _data_term(left, left_stats, right, state.disparity, window_px)
         state.iterate(target, precision, step_weight=step_weight, kink_weight=kink_weight, iterations=iterations_per_warp)
-    return RefinedDisparity(state.disparity, score, precision)
+    return state.disparity
 
 
 def _data_term(left, left_stats, right, disparity, window_px):
-    """The ZNCC parabola's peak (target disparity), its precision 1/σ² and the score at the
-    current disparity, from the right image warped by `disparity`."""
+    """The ZNCC parabola's peak (target disparity) and its precision 1/σ² (0 where the scores have
+    no peak), from the right image warped by `disparity`."""
     warped = correlation.warp_along_rows(right, disparity)
     before, centre, after = correlation.zncc_scores(left, left_stats, warped, window_px, 1)
     curvature = before - 2.0 * centre + after
@@ -97,7 +84,7 @@ def _data_term(left, left_stats, right, disparity, window_px):
     target = (disparity + np.clip(offset, -1.0, 1.0)).astype(np.float32)
     sigma = correlation.peak_sigma_px(centre, curvature, window_px)
     precision = np.where(peaked, 1.0 / (sigma * sigma), 0.0).astype(np.float32)
-    return target, precision, centre
+    return target, precision
 
 
 class _State:
@@ -136,47 +123,60 @@ class _State:
                 list(pool.map(lambda band: _primal_step(*primal, *band), bands))
 
 
-# The two half-steps of the primal-dual iteration, each one pass over rows first_row:stop_row. Differences are
-# forward for ∇d and backward for the symmetrized gradient of v, so that the divergences below
-# are their exact negative adjoints (Neumann boundaries).
+# The two half-steps of the primal-dual iteration, each one pass over rows first_row:stop_row.
+# Differences are forward for ∇d and backward for the symmetrized gradient of v, so that the
+# divergences in the primal step are their exact negative adjoints (Neumann boundaries; clamped
+# indices make the differences at the border vanish). Every constant is float32: a float64
+# literal would turn the whole expression into float64.
 
 @numba.njit(nogil=True, fastmath=True, cache=True, boundscheck=False)
 def _dual_step(d, vc, vr, pc, pr, qcc, qrr, qrc, step_weight, kink_weight, sigma, first_row, stop_row):  # pragma: no cover
     rows, cols = d.shape
+    one, half, two = np.float32(1.0), np.float32(0.5), np.float32(2.0)
     for i in range(first_row, stop_row):
         below, above = min(i + 1, rows - 1), max(i - 1, 0)
+        d_i, d_below, vc_i, vc_above, vr_i, vr_above = d[i], d[below], vc[i], vc[above], vr[i], vr[above]
+        pc_i, pr_i, qcc_i, qrr_i, qrc_i = pc[i], pr[i], qcc[i], qrr[i], qrc[i]
         for j in range(cols):
             right, left = min(j + 1, cols - 1), max(j - 1, 0)
-            a = pc[i, j] + sigma * (d[i, right] - d[i, j] - vc[i, j])
-            b = pr[i, j] + sigma * (d[below, j] - d[i, j] - vr[i, j])
-            scale = max(1.0, np.sqrt(a * a + b * b) / step_weight)
-            pc[i, j], pr[i, j] = a / scale, b / scale
-            c = qcc[i, j] + sigma * (vc[i, j] - vc[i, left])
-            e = qrr[i, j] + sigma * (vr[i, j] - vr[above, j])
-            f = qrc[i, j] + sigma * 0.5 * (vc[i, j] - vc[above, j] + vr[i, j] - vr[i, left])
-            scale = max(1.0, np.sqrt(c * c + e * e + 2.0 * f * f) / kink_weight)
-            qcc[i, j], qrr[i, j], qrc[i, j] = c / scale, e / scale, f / scale
+            a = pc_i[j] + sigma * (d_i[right] - d_i[j] - vc_i[j])
+            b = pr_i[j] + sigma * (d_below[j] - d_i[j] - vr_i[j])
+            shrink = one / max(one, np.sqrt(a * a + b * b) / step_weight)
+            pc_i[j] = a * shrink
+            pr_i[j] = b * shrink
+            c = qcc_i[j] + sigma * (vc_i[j] - vc_i[left])
+            e = qrr_i[j] + sigma * (vr_i[j] - vr_above[j])
+            f = qrc_i[j] + sigma * half * (vc_i[j] - vc_above[j] + vr_i[j] - vr_i[left])
+            shrink = one / max(one, np.sqrt(c * c + e * e + two * f * f) / kink_weight)
+            qcc_i[j] = c * shrink
+            qrr_i[j] = e * shrink
+            qrc_i[j] = f * shrink
 
 
 @numba.njit(nogil=True, fastmath=True, cache=True, boundscheck=False)
-def _primal_step(d, vc, vr, d_bar, vc_bar, vr_bar, pc, pr, qcc, qrr, qrc, target, precision, tau, first_row, stop_row):  # pragma: no cover
+def _primal_step(d, vc, vr, d_bar, vc_bar, vr_bar, pc, pr, qcc, qrr, qrc, target, precision, tau, first_row,
+                 stop_row):  # pragma: no cover
     rows, cols = d.shape
+    one, two = np.float32(1.0), np.float32(2.0)
     for i in range(first_row, stop_row):
-        has_above, has_below = i > 0, i < rows - 1
         above, below = max(i - 1, 0), min(i + 1, rows - 1)
+        has_above, has_below = np.float32(i > 0), np.float32(i < rows - 1)
+        d_i, vc_i, vr_i, d_bar_i, vc_bar_i, vr_bar_i = d[i], vc[i], vr[i], d_bar[i], vc_bar[i], vr_bar[i]
+        pc_i, pr_i, pr_above = pc[i], pr[i], pr[above]
+        qcc_i, qrr_i, qrr_below, qrc_i, qrc_below = qcc[i], qrr[i], qrr[below], qrc[i], qrc[below]
+        target_i, precision_i = target[i], precision[i]
         for j in range(cols):
-            has_left, has_right = j > 0, j < cols - 1
             left, right = max(j - 1, 0), min(j + 1, cols - 1)
-            divergence = (pc[i, j] if has_right else 0.0) - (pc[i, left] if has_left else 0.0)
-            divergence += (pr[i, j] if has_below else 0.0) - (pr[above, j] if has_above else 0.0)
-            weight = tau * precision[i, j]
-            d_new = (d[i, j] + tau * divergence + weight * target[i, j]) / (1.0 + weight)
+            has_left, has_right = np.float32(j > 0), np.float32(j < cols - 1)
+            divergence = has_right * pc_i[j] - has_left * pc_i[left] + has_below * pr_i[j] - has_above * pr_above[j]
+            weight = tau * precision_i[j]
+            d_new = (d_i[j] + tau * divergence + weight * target_i[j]) / (one + weight)
             # v moves along p and the divergence of q (the adjoint of the backward differences).
-            div_c = qcc[i, j] - (qcc[i, right] if has_right else 0.0) + qrc[i, j] - (qrc[below, j] if has_below else 0.0)
-            div_r = qrc[i, j] - (qrc[i, right] if has_right else 0.0) + qrr[i, j] - (qrr[below, j] if has_below else 0.0)
-            vc_new = vc[i, j] + tau * (pc[i, j] - div_c)
-            vr_new = vr[i, j] + tau * (pr[i, j] - div_r)
-            d_bar[i, j] = 2.0 * d_new - d[i, j]
-            vc_bar[i, j] = 2.0 * vc_new - vc[i, j]
-            vr_bar[i, j] = 2.0 * vr_new - vr[i, j]
-            d[i, j], vc[i, j], vr[i, j] = d_new, vc_new, vr_new
+            div_c = qcc_i[j] - has_right * qcc_i[right] + qrc_i[j] - has_below * qrc_below[j]
+            div_r = qrc_i[j] - has_right * qrc_i[right] + qrr_i[j] - has_below * qrr_below[j]
+            vc_new = vc_i[j] + tau * (pc_i[j] - div_c)
+            vr_new = vr_i[j] + tau * (pr_i[j] - div_r)
+            d_bar_i[j] = two * d_new - d_i[j]
+            vc_bar_i[j] = two * vc_new - vc_i[j]
+            vr_bar_i[j] = two * vr_new - vr_i[j]
+            d_i[j], vc_i[j], vr_i[j] = d_new, vc_new, vr_new

@@ -86,12 +86,17 @@ def consistent(task: StripTask, directions: Directions, forward_px: np.ndarray, 
     valid = (
         (directions.forward.score >= task.min_confidence)
         & (lr_difference <= task.max_lr_difference_px)
-        & (directions.left_stats.inverse_std < 1e3)  # not a flat, textureless patch
-        & _in_bounds(disparity)
+        & textured(directions)
+        & in_bounds(disparity)
         & np.isfinite(disparity)
     )
-    valid &= ~_speckles(disparity, valid, max_pixels=_MAX_SPECKLE_PIXELS)
+    valid &= ~speckles(disparity, valid)
     return valid, disparity
+
+
+def textured(directions: Directions) -> np.ndarray:
+    """Where the left window is not a flat, textureless patch, (rows, cols) bool."""
+    return directions.left_stats.inverse_std < 1e3
 
 
 def kept_result(task: StripTask, valid, disparity, score, sigma_px) -> DisparityResult:
@@ -228,7 +233,7 @@ def _clean_for_upsampling(disparity, score):
     return np.where(poor, smooth, disparity).astype(np.float32)
 
 
-def _speckles(disparity, valid, *, max_pixels, max_step_px=1.0):
+def speckles(disparity, valid, *, max_pixels=_MAX_SPECKLE_PIXELS, max_step_px=1.0):
     """Small islands of valid disparities: regions (joined where neighbours differ by at most
     `max_step_px`) of fewer than `max_pixels` pixels, typically wrong matches surrounded by
     masked ones. Uses OpenCV's speckle filter in its 1/16 px fixed point."""
@@ -242,7 +247,8 @@ def _speckles(disparity, valid, *, max_pixels, max_step_px=1.0):
     return (filtered == marker) & valid
 
 
-def _in_bounds(disparity):
+def in_bounds(disparity):
+    """Where the match (row, col + disparity) lies inside the strip, (rows, cols) bool."""
     cols = disparity.shape[1]
     target = np.arange(cols, dtype=np.float32)[None, :] + disparity
     return (target >= 0) & (target <= cols - 1)
