@@ -114,6 +114,7 @@ def compute_series_height_map(
         bar_rows=rectified.bar_rows, axis_estimated=axis_estimated, warnings=warnings, calibration=calibration,
     )
     report["elapsed_s"] = time.perf_counter() - started
+    report["method"] = MatchingMethod(options.method).value
     report_progress(1.0, "done")
     return HeightMapResult(z_um, sigma_um, np.nan_to_num(confidence).astype(np.float32), report)
 

@@ -51,7 +51,7 @@ class Directions:
 
     left: np.ndarray
     right: np.ndarray
-    forward: _Refinement
+    forward: Refinement
     backward_px: np.ndarray
     left_stats: correlation.WindowStats
 
@@ -111,7 +111,7 @@ def kept_result(task: StripTask, valid, disparity, score, sigma_px) -> Disparity
 
 def _coarse_to_fine(
     left_pyramid, right_pyramid, window_px, coarse_radius, propagate_at_full_resolution=False, finest_left_stats=None,
-) -> _Refinement:
+) -> Refinement:
     """Full search at the coarsest level, ±2 px residual searches on warped images at the
     intermediate levels, ±1 px at full resolution, then sub-pixel iterations. Each level's result
     but the finest's (and that one too with `propagate_at_full_resolution`) also competes with
@@ -126,12 +126,12 @@ def _coarse_to_fine(
         if level < levels - 1:
             disparity = 2.0 * cv2.resize(disparity, left_level.shape[::-1], interpolation=cv2.INTER_LINEAR)
         radius = coarse_radius if level == levels - 1 else (2 if level > 0 else 1)
-        refined = _refine(left_level, left_stats, right_level, disparity, window_px, radius)
+        refined = residual_search(left_level, left_stats, right_level, disparity, window_px, radius)
         if level > 0 or propagate_at_full_resolution:
             refined = _propagate(left_level, left_stats, right_level, refined, window_px)
         disparity = _clean_for_upsampling(refined.disparity, refined.score) if level > 0 else refined.disparity
     for _ in range(_SUBPIXEL_ITERATIONS):
-        refined = _refine(left_pyramid[0], left_stats, right_pyramid[0], refined.disparity, window_px, 1)
+        refined = residual_search(left_pyramid[0], left_stats, right_pyramid[0], refined.disparity, window_px, 1)
     return refined
 
 
@@ -157,7 +157,7 @@ def _pyramid(image: np.ndarray, levels: int) -> list[np.ndarray]:
 
 
 @dataclass(frozen=True)
-class _Refinement:
+class Refinement:
     """Disparity after one residual search, with the peak ZNCC and its second difference."""
 
     disparity: np.ndarray
@@ -165,7 +165,7 @@ class _Refinement:
     curvature: np.ndarray
 
 
-def _refine(left, left_stats, right, disparity, window_px, radius) -> _Refinement:
+def residual_search(left, left_stats, right, disparity, window_px, radius) -> Refinement:
     """Best integer residual shift within ±radius on the warped right image, then a parabola
     through the neighbouring scores.
 
@@ -197,10 +197,10 @@ def _refine(left, left_stats, right, disparity, window_px, radius) -> _Refinemen
     with np.errstate(invalid="ignore", divide="ignore"):
         fraction = np.where(at_centre, 0.5 * (before - after) / curvature, 0.0)
     fraction = np.clip(fraction, -0.5, 0.5)
-    return _Refinement((disparity + offset + fraction).astype(np.float32), best, curvature)
+    return Refinement((disparity + offset + fraction).astype(np.float32), best, curvature)
 
 
-def _propagate(left, left_stats, right, refined: _Refinement, window_px) -> _Refinement:
+def _propagate(left, left_stats, right, refined: Refinement, window_px) -> Refinement:
     """Each pixel also tries the largest and the smallest of the disparities found half a window
     to its left, right, above and below (a ±1 px residual search on the right image warped by
     each), and keeps whichever correlates best. Near a step, or a pit narrower than a coarse
@@ -208,17 +208,17 @@ def _propagate(left, left_stats, right, refined: _Refinement, window_px) -> _Ref
     the finer levels cannot leave; of the two sides' disparities, one is the largest of the
     neighbours' and the other the smallest."""
     step = window_px // 2
-    neighbours = [_shifted(refined.disparity, row_step, col_step) for row_step, col_step in ((0, step), (0, -step), (step, 0), (-step, 0))]
-    best = _Refinement(refined.disparity.copy(), refined.score.copy(), refined.curvature.copy())
+    neighbours = [shifted(refined.disparity, row_step, col_step) for row_step, col_step in ((0, step), (0, -step), (step, 0), (-step, 0))]
+    best = Refinement(refined.disparity.copy(), refined.score.copy(), refined.curvature.copy())
     for pick in (np.maximum, np.minimum):
-        candidate = _refine(left, left_stats, right, pick(pick(neighbours[0], neighbours[1]), pick(neighbours[2], neighbours[3])), window_px, 1)
+        candidate = residual_search(left, left_stats, right, pick(pick(neighbours[0], neighbours[1]), pick(neighbours[2], neighbours[3])), window_px, 1)
         better = (candidate.score > best.score).view(np.uint8)
         for new, kept in zip((candidate.disparity, candidate.score, candidate.curvature), (best.disparity, best.score, best.curvature)):
             cv2.copyTo(new, better, kept)  # in place, and quicker than numpy's masked copies
     return best
 
 
-def _shifted(field: np.ndarray, row_step: int, col_step: int) -> np.ndarray:
+def shifted(field: np.ndarray, row_step: int, col_step: int) -> np.ndarray:
     """field[row + row_step, col + col_step] at (row, col), edges replicated."""
     margin = max(abs(row_step), abs(col_step))
     padded = cv2.copyMakeBorder(field, margin, margin, margin, margin, cv2.BORDER_REPLICATE)
