@@ -39,10 +39,12 @@ DATA_WINDOW_PX = 5
 # surfaces, where the first-order term hardly binds (1 to 5 give the same heights).
 STEP_WEIGHT = 3.0
 KINK_WEIGHT = 3.0
-WARPS = 3
 # A 5 × 5 px window locates its peak no better than this on noise-free texture (its per-pixel
 # errors there are 0.1-0.2 px): the data term never claims more, so that TGV² still averages.
 SIGMA_FLOOR_PX = 0.2
+# Three warps of 50 iterations: 30 per warp cost dimples 0.3 points of RMS error (3.1 % of the
+# height range instead of 2.9 %).
+WARPS = 3
 ITERATIONS_PER_WARP = 50
 # Primal step over dual step: small primal steps let the dual (regularizing) variables settle
 # first, which converges in a third of the iterations on the synthetic surfaces.
@@ -63,8 +65,8 @@ def refine_disparity(
     warps: int = WARPS,
     iterations_per_warp: int = ITERATIONS_PER_WARP,
 ) -> np.ndarray:
-    """Refines `initial_px` (rows, cols float32, finite; e.g. a window matcher's result with its
-    holes filled) for `left` and `right`, (rows, cols) float32 images normalized to zero mean and
+    """Refines `initial_px` (rows, cols float32, finite: a window matcher's disparities before
+    masking) for `left` and `right`, (rows, cols) float32 images normalized to zero mean and
     unit variance, rectified so that parallax runs along rows. Returns the refined disparities,
     (rows, cols) float32."""
     left_stats = correlation.window_stats(left, window_px)
@@ -97,12 +99,9 @@ class _State:
 
     def __init__(self, disparity: np.ndarray):
         self.disparity = disparity
-        zeros = lambda: np.zeros_like(disparity)  # noqa: E731
-        self.slope_cols, self.slope_rows = zeros(), zeros()
         self.relaxed = disparity.copy()
-        self.relaxed_slope_cols, self.relaxed_slope_rows = zeros(), zeros()
-        self.dual_cols, self.dual_rows = zeros(), zeros()
-        self.dual_cc, self.dual_rr, self.dual_rc = zeros(), zeros(), zeros()
+        (self.slope_cols, self.slope_rows, self.relaxed_slope_cols, self.relaxed_slope_rows, self.dual_cols, self.dual_rows,
+         self.dual_cc, self.dual_rr, self.dual_rc) = (np.zeros_like(disparity) for _ in range(9))
 
     @classmethod
     def starting_at(cls, disparity_px: np.ndarray) -> _State:
