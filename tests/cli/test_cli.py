@@ -47,6 +47,18 @@ def test_height_writes_the_npz_contract(pair_files, tmp_path):
         assert np.nanstd(error[16:-16, 16:-16]) < 0.03 * np.ptp(pair.z_seen_um)
 
 
+def test_height_names_the_method_and_takes_window_correlation_on_request(pair_files, tmp_path):
+    (left, right), pair = pair_files
+    for method, expected in (("window-zncc", "window_zncc"), (None, "tgv_zncc")):
+        out = tmp_path / f"{expected}.npz"
+        extra = ["--method", method] if method else []
+        done = _run("height", left, right, "--tilt", "-5", "5", "--pixel-size-um", "0.1", *extra, "-o", out, "--json")
+        assert done.returncode == 0, done.stderr
+        assert json.loads(done.stdout)["report"]["method"] == expected
+    done = _run("height", left, right, "--method", "sgbm", "-o", tmp_path / "x.npz")
+    assert done.returncode == 2 and "--method" in done.stderr
+
+
 @pytest.mark.slow
 def test_height_against_a_running_server(pair_files, tmp_path, server_address):
     (left, right), _ = pair_files

@@ -12,7 +12,7 @@ from fractoscope.mesh.pipeline import MeshingOptions
 from fractoscope.rpc import calls, wire
 from fractoscope.rpc import matching as rpc_matching
 from fractoscope.rpc import meshing as rpc_meshing
-from fractoscope.stereo.disparity import DisparityResult, StripTask
+from fractoscope.stereo.disparity import DisparityResult, MatchingMethod, StripTask
 from fractoscope.stereo.pipeline import MatchingOptions
 from fractoscope.v1 import common_pb2, matching_pb2, meshing_pb2, tiles_pb2
 
@@ -73,17 +73,25 @@ def test_matching_parameters_left_empty_mean_the_defaults():
     assert rpc_matching.options_from_message(matching_pb2.MatchingParameters()) == MatchingOptions()
     given = matching_pb2.MatchingParameters(window_px=21, max_disparity_px=40, min_confidence=0.5, max_lr_difference_px=2.0,
                                             tilt_uncertainty_deg=0.1, calibrate_tilt=True, normalize_local_contrast=False,
-                                            propagate_at_full_resolution=True)
+                                            propagate_at_full_resolution=True, method=matching_pb2.MATCHING_METHOD_WINDOW_ZNCC)
     assert rpc_matching.options_from_message(given) == MatchingOptions(
         window_px=21, max_disparity_px=40, min_confidence=0.5, max_lr_difference_px=2.0, tilt_uncertainty_deg=0.1,
-        calibrate_tilt=True, normalize_local_contrast=False, propagate_at_full_resolution=True,
+        calibrate_tilt=True, normalize_local_contrast=False, propagate_at_full_resolution=True, method=MatchingMethod.WINDOW_ZNCC,
     )
+    assert MatchingOptions().method == MatchingMethod.TGV_ZNCC
+
+
+def test_an_unknown_matching_method_names_the_field():
+    with pytest.raises(InvalidInputError) as raised:
+        rpc_matching.options_from_message(matching_pb2.MatchingParameters(method=7))
+    assert raised.value.field == "parameters.method"
 
 
 def test_a_strip_and_its_disparities_cross_the_wire_unchanged():
     rng = np.random.default_rng(0)
     grey = rng.integers(0, 256, (40, 64)).astype(np.float32)  # whole numbers: sent as uint8
-    task = StripTask(grey, np.roll(grey, 2, axis=1), 15, 16, 0.3, 1.0, keep_rows=(5, 30), propagate_at_full_resolution=True)
+    task = StripTask(grey, np.roll(grey, 2, axis=1), 15, 16, 0.3, 1.0, keep_rows=(5, 30), propagate_at_full_resolution=True,
+                     method=MatchingMethod.WINDOW_ZNCC)
     request = rpc_matching.strip_request(task, request_id="r")
     assert request.left.data_type == common_pb2.DATA_TYPE_UINT8 and request.request_id == "r"
     back = rpc_matching.request_to_strip_task(request)

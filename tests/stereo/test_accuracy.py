@@ -6,9 +6,13 @@ import pytest
 from conftest import cleavage_pair, dimple_pair, fracture_pair, inner_mask
 from fractoscope import synthetic
 from fractoscope.sem.image import SemImage
+from fractoscope.stereo.disparity import MatchingMethod
 from fractoscope.stereo.pipeline import MatchingOptions, compute_height_map
 
 pytestmark = pytest.mark.slow  # accuracy on 640² pairs: `pytest -m "not slow"` leaves it out
+
+WINDOW = MatchingOptions(method=MatchingMethod.WINDOW_ZNCC)
+TILT_PAIRS = [(-5.0, 5.0), (0.0, 10.0)]
 
 
 def _reconstruct(pair, tilt_deg, **kwargs):
@@ -21,21 +25,40 @@ def _errors(result, pair):
     return errors.valid_fraction, errors.rms_of_range, errors.sa_relative
 
 
-@pytest.mark.parametrize("tilt_deg", [(-5.0, 5.0), (0.0, 10.0)])
+@pytest.mark.parametrize("tilt_deg", TILT_PAIRS)
 def test_fracture_surface_heights_meet_the_accuracy_targets(tilt_deg):
+    """The default method meets Matching II's targets on the self-affine surface (measured:
+    0.94 % and 0.93 % RMS, 100 % valid, Sa within 0.5 %); window correlation its first issue's."""
     pair = fracture_pair(tilt_deg=tilt_deg)
     result = _reconstruct(pair, tilt_deg)
     valid_fraction, rms_of_range, sa_relative = _errors(result, pair)
     assert valid_fraction >= 0.98
-    assert rms_of_range <= 0.015
+    assert rms_of_range <= 0.010
     assert abs(sa_relative) <= 0.02
     assert result.z_um.dtype == np.float32 and result.z_um.shape == pair.first.shape
+    assert result.report["method"] == "tgv_zncc"
+    window_valid, window_rms, window_sa = _errors(_reconstruct(pair, tilt_deg, options=WINDOW), pair)
+    assert window_valid >= 0.98 and window_rms <= 0.015 and abs(window_sa) <= 0.02
 
 
-def _errors_by_default_and_with(options, make_pair, tilt_deg):
-    """`_errors` of the pair made by `make_pair` reconstructed with the defaults, and with `options`."""
+@pytest.mark.parametrize("make_pair", [fracture_pair, dimple_pair, cleavage_pair], ids=["self-affine", "dimples", "cleavage"])
+@pytest.mark.parametrize("tilt_deg", TILT_PAIRS)
+def test_the_default_method_measures_better_than_window_correlation(make_pair, tilt_deg):
+    """TGV² refinement lowers the RMS error on every surface and measures at least as much
+    (measured, ±5° and 0/10°: self-affine 0.94 and 0.93 % against 1.12 and 1.11 %; dimples 2.9
+    and 3.0 % against 4.2 and 4.1 %, 99.4-99.6 % valid against 98.8-98.9 %; cleavage 1.4 and
+    4.3 % against 2.8 and 6.5 %, 81-84 % valid against 78-80 %)."""
     pair = make_pair(tilt_deg=tilt_deg)
-    return _errors(_reconstruct(pair, tilt_deg), pair), _errors(_reconstruct(pair, tilt_deg, options=options), pair)
+    default_valid, default_rms, _ = _errors(_reconstruct(pair, tilt_deg), pair)
+    window_valid, window_rms, _ = _errors(_reconstruct(pair, tilt_deg, options=WINDOW), pair)
+    assert default_rms < 0.95 * window_rms
+    assert default_valid >= window_valid
+
+
+def _errors_by_default_and_with(options, make_pair, tilt_deg, *, default=MatchingOptions()):
+    """`_errors` of the pair made by `make_pair` reconstructed with `default`, and with `options`."""
+    pair = make_pair(tilt_deg=tilt_deg)
+    return _errors(_reconstruct(pair, tilt_deg, options=default), pair), _errors(_reconstruct(pair, tilt_deg, options=options), pair)
 
 
 def _within(result, pair):
@@ -48,32 +71,38 @@ def _within(result, pair):
     return np.mean(np.abs(error) < one_pixel_um), np.mean(np.abs(error) < 3 * result.sigma_um[valid])
 
 
-# The RMS target (1.5 %) is not met on dimples (their shading texture changes with the tilt; see
-# the next test), nor any target on cleavage (windows across its steps, faint facet texture:
-# masked); these bounds pin what the default matcher achieves (measured: dimples 4.1-4.2 % RMS,
-# 98.8-98.9 % valid, Sa within 0.5 %; cleavage 2.8-6.5 % RMS, 78-80 % valid) so it cannot
-# silently get worse. See "Accuracy" in the README.
+# The RMS target of dimples (1.5 %), cleavage's at 0/10° (2 %) and cleavage's 95 % valid are not
+# met (the dimples' shading texture changes with the tilt, see the ideal-image test; 4.6 % of
+# cleavage is hidden in the second view and more lies next to its walls); these bounds pin what
+# each method achieves so it cannot silently get worse. Measured, default: dimples 2.9-3.0 %
+# RMS, 99.4-99.6 % valid, Sa within 1.1 %; cleavage 1.4 % (±5°, within the target) and 4.3 %
+# (0/10°) RMS, 81-84 % valid, Sa within 1.4 %. Window correlation: dimples 4.1-4.2 %,
+# 98.8-98.9 %, 0.5 %; cleavage 2.8-6.5 %, 78-80 %, 2.0 %. See "Accuracy" in the README.
 BEYOND_TARGETS = {
-    "dimples": (dimple_pair, {"valid": 0.98, "rms": 0.045, "sa": 0.01, "one_pixel": 0.98, "three_sigma": 0.99}),
-    "cleavage": (cleavage_pair, {"valid": 0.75, "rms": 0.07, "sa": 0.025, "one_pixel": 0.88, "three_sigma": 0.95}),
+    ("dimples", "tgv_zncc"): (dimple_pair, {"valid": 0.99, "rms": 0.032, "sa": 0.015, "one_pixel": 0.99, "three_sigma": 0.99}),
+    ("cleavage", "tgv_zncc"): (cleavage_pair, {"valid": 0.80, "rms": 0.047, "sa": 0.02, "one_pixel": 0.93, "three_sigma": 0.96}),
+    ("dimples", "window_zncc"): (dimple_pair, {"valid": 0.98, "rms": 0.045, "sa": 0.01, "one_pixel": 0.98, "three_sigma": 0.99}),
+    ("cleavage", "window_zncc"): (cleavage_pair, {"valid": 0.75, "rms": 0.07, "sa": 0.025, "one_pixel": 0.88, "three_sigma": 0.95}),
 }
 
 
 @pytest.mark.parametrize("surface", sorted(BEYOND_TARGETS))
-@pytest.mark.parametrize("tilt_deg", [(-5.0, 5.0), (0.0, 10.0)])
+@pytest.mark.parametrize("tilt_deg", TILT_PAIRS)
 def test_dimples_and_cleavage_keep_their_measured_accuracy(surface, tilt_deg):
     make_pair, bounds = BEYOND_TARGETS[surface]
     pair = make_pair(tilt_deg=tilt_deg)
-    result = _reconstruct(pair, tilt_deg)
+    result = _reconstruct(pair, tilt_deg, options=MatchingOptions(method=MatchingMethod(surface[1])))
     valid_fraction, rms_of_range, sa_relative = _errors(result, pair)
     within_one_pixel, within_three_sigma = _within(result, pair)
     assert valid_fraction >= bounds["valid"]
     assert rms_of_range <= bounds["rms"]
     assert abs(sa_relative) <= bounds["sa"]
     assert within_one_pixel >= bounds["one_pixel"] and within_three_sigma >= bounds["three_sigma"]
+    if surface == ("cleavage", "tgv_zncc") and tilt_deg == (-5.0, 5.0):
+        assert rms_of_range <= 0.02  # Matching II's target, met at ±5°
 
 
-@pytest.mark.parametrize("tilt_deg", [(-5.0, 5.0), (0.0, 10.0)])
+@pytest.mark.parametrize("tilt_deg", TILT_PAIRS)
 def test_dimples_meet_the_targets_when_the_two_views_differ_only_by_parallax(tilt_deg):
     """What keeps dimples from the targets is the images, not the matcher: rendered without
     noise and with the secondary-electron shading fixed to the surface (the same in both views),
@@ -81,14 +110,15 @@ def test_dimples_meet_the_targets_when_the_two_views_differ_only_by_parallax(til
     99.7 % valid). With the shading changing with the tilt, as in a microscope, no window from
     7 to 15 px does better than 3.4 % (see "Accuracy" in the README)."""
     pair = dimple_pair(tilt_deg=tilt_deg, noise_fraction=0.0, shading_tilt_deg=float(np.mean(tilt_deg)))
-    valid_fraction, rms_of_range, sa_relative = _errors(_reconstruct(pair, tilt_deg, options=MatchingOptions(window_px=7)), pair)
+    options = MatchingOptions(window_px=7, method=MatchingMethod.WINDOW_ZNCC)
+    valid_fraction, rms_of_range, sa_relative = _errors(_reconstruct(pair, tilt_deg, options=options), pair)
     assert valid_fraction >= 0.98
     assert rms_of_range <= 0.015
     assert abs(sa_relative) <= 0.02
 
 
 # Local contrast normalization (on by default) takes the shading that changes with the tilt out
-# before matching. Measured without it: dimples 7.2-7.5 % RMS and 95 % valid (4.1-4.2 % and
+# before matching. Measured by window correlation without it: dimples 7.2-7.5 % RMS and 95 % valid (4.1-4.2 % and
 # 99 % with), the self-affine surface 1.23-1.26 % and 99.8 % (1.11-1.12 % and 100 %).
 WITHOUT_LOCAL_CONTRAST = {
     "self-affine": (fracture_pair, {"valid": 0.98, "rms": 0.015}),
@@ -97,11 +127,11 @@ WITHOUT_LOCAL_CONTRAST = {
 
 
 @pytest.mark.parametrize("surface", sorted(WITHOUT_LOCAL_CONTRAST))
-@pytest.mark.parametrize("tilt_deg", [(-5.0, 5.0), (0.0, 10.0)])
+@pytest.mark.parametrize("tilt_deg", TILT_PAIRS)
 def test_local_contrast_normalization_takes_the_tilt_dependent_shading_out(surface, tilt_deg):
     make_pair, bounds = WITHOUT_LOCAL_CONTRAST[surface]
     with_contrast, (valid_fraction, rms_of_range, _) = _errors_by_default_and_with(
-        MatchingOptions(normalize_local_contrast=False), make_pair, tilt_deg
+        MatchingOptions(normalize_local_contrast=False, method=MatchingMethod.WINDOW_ZNCC), make_pair, tilt_deg, default=WINDOW
     )
     assert valid_fraction >= bounds["valid"] and rms_of_range <= bounds["rms"]
     assert with_contrast[0] > valid_fraction and with_contrast[1] < rms_of_range
@@ -109,8 +139,8 @@ def test_local_contrast_normalization_takes_the_tilt_dependent_shading_out(surfa
         assert with_contrast[1] < 0.65 * rms_of_range
 
 
-# Propagation at full resolution (an option; the coarser levels always propagate) frees more of
-# the pixels next to steps. Measured: cleavage 2.5 % and 6.1 % RMS (2.8 % and 6.5 % by default),
+# Propagation at full resolution (an option of window correlation, whose coarser levels always
+# propagate) frees more of the pixels next to steps. Measured: cleavage 2.5 % and 6.1 % RMS (2.8 % and 6.5 % by default),
 # 80-81 % valid (78-80 %); dimples 4.0-4.1 % (4.1-4.2 %).
 WITH_FULL_RESOLUTION_PROPAGATION = {
     "self-affine": (fracture_pair, {"valid": 0.99, "rms": 0.015, "sa": 0.02}),
@@ -120,11 +150,11 @@ WITH_FULL_RESOLUTION_PROPAGATION = {
 
 
 @pytest.mark.parametrize("surface", sorted(WITH_FULL_RESOLUTION_PROPAGATION))
-@pytest.mark.parametrize("tilt_deg", [(-5.0, 5.0), (0.0, 10.0)])
+@pytest.mark.parametrize("tilt_deg", TILT_PAIRS)
 def test_propagation_at_full_resolution_recovers_more_steps(surface, tilt_deg):
     make_pair, bounds = WITH_FULL_RESOLUTION_PROPAGATION[surface]
     default, (valid_fraction, rms_of_range, sa_relative) = _errors_by_default_and_with(
-        MatchingOptions(propagate_at_full_resolution=True), make_pair, tilt_deg
+        MatchingOptions(propagate_at_full_resolution=True, method=MatchingMethod.WINDOW_ZNCC), make_pair, tilt_deg, default=WINDOW
     )
     assert valid_fraction >= bounds["valid"] and rms_of_range <= bounds["rms"] and abs(sa_relative) <= bounds["sa"]
     if surface != "self-affine":
@@ -153,10 +183,12 @@ def test_oblique_tilt_axis():
     assert rms_of_range <= 0.02
 
 
-def test_uncertainty_is_calibrated():
-    """About two thirds of the actual errors lie within one reported sigma."""
+@pytest.mark.parametrize("method", list(MatchingMethod))
+def test_uncertainty_is_calibrated(method):
+    """About two thirds of the actual errors lie within one reported sigma (measured: 0.63 by
+    the default method)."""
     pair = fracture_pair(seed=5)
-    result = _reconstruct(pair, (-5.0, 5.0), options=MatchingOptions(tilt_uncertainty_deg=0.0))
+    result = _reconstruct(pair, (-5.0, 5.0), options=MatchingOptions(tilt_uncertainty_deg=0.0, method=method))
     valid = np.isfinite(result.z_um) & inner_mask(pair.first.shape)
     error = result.z_um[valid] - pair.z_seen_um[valid]
     error -= np.median(error)

@@ -70,13 +70,16 @@ def test_calibrated_tilt_series_agree_on_tilt_steps_and_heights(calibrated):
     assert narrow.report["tilt_deg_nominal"] == [-3.0, 0.0, 3.0]
     # Both series see one stage: the estimated tilt per nominal degree agrees within the
     # uncertainties, which here come mostly from the magnification difference the alignment
-    # leaves (unmeasured on these images, so the feature fit's): up to 6 % at ±3°, 2 % at ±6°.
+    # leaves: up to 8 % at ±3°, 3.3 % at ±6° (measured by the default method: 0.951 and 0.948 per
+    # degree, 0.949 and 0.948). The default method matches enough of the substrate to measure one
+    # view's magnification on the matched images (±1.4e-4), a wider uncertainty than the feature
+    # fit's that window correlation falls back on (2.1 % at ±6°, 5.6 % at ±3°).
     def per_degree(result, step_deg):
         sigma = np.array(result.report["tilt_sigma_deg"])
         return np.diff(result.report["tilt_deg"]) / step_deg, np.hypot(sigma[1:], sigma[:-1]) / step_deg
 
     (narrow_value, narrow_sigma), (wide_value, wide_sigma) = per_degree(narrow, 3.0), per_degree(wide, 6.0)
-    assert np.all(wide_sigma < 0.03) and np.all(narrow_sigma < 0.08)
+    assert np.all(wide_sigma < 0.04) and np.all(narrow_sigma < 0.1)
     assert np.all(np.abs(narrow_value - wide_value) < 2 * np.hypot(narrow_sigma, wide_sigma))
     assert np.allclose(narrow_value, wide_value, rtol=0.05)
     heights = _grain_height(narrow.z_um), _grain_height(wide.z_um)

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from fractoscope.stereo import matching, window_zncc
+from fractoscope.stereo import correlation, matching, window_zncc
 from fractoscope.synthetic import self_affine_surface
 
 
@@ -15,7 +15,7 @@ def _texture(shape, seed=0):
 @pytest.mark.parametrize("shift_px", [3.3, -7.6, 0.25])
 def test_constant_shift_is_recovered_to_a_twentieth_of_a_pixel(shift_px):
     left = _texture((256, 320))
-    right = window_zncc._warp_along_rows(left, np.full(left.shape, -shift_px, np.float32))
+    right = correlation.warp_along_rows(left, np.full(left.shape, -shift_px, np.float32))
     result = matching.match_disparity(left, right, max_disparity_px=16)
     inner = result.disparity_px[20:-20, 20:-20]
     assert np.isfinite(inner).mean() > 0.98
@@ -26,7 +26,7 @@ def test_search_range_as_wide_as_a_small_image_is_searched():
     """The widest allowed range (the image width) on an image too small for a deep pyramid: a
     coarse search of more than 128 candidate shifts."""
     left = _texture((200, 200), seed=2)
-    right = window_zncc._warp_along_rows(left, np.full(left.shape, -3.0, np.float32))
+    right = correlation.warp_along_rows(left, np.full(left.shape, -3.0, np.float32))
     result = matching.match_disparity(left, right, max_disparity_px=200)
     assert np.nanmedian(np.abs(result.disparity_px[20:-20, 20:-20] - 3.0)) < 0.05
 
@@ -35,7 +35,7 @@ def test_search_range_as_wide_as_a_small_image_is_searched():
 def test_strips_give_the_same_answer_as_one_piece(propagate_at_full_resolution):
     left = _texture((600, 200), seed=1)
     ramp = np.linspace(-4, 4, 200, dtype=np.float32)[None, :].repeat(600, axis=0)
-    right = window_zncc._warp_along_rows(left, -ramp)
+    right = correlation.warp_along_rows(left, -ramp)
     whole = matching.match_disparity(left, right, max_disparity_px=12, propagate_at_full_resolution=propagate_at_full_resolution)
     strips = matching.match_disparity(left, right, max_disparity_px=12, strip_pixels=200 * 150, propagate_at_full_resolution=propagate_at_full_resolution)
     # Away from the side borders (where the pyramids of different heights see different edges)
@@ -51,7 +51,7 @@ def test_small_islands_among_masked_pixels_are_speckles():
     disparity = np.full((100, 100), np.nan, np.float32)
     disparity[:, :60] = 2.0  # a large consistent region
     disparity[40:45, 80:85] = 9.0  # a 25-pixel island
-    speckles = window_zncc._speckles(disparity, np.isfinite(disparity), max_pixels=100)
+    speckles = window_zncc.speckles(disparity, np.isfinite(disparity), max_pixels=100)
     assert speckles[40:45, 80:85].all()
     assert not speckles[:, :60].any()
 

@@ -23,6 +23,9 @@ def add_parsers(commands) -> None:
     height.add_argument("--local-contrast", action=argparse.BooleanOptionalAction,
                         help="take tilt-dependent shading out before matching (default: on; --no-local-contrast for flat, "
                              "weakly textured areas)")
+    height.add_argument("--method", choices=("tgv-zncc", "window-zncc"), default="tgv-zncc",
+                        help="matching method: tgv-zncc (default: the window correlation refined by TGV², most accurate) or "
+                             "window-zncc (the paper's window correlation, about ten times faster)")
     height.add_argument("--propagate-at-full-resolution", action="store_true",
                         help="let pixels try their neighbours' disparities at full resolution too: for steps (cleavage); "
                              "about 1.5x slower")
@@ -52,6 +55,7 @@ def compute_height(client: FractoscopeClient, args, quiet: bool) -> HeightMap:
             calibrate_tilt=args.calibrate_tilt,
             normalize_local_contrast=args.local_contrast,
             propagate_at_full_resolution=args.propagate_at_full_resolution,
+            method=args.method.replace("-", "_"),
             on_progress=advance,
         )
 

@@ -80,6 +80,7 @@ class FractoscopeClient(ChannelOwner):
         calibrate_tilt: bool = False,
         normalize_local_contrast: bool | None = None,
         propagate_at_full_resolution: bool = False,
+        method: str | None = None,
         on_progress: ProgressCallback | None = None,
         request_id: str = "",
     ) -> HeightMap:
@@ -89,7 +90,8 @@ class FractoscopeClient(ChannelOwner):
         with `tilt_deg_nominal`, `tilt_sigma_deg` and `tilt_residual_px`. `normalize_local_contrast`
         (None: the server's default, on) and `propagate_at_full_resolution`: see
         MatchingParameters (against shading that changes with the tilt, and for surfaces with
-        steps)."""
+        steps). `method`: "tgv_zncc" or "window_zncc" (None: the server's default, tgv_zncc; see
+        MatchingMethod)."""
         files = [(image, "") if isinstance(image, bytes) else (Path(image).read_bytes(), Path(image).name) for image in images]
         request = calls.height_map_request(
             files, tilt_deg=tilt_deg, pixel_size_um=pixel_size_um, tilt_axis_deg=tilt_axis_deg, parameters=parameters, request_id=request_id,
@@ -100,6 +102,8 @@ class FractoscopeClient(ChannelOwner):
             request.parameters.normalize_local_contrast = normalize_local_contrast
         if propagate_at_full_resolution:
             request.parameters.propagate_at_full_resolution = True
+        if method is not None:
+            request.parameters.method = _matching_method(method)
         with raised_as_client_errors():
             return calls.read_height_map(self._matching.ComputeHeightMap(request, timeout=self._timeout_s), on_progress)
 
@@ -217,3 +221,11 @@ class FractoscopeClient(ChannelOwner):
 
 def _as_dict(message) -> dict:
     return json_format.MessageToDict(message, preserving_proto_field_name=True, always_print_fields_with_no_presence=True)
+
+
+def _matching_method(name: str) -> int:
+    """"tgv_zncc" or "window_zncc" as a MatchingMethod value; ValueError naming `method` otherwise."""
+    try:
+        return matching_pb2.MatchingMethod.Value("MATCHING_METHOD_" + name.upper())
+    except ValueError:
+        raise ValueError(f"method must be 'tgv_zncc' or 'window_zncc', got {name!r}") from None

@@ -8,9 +8,28 @@ import numpy as np
 from fractoscope.errors import InvalidInputError
 from fractoscope.rpc import wire
 from fractoscope.sem import image as sem_image
-from fractoscope.stereo.disparity import DisparityResult, StripTask
+from fractoscope.stereo.disparity import DisparityResult, MatchingMethod, StripTask
 from fractoscope.stereo.pipeline import HeightMapResult, MatchingOptions, validate_options
 from fractoscope.v1 import matching_pb2
+
+
+_METHODS = {
+    matching_pb2.MATCHING_METHOD_UNSPECIFIED: MatchingOptions().method,
+    matching_pb2.MATCHING_METHOD_TGV_ZNCC: MatchingMethod.TGV_ZNCC,
+    matching_pb2.MATCHING_METHOD_WINDOW_ZNCC: MatchingMethod.WINDOW_ZNCC,
+}
+_METHOD_CODES = {method: code for code, method in _METHODS.items() if code != matching_pb2.MATCHING_METHOD_UNSPECIFIED}
+
+
+def method_from_message(code: int) -> MatchingMethod:
+    """A MatchingMethod value (UNSPECIFIED = the default); InvalidInputError for unknown ones."""
+    if code not in _METHODS:
+        raise InvalidInputError("parameters.method", f"unknown matching method {code}; known: TGV_ZNCC, WINDOW_ZNCC")
+    return _METHODS[code]
+
+
+def method_to_message(method: MatchingMethod) -> int:
+    return _METHOD_CODES[MatchingMethod(method)]
 
 
 def options_from_message(parameters: matching_pb2.MatchingParameters) -> MatchingOptions:
@@ -27,6 +46,7 @@ def options_from_message(parameters: matching_pb2.MatchingParameters) -> Matchin
             parameters.normalize_local_contrast if parameters.HasField("normalize_local_contrast") else defaults.normalize_local_contrast
         ),
         propagate_at_full_resolution=parameters.propagate_at_full_resolution,
+        method=method_from_message(parameters.method),
     )
 
 
@@ -38,7 +58,7 @@ def strip_request(task: StripTask, *, request_id: str = "") -> matching_pb2.Matc
         parameters=matching_pb2.MatchingParameters(
             window_px=task.window_px, max_disparity_px=task.max_disparity_px,
             min_confidence=task.min_confidence, max_lr_difference_px=task.max_lr_difference_px,
-            propagate_at_full_resolution=task.propagate_at_full_resolution,
+            propagate_at_full_resolution=task.propagate_at_full_resolution, method=method_to_message(task.method),
         ),
         request_id=request_id,
     )
@@ -68,7 +88,7 @@ def request_to_strip_task(request: matching_pb2.MatchStripRequest) -> StripTask:
             raise InvalidInputError("keep_to_row", f"rows [{request.keep_from_row}, {request.keep_to_row}) are not within the strip's {left.shape[0]}")
         keep_rows = (request.keep_from_row, request.keep_to_row)
     return StripTask(left, right, options.window_px, options.max_disparity_px, options.min_confidence, options.max_lr_difference_px,
-                     keep_rows=keep_rows, propagate_at_full_resolution=options.propagate_at_full_resolution)
+                     keep_rows=keep_rows, propagate_at_full_resolution=options.propagate_at_full_resolution, method=options.method)
 
 
 def strip_response(result: DisparityResult, *, worker: str) -> matching_pb2.MatchStripResponse:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
+from enum import Enum
 
 import numpy as np
 
@@ -26,6 +27,14 @@ class DisparityResult:
     sigma_px: np.ndarray
 
 
+class MatchingMethod(str, Enum):
+    """How a strip is matched: `tgv_zncc` (the default) refines `window_zncc`'s disparities by
+    TGV² over a small-window ZNCC data term; `window_zncc` is the paper's window correlation."""
+
+    TGV_ZNCC = "tgv_zncc"
+    WINDOW_ZNCC = "window_zncc"
+
+
 @dataclass(frozen=True)
 class StripTask:
     """One strip of rows of a rectified pair with the matcher's settings: a complete stereo
@@ -40,6 +49,7 @@ class StripTask:
     max_lr_difference_px: float
     keep_rows: tuple[int, int] | None = None
     propagate_at_full_resolution: bool = False
+    method: MatchingMethod = MatchingMethod.TGV_ZNCC
 
 
 # Matches strips, yielding their results in order: `match_strips` here, or peers over the network.

@@ -14,8 +14,8 @@ import cv2
 import numpy as np
 
 from fractoscope.progress import ProgressCallback, silent
-from fractoscope.stereo import window_zncc
-from fractoscope.stereo.disparity import DisparityResult, StripMatcher, StripTask
+from fractoscope.stereo import tgv_zncc, window_zncc
+from fractoscope.stereo.disparity import DisparityResult, MatchingMethod, StripMatcher, StripTask
 
 DEFAULT_WINDOW_PX = 15
 DEFAULT_MIN_CONFIDENCE = 0.3
@@ -35,6 +35,7 @@ def match_disparity(
     max_lr_difference_px: float = DEFAULT_MAX_LR_DIFFERENCE_PX,
     normalize_local_contrast: bool = True,
     propagate_at_full_resolution: bool = False,
+    method: MatchingMethod = MatchingMethod.TGV_ZNCC,
     strip_pixels: int = DEFAULT_STRIP_PIXELS,
     strip_matcher: StripMatcher | None = None,
     progress: ProgressCallback | None = None,
@@ -67,7 +68,7 @@ def match_disparity(
     bounds = strip_bounds(left.shape, window_px=window_px, max_disparity_px=max_disparity_px, strip_pixels=strip_pixels)
     tasks = (
         StripTask(left[top:bottom], right[top:bottom], window_px, max_disparity_px, min_confidence, max_lr_difference_px,
-                  keep_rows=(start - top, stop - top), propagate_at_full_resolution=propagate_at_full_resolution)
+                  keep_rows=(start - top, stop - top), propagate_at_full_resolution=propagate_at_full_resolution, method=method)
         for top, start, stop, bottom in bounds
     )
     disparity = np.empty(left.shape, np.float32)
@@ -99,9 +100,17 @@ def strip_bounds(shape: tuple[int, int], *, window_px: int, max_disparity_px: in
     return bounds
 
 
+_METHODS = {MatchingMethod.TGV_ZNCC: tgv_zncc.match_strip, MatchingMethod.WINDOW_ZNCC: window_zncc.match_strip}
+
+
+def match_strip(task: StripTask) -> DisparityResult:
+    """One strip matched by its task's method."""
+    return _METHODS[task.method](task)
+
+
 def match_strips(tasks: Iterable[StripTask]) -> Iterator[DisparityResult]:
     """Matches strips one after another in this process."""
-    return map(window_zncc.match_strip, tasks)
+    return map(match_strip, tasks)
 
 
 def local_contrast(image: np.ndarray) -> np.ndarray:

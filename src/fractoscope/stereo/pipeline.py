@@ -18,7 +18,7 @@ from fractoscope.errors import InvalidInputError
 from fractoscope.progress import ProgressCallback, silent
 from fractoscope.sem.image import SemImage
 from fractoscope.stereo import alignment, geometry, matching, tilt_series
-from fractoscope.stereo.disparity import StripMatcher
+from fractoscope.stereo.disparity import MatchingMethod, StripMatcher
 
 AXIS_WARNING_DEG = 2.0
 # Tilt axis direction in the image, degrees from the column axis: vertical, parallax along rows.
@@ -35,6 +35,7 @@ class MatchingOptions:
     max_lr_difference_px: float = matching.DEFAULT_MAX_LR_DIFFERENCE_PX
     normalize_local_contrast: bool = True
     propagate_at_full_resolution: bool = False
+    method: MatchingMethod = MatchingMethod.TGV_ZNCC
     tilt_uncertainty_deg: float = 0.5
     calibrate_tilt: bool = False
     strip_pixels: int = matching.DEFAULT_STRIP_PIXELS
@@ -113,6 +114,7 @@ def compute_series_height_map(
         bar_rows=rectified.bar_rows, axis_estimated=axis_estimated, warnings=warnings, calibration=calibration,
     )
     report["elapsed_s"] = time.perf_counter() - started
+    report["method"] = MatchingMethod(options.method).value
     report_progress(1.0, "done")
     return HeightMapResult(z_um, sigma_um, np.nan_to_num(confidence).astype(np.float32), report)
 
@@ -210,7 +212,7 @@ def _match_view(reference: np.ndarray, view: np.ndarray, options: MatchingOption
         reference, on_first, window_px=options.window_px, max_disparity_px=max_disparity_px,
         min_confidence=options.min_confidence, max_lr_difference_px=options.max_lr_difference_px,
         normalize_local_contrast=options.normalize_local_contrast, propagate_at_full_resolution=options.propagate_at_full_resolution,
-        strip_pixels=options.strip_pixels, strip_matcher=strip_matcher, progress=progress,
+        method=options.method, strip_pixels=options.strip_pixels, strip_matcher=strip_matcher, progress=progress,
     )
     strip_count = len(matching.strip_bounds(
         reference.shape, window_px=options.window_px, max_disparity_px=max_disparity_px, strip_pixels=options.strip_pixels

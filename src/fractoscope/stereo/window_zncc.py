@@ -18,9 +18,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from fractoscope.stereo import correlation
 from fractoscope.stereo.disparity import DisparityResult, StripTask
 
-_SIGMA_CALIBRATION = 3.5
 _SUBPIXEL_ITERATIONS = 1
 _MAX_SPECKLE_PIXELS = 400
 
@@ -33,36 +33,74 @@ def match_strip(task: StripTask) -> DisparityResult:
     masked pixels. Every pyramid level but the finest also lets each pixel try its neighbours'
     disparities (`_propagate`); `task.propagate_at_full_resolution` does so at the finest level
     too."""
-    left, right, window_px, max_disparity_px = task.left, task.right, task.window_px, task.max_disparity_px
-    left_f, right_f = _normalized(left), _normalized(right)
-    levels = _level_count(left.shape, max_disparity_px, window_px)
+    directions = match_directions(task)
+    valid, disparity = consistent(task, directions, directions.forward.disparity, directions.backward_px)
+    forward = directions.forward
+    sigma_px = correlation.peak_sigma_px(forward.score, forward.curvature, task.window_px)
+    return kept_result(task, valid, disparity, forward.score, sigma_px)
+
+
+@dataclass(frozen=True)
+class Directions:
+    """The window matcher's disparities of one strip in both directions, before any masking.
+
+    left, right: (rows, cols) float32, the strip's images normalized to zero mean, unit variance.
+    forward: left-to-right disparity with its peak ZNCC and the peak's second difference.
+    backward_px: (rows, cols) float32, right-to-left disparity.
+    left_stats: window statistics of `left` at the window size."""
+
+    left: np.ndarray
+    right: np.ndarray
+    forward: Refinement
+    backward_px: np.ndarray
+    left_stats: correlation.WindowStats
+
+
+def match_directions(task: StripTask) -> Directions:
+    """Coarse-to-fine window ZNCC of `task`'s strip, left to right and right to left."""
+    left_f, right_f = correlation.normalized(task.left), correlation.normalized(task.right)
+    window_px, max_disparity_px = task.window_px, task.max_disparity_px
+    levels = _level_count(left_f.shape, max_disparity_px, window_px)
     left_pyramid, right_pyramid = _pyramid(left_f, levels), _pyramid(right_f, levels)
     coarse_radius = int(np.ceil(max_disparity_px / 2 ** (levels - 1))) + 1
     # The two directions are independent; OpenCV and numpy release the GIL, so they overlap. Both
     # get the sub-pixel pass: the consistency check compares them to 1 px, and without it the
     # backward direction's coarser estimate failed 1-2 % of good dimple pixels.
-    finest_left_stats = _window_stats(left_f, window_px)  # also tells textureless windows below
+    finest_left_stats = correlation.window_stats(left_f, window_px)  # also tells textureless windows
     with ThreadPoolExecutor(max_workers=2) as pool:
         at_full = task.propagate_at_full_resolution
         forward_job = pool.submit(_coarse_to_fine, left_pyramid, right_pyramid, window_px, coarse_radius, at_full, finest_left_stats)
         backward_job = pool.submit(_coarse_to_fine, right_pyramid, left_pyramid, window_px, coarse_radius, at_full)
         forward, backward = forward_job.result(), backward_job.result().disparity
-    del left_pyramid, right_pyramid
-    backward_at_match = _sample_along_rows(backward, forward.disparity)
-    lr_difference = np.abs(forward.disparity + backward_at_match)
-    # The two directions err independently: their mean is the better estimate.
-    disparity = 0.5 * (forward.disparity - backward_at_match)
-    del backward, backward_at_match
-    score, curvature = forward.score, forward.curvature
+    return Directions(left_f, right_f, forward, backward, finest_left_stats)
+
+
+def consistent(task: StripTask, directions: Directions, forward_px: np.ndarray, backward_px: np.ndarray):
+    """(valid, disparity): the mean of the two directions' disparities (they err independently),
+    and where it is trusted: the window's peak correlation reaches `task.min_confidence`, the
+    directions agree within `task.max_lr_difference_px`, the window is textured, the match lies
+    in the image, and the pixel is not in a small island of such pixels."""
+    backward_at_match = correlation.sample_along_rows(backward_px, forward_px)
+    lr_difference = np.abs(forward_px + backward_at_match)
+    disparity = 0.5 * (forward_px - backward_at_match)
     valid = (
-        (score >= task.min_confidence)
+        (directions.forward.score >= task.min_confidence)
         & (lr_difference <= task.max_lr_difference_px)
-        & (finest_left_stats.inverse_std < 1e3)  # not a flat, textureless patch
-        & _in_bounds(disparity)
+        & textured(directions)
+        & in_bounds(disparity)
         & np.isfinite(disparity)
     )
-    valid &= ~_speckles(disparity, valid, max_pixels=_MAX_SPECKLE_PIXELS)
-    sigma_px = _disparity_sigma_px(score, curvature, window_px)
+    valid &= ~speckles(disparity, valid)
+    return valid, disparity
+
+
+def textured(directions: Directions) -> np.ndarray:
+    """Where the left window is not a flat, textureless patch, (rows, cols) bool."""
+    return directions.left_stats.inverse_std < 1e3
+
+
+def kept_result(task: StripTask, valid, disparity, score, sigma_px) -> DisparityResult:
+    """The strip's rows that `task` keeps, NaN where not valid."""
     kept = slice(*task.keep_rows) if task.keep_rows else slice(None)
     valid, score, disparity, sigma_px = valid[kept], score[kept], disparity[kept], sigma_px[kept]
     confidence = np.clip(score, 0.0, 1.0).astype(np.float32)
@@ -73,7 +111,7 @@ def match_strip(task: StripTask) -> DisparityResult:
 
 def _coarse_to_fine(
     left_pyramid, right_pyramid, window_px, coarse_radius, propagate_at_full_resolution=False, finest_left_stats=None,
-) -> _Refinement:
+) -> Refinement:
     """Full search at the coarsest level, ±2 px residual searches on warped images at the
     intermediate levels, ±1 px at full resolution, then sub-pixel iterations. Each level's result
     but the finest's (and that one too with `propagate_at_full_resolution`) also competes with
@@ -84,24 +122,17 @@ def _coarse_to_fine(
     for level in range(levels - 1, -1, -1):
         left_level, right_level = left_pyramid[level], right_pyramid[level]
         given = level == 0 and finest_left_stats is not None
-        left_stats = finest_left_stats if given else _window_stats(left_level, window_px)
+        left_stats = finest_left_stats if given else correlation.window_stats(left_level, window_px)
         if level < levels - 1:
             disparity = 2.0 * cv2.resize(disparity, left_level.shape[::-1], interpolation=cv2.INTER_LINEAR)
         radius = coarse_radius if level == levels - 1 else (2 if level > 0 else 1)
-        refined = _refine(left_level, left_stats, right_level, disparity, window_px, radius)
+        refined = residual_search(left_level, left_stats, right_level, disparity, window_px, radius)
         if level > 0 or propagate_at_full_resolution:
             refined = _propagate(left_level, left_stats, right_level, refined, window_px)
         disparity = _clean_for_upsampling(refined.disparity, refined.score) if level > 0 else refined.disparity
     for _ in range(_SUBPIXEL_ITERATIONS):
-        refined = _refine(left_pyramid[0], left_stats, right_pyramid[0], refined.disparity, window_px, 1)
+        refined = residual_search(left_pyramid[0], left_stats, right_pyramid[0], refined.disparity, window_px, 1)
     return refined
-
-
-def _normalized(image: np.ndarray) -> np.ndarray:
-    values = image.astype(np.float32)
-    values -= values.mean()
-    values /= max(float(values.std()), 1e-6)
-    return values
 
 
 def context_rows(strip_shape: tuple[int, int], *, window_px: int, max_disparity_px: int) -> int:
@@ -125,60 +156,8 @@ def _pyramid(image: np.ndarray, levels: int) -> list[np.ndarray]:
     return pyramid
 
 
-def _box(values: np.ndarray, window_px: int) -> np.ndarray:
-    return cv2.boxFilter(values, cv2.CV_32F, (window_px, window_px), borderType=cv2.BORDER_REFLECT)
-
-
-def _warp_along_rows(image: np.ndarray, disparity: np.ndarray) -> np.ndarray:
-    """image sampled at (row, col + disparity), bilinear, edges replicated."""
-    rows, cols = disparity.shape
-    map_cols = np.arange(cols, dtype=np.float32)[None, :] + disparity
-    map_rows = np.broadcast_to(np.arange(rows, dtype=np.float32)[:, None], disparity.shape)
-    return cv2.remap(image, map_cols, np.ascontiguousarray(map_rows), cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-
-
-def _sample_along_rows(field: np.ndarray, disparity: np.ndarray) -> np.ndarray:
-    return _warp_along_rows(field, np.nan_to_num(disparity))
-
-
 @dataclass(frozen=True)
-class _WindowStats:
-    """Mean and inverse standard deviation of every window of one image, (rows, cols) float32."""
-
-    mean: np.ndarray
-    inverse_std: np.ndarray
-
-
-def _window_stats(image: np.ndarray, window_px: int) -> _WindowStats:
-    mean = _box(image, window_px)
-    variance = _box(image * image, window_px)
-    variance -= mean * mean
-    return _WindowStats(mean, 1.0 / np.sqrt(np.maximum(variance, 1e-8)))
-
-
-def _zncc_scores(left: np.ndarray, left_stats: _WindowStats, warped: np.ndarray, window_px: int, radius: int):
-    """ZNCC of the left windows with the warped windows shifted by -radius..radius columns,
-    in that order. Shifted copies are views into arrays padded once (edges replicated)."""
-    warped_stats = _window_stats(warped, window_px)
-    cols = left.shape[1]
-
-    def padded(values):
-        return cv2.copyMakeBorder(values, 0, 0, radius, radius, cv2.BORDER_REPLICATE)
-
-    warped_p, mean_p, inverse_std_p = padded(warped), padded(warped_stats.mean), padded(warped_stats.inverse_std)
-    scores = []
-    for start in range(2 * radius + 1):
-        columns = slice(start, start + cols)
-        score = _box(left * warped_p[:, columns], window_px)
-        score -= left_stats.mean * mean_p[:, columns]
-        score *= left_stats.inverse_std
-        score *= inverse_std_p[:, columns]
-        scores.append(score)
-    return scores
-
-
-@dataclass(frozen=True)
-class _Refinement:
+class Refinement:
     """Disparity after one residual search, with the peak ZNCC and its second difference."""
 
     disparity: np.ndarray
@@ -186,15 +165,15 @@ class _Refinement:
     curvature: np.ndarray
 
 
-def _refine(left, left_stats, right, disparity, window_px, radius) -> _Refinement:
+def residual_search(left, left_stats, right, disparity, window_px, radius) -> Refinement:
     """Best integer residual shift within ±radius on the warped right image, then a parabola
     through the neighbouring scores.
 
     The warp uses the disparity smoothed over about a window: each window then sees one
     consistent deformation, and per-pixel noise is not fed back into the next iteration."""
     disparity = cv2.GaussianBlur(disparity, (0, 0), window_px / 4.0)
-    warped = _warp_along_rows(right, disparity)
-    scores = _zncc_scores(left, left_stats, warped, window_px, radius)
+    warped = correlation.warp_along_rows(right, disparity)
+    scores = correlation.zncc_scores(left, left_stats, warped, window_px, radius)
     if radius == 1:  # the full-resolution case, kept lean: three scores, no index bookkeeping
         before, centre, after = scores
         best = np.maximum(np.maximum(before, centre), after)
@@ -218,10 +197,10 @@ def _refine(left, left_stats, right, disparity, window_px, radius) -> _Refinemen
     with np.errstate(invalid="ignore", divide="ignore"):
         fraction = np.where(at_centre, 0.5 * (before - after) / curvature, 0.0)
     fraction = np.clip(fraction, -0.5, 0.5)
-    return _Refinement((disparity + offset + fraction).astype(np.float32), best, curvature)
+    return Refinement((disparity + offset + fraction).astype(np.float32), best, curvature)
 
 
-def _propagate(left, left_stats, right, refined: _Refinement, window_px) -> _Refinement:
+def _propagate(left, left_stats, right, refined: Refinement, window_px) -> Refinement:
     """Each pixel also tries the largest and the smallest of the disparities found half a window
     to its left, right, above and below (a ±1 px residual search on the right image warped by
     each), and keeps whichever correlates best. Near a step, or a pit narrower than a coarse
@@ -229,32 +208,22 @@ def _propagate(left, left_stats, right, refined: _Refinement, window_px) -> _Ref
     the finer levels cannot leave; of the two sides' disparities, one is the largest of the
     neighbours' and the other the smallest."""
     step = window_px // 2
-    neighbours = [_shifted(refined.disparity, row_step, col_step) for row_step, col_step in ((0, step), (0, -step), (step, 0), (-step, 0))]
-    best = _Refinement(refined.disparity.copy(), refined.score.copy(), refined.curvature.copy())
+    neighbours = [shifted(refined.disparity, row_step, col_step) for row_step, col_step in ((0, step), (0, -step), (step, 0), (-step, 0))]
+    best = Refinement(refined.disparity.copy(), refined.score.copy(), refined.curvature.copy())
     for pick in (np.maximum, np.minimum):
-        candidate = _refine(left, left_stats, right, pick(pick(neighbours[0], neighbours[1]), pick(neighbours[2], neighbours[3])), window_px, 1)
+        candidate = residual_search(left, left_stats, right, pick(pick(neighbours[0], neighbours[1]), pick(neighbours[2], neighbours[3])), window_px, 1)
         better = (candidate.score > best.score).view(np.uint8)
         for new, kept in zip((candidate.disparity, candidate.score, candidate.curvature), (best.disparity, best.score, best.curvature)):
             cv2.copyTo(new, better, kept)  # in place, and quicker than numpy's masked copies
     return best
 
 
-def _shifted(field: np.ndarray, row_step: int, col_step: int) -> np.ndarray:
+def shifted(field: np.ndarray, row_step: int, col_step: int) -> np.ndarray:
     """field[row + row_step, col + col_step] at (row, col), edges replicated."""
     margin = max(abs(row_step), abs(col_step))
     padded = cv2.copyMakeBorder(field, margin, margin, margin, margin, cv2.BORDER_REPLICATE)
     rows, cols = field.shape
     return np.ascontiguousarray(padded[margin + row_step : margin + row_step + rows, margin + col_step : margin + col_step + cols])
-
-
-def _disparity_sigma_px(score, curvature, window_px):
-    """Location error of a correlation peak, sqrt((1 - γ) / (N |γ''| / 2)) for N window pixels
-    (white-noise theory), times 3.5: on synthetic SEM pairs, where the views also differ by
-    tilt-dependent shading, 68 % of errors then fall within one sigma. A floor of 0.02 px stands
-    for interpolation bias."""
-    half_curvature = np.maximum(-0.5 * curvature, 1e-4)
-    noise = np.maximum(1.0 - score, 0.0)
-    return np.sqrt(_SIGMA_CALIBRATION**2 * noise / (window_px**2 * half_curvature) + 0.02**2)
 
 
 def _clean_for_upsampling(disparity, score):
@@ -264,7 +233,7 @@ def _clean_for_upsampling(disparity, score):
     return np.where(poor, smooth, disparity).astype(np.float32)
 
 
-def _speckles(disparity, valid, *, max_pixels, max_step_px=1.0):
+def speckles(disparity, valid, *, max_pixels=_MAX_SPECKLE_PIXELS, max_step_px=1.0):
     """Small islands of valid disparities: regions (joined where neighbours differ by at most
     `max_step_px`) of fewer than `max_pixels` pixels, typically wrong matches surrounded by
     masked ones. Uses OpenCV's speckle filter in its 1/16 px fixed point."""
@@ -278,7 +247,8 @@ def _speckles(disparity, valid, *, max_pixels, max_step_px=1.0):
     return (filtered == marker) & valid
 
 
-def _in_bounds(disparity):
+def in_bounds(disparity):
+    """Where the match (row, col + disparity) lies inside the strip, (rows, cols) bool."""
     cols = disparity.shape[1]
     target = np.arange(cols, dtype=np.float32)[None, :] + disparity
     return (target >= 0) & (target <= cols - 1)

@@ -13,16 +13,18 @@ from fractoscope.synthetic.rendering import (
     render_tilt_series,
 )
 from fractoscope.synthetic.surfaces import (
+    OVERVIEW_PIXEL_SIZE_UM,
     REFERENCE_PIXEL_SIZE_UM,
     REFERENCE_SURFACES,
     cleavage_surface,
     dimple_surface,
+    overview_dimple_surface,
     reference_surface,
     self_affine_surface,
 )
 
 __all__ = [
-    "HeightErrors", "MultiscaleSpecimen", "REFERENCE_PIXEL_SIZE_UM", "REFERENCE_SURFACES", "RenderedView", "StereoPair",
+    "HeightErrors", "MultiscaleSpecimen", "OVERVIEW_PIXEL_SIZE_UM", "REFERENCE_PIXEL_SIZE_UM", "REFERENCE_SURFACES", "RenderedView", "StereoPair",
     "cleavage_surface", "dimple_surface", "height_errors", "reference_surface", "render_multiscale_specimen",
-    "render_sem_view", "render_stereo_pair", "render_tilt_series", "self_affine_surface",
+    "overview_dimple_surface", "render_sem_view", "render_stereo_pair", "render_tilt_series", "self_affine_surface",
 ]

@@ -3,6 +3,7 @@ cleavage, as (rows, cols) float64 height fields in micrometres on a square pixel
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -95,3 +96,17 @@ def reference_surface(kind: str, size_px: int, *, seed: int = 1) -> np.ndarray:
     if kind == "cleavage":
         return cleavage_surface(shape, facet_size_px=160, step_um=0.5, slope_um_per_px=0.02, seed=seed)
     raise ValueError(f"unknown surface kind {kind!r}; known: {REFERENCE_SURFACES}")
+
+
+OVERVIEW_PIXEL_SIZE_UM = 0.4
+_OVERVIEW_AVERAGING = 4
+
+
+def overview_dimple_surface(size_px: int, *, seed: int = 1) -> np.ndarray:
+    """Ductile dimples seen at low magnification, (size_px, size_px) µm at OVERVIEW_PIXEL_SIZE_UM:
+    pits of radius ~10 µm (25 px), ~3 µm deep, with sharp rims and fine roughness, made on a grid
+    4× finer (REFERENCE_PIXEL_SIZE_UM) and area-averaged, as the finite probe of an overview does.
+    Structure finer than a matching window is a larger share of it than of the reference dimples."""
+    fine_px = _OVERVIEW_AVERAGING * size_px
+    fine = dimple_surface((fine_px, fine_px), dimple_radius_px=100, depth_um=3.0, seed=seed)
+    return cv2.resize(fine, (size_px, size_px), interpolation=cv2.INTER_AREA)

@@ -1,0 +1,74 @@
+"""The default matching method: the window ZNCC matcher's disparities (`window_zncc`), refined in
+both directions by TGV² over a 5 × 5 px ZNCC data term (`tgv_refinement`), which recovers
+structure finer than the window, such as dimple rims and river steps, and averages noise where
+the surface is smooth.
+
+Before the refinement every pixel also tries the disparities found 4, 8, 16 and 32 px to its
+left, right, above and below, scored by a 9 × 9 px window, and keeps one that correlates
+clearly better than its own (`_propagated`). Next to a wall between cleavage facets the 15 px
+window is dominated by the wall's bright texture and takes the other side's disparity; the
+refinement's data term only looks ±1 px around it, so the right side's disparity has to be
+offered. On synthetic cleavage this takes the RMS error from 2.6 % to 1.4 % of the range (±5°).
+
+A pixel is kept where the refined directions agree within `task.max_lr_difference_px` and either
+the window matcher trusts it (as `window_zncc.match_strip` masks) or the refined directions
+agree within a quarter pixel on a textured window: two independent refinements that meet so
+closely have found the same surface point, even where the window's correlation is weak (faint
+facets, a flat substrate).
+
+Convention: disparity d at left pixel (row, col) means it matches right pixel (row, col + d).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from fractoscope.stereo import correlation, tgv_refinement, window_zncc
+from fractoscope.stereo.disparity import DisparityResult, StripTask
+
+# The refined disparities err less than the window's: on the synthetic surfaces 68 % of their
+# errors fall within 0.5-0.86 of the window matcher's calibrated peak sigma (dimples 0.5,
+# cleavage 0.7, self-affine 0.85), which ranks them better than the data term's own precision.
+# 0.8 leaves 60-65 % of the self-affine surface's errors within one sigma, more of the others'.
+_REFINED_SIGMA_SCALE = 0.8
+AGREEING_PX = 0.25
+_PROPAGATION_WINDOW_PX = 9
+_PROPAGATION_STEPS_PX = (4, 8, 16, 32)
+# A neighbour's disparity replaces a pixel's own only if its score is this much higher: equal
+# scores are noise, and the replacement would then only shuffle the texture's errors.
+_PROPAGATION_MARGIN = 0.02
+
+
+def match_strip(task: StripTask) -> DisparityResult:
+    """Dense disparity of one strip of a rectified pair (the unit of work that replicas share)."""
+    directions = window_zncc.match_directions(task)
+    window_valid, _ = window_zncc.consistent(task, directions, directions.forward.disparity, directions.backward_px)
+    forward = tgv_refinement.refine_disparity(directions.left, directions.right, _propagated(directions.left, directions.right, directions.forward.disparity))
+    backward = tgv_refinement.refine_disparity(directions.right, directions.left, _propagated(directions.right, directions.left, directions.backward_px))
+    backward_at_match = correlation.sample_along_rows(backward, forward)
+    disparity = 0.5 * (forward - backward_at_match)  # the directions err independently
+    difference = np.abs(forward + backward_at_match)
+    agreeing = (difference <= AGREEING_PX) & window_zncc.textured(directions) & window_zncc.in_bounds(disparity)
+    agreeing &= ~window_zncc.speckles(disparity, agreeing)
+    valid = (window_valid | agreeing) & (difference <= task.max_lr_difference_px)
+    window = directions.forward
+    sigma_px = _REFINED_SIGMA_SCALE * correlation.peak_sigma_px(window.score, window.curvature, task.window_px)
+    return window_zncc.kept_result(task, valid, disparity, window.score, sigma_px)
+
+
+def _propagated(left: np.ndarray, right: np.ndarray, disparity_px: np.ndarray) -> np.ndarray:
+    """`disparity_px` (rows, cols float32) after each pixel has tried its neighbours' disparities
+    at `_PROPAGATION_STEPS_PX` along rows and columns, one after another, with a ±1 px residual
+    search scored by a `_PROPAGATION_WINDOW_PX` window; `left` and `right` normalized images."""
+    stats = correlation.window_stats(left, _PROPAGATION_WINDOW_PX)
+    best = window_zncc.residual_search(left, stats, right, disparity_px, _PROPAGATION_WINDOW_PX, 1)
+    disparity, score = best.disparity, best.score
+    for step in _PROPAGATION_STEPS_PX:
+        for row_step, col_step in ((0, step), (0, -step), (step, 0), (-step, 0)):
+            candidate = window_zncc.residual_search(
+                left, stats, right, window_zncc.shifted(disparity, row_step, col_step), _PROPAGATION_WINDOW_PX, 1
+            )
+            better = candidate.score > score + _PROPAGATION_MARGIN
+            disparity = np.where(better, candidate.disparity, disparity).astype(np.float32)
+            score = np.where(better, candidate.score, score)
+    return disparity
