@@ -20,7 +20,7 @@ def _in_chromium(script: str, data: Path, path: str, screenshot: Path) -> dict:
     try:
         done = subprocess.run(
             ["node", str(runner), f"http://127.0.0.1:{http.server_port}{path}", str(screenshot)],
-            capture_output=True, text=True, timeout=240, cwd=runner.parents[2],
+            capture_output=True, text=True, timeout=400, cwd=runner.parents[2],
         )
     finally:
         http.shutdown()

@@ -32,7 +32,7 @@ try {
     text: document.getElementById("profile-stats").textContent,
   }));
   await page.click("#roughness-button");
-  await page.waitForFunction(() => window.viewer.roughness !== null, null, { timeout: 30000 });
+  await page.waitForFunction(() => window.viewer.roughness !== null, null, { timeout: 120000 });  // slow on a busy machine
   result.roughness = await page.evaluate(() => window.viewer.roughness);
   result.scaleBar = await page.evaluate(() => document.getElementById("scale-label").textContent);
   await page.check("#zoom-kinds");

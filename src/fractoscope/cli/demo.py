@@ -48,6 +48,10 @@ def command_demo(args) -> int:
     try:
         with embedded_server(host=args.host, port=args.port, store=store) as address, FractoscopeClient(address) as client:
             specimens = run_demo(client, data, shared_data=Path(args.shared_data), console=console)
+            stop = threading.Event()
+            if not args.exit:  # before the URL is printed: whoever reads it may ask us to stop at once
+                for signum in (signal.SIGINT, signal.SIGTERM):
+                    signal.signal(signum, lambda *_: stop.set())
             url = f"http://{args.host}:{http.server_port}/viewer/?specimen={specimens[0]}"
             console.print(f"viewer: [bold]{url}[/bold]", soft_wrap=True)
             console.print(f"gRPC:   {address}   (e.g. fracto roughness {specimens[0]} --server {address})", soft_wrap=True)
@@ -55,9 +59,6 @@ def command_demo(args) -> int:
             if not args.exit:
                 settle_garbage_collector()
                 console.print("serving until Ctrl-C")
-                stop = threading.Event()
-                for signum in (signal.SIGINT, signal.SIGTERM):
-                    signal.signal(signum, lambda *_: stop.set())
                 stop.wait()
                 console.print("stopping")
     finally:

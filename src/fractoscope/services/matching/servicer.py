@@ -20,7 +20,7 @@ from fractoscope.services.matching.peers import PeerStripMatcher, StripPeers
 from fractoscope.services.streaming import stream_progress
 from fractoscope.stereo.matching import DEFAULT_STRIP_PIXELS
 from fractoscope.stereo.pipeline import DEFAULT_TILT_AXIS_DEG, compute_series_height_map
-from fractoscope.stereo.window_zncc import match_strip
+from fractoscope.stereo.matching import match_strip
 from fractoscope.v1 import common_pb2, matching_pb2, matching_pb2_grpc
 
 _log = logging.getLogger("fractoscope.matching")
