@@ -27,6 +27,10 @@ _SERVICE_CONFIG = json.dumps({
         },
     }],
 })
+# A channel whose server went away tries to reconnect with exponential backoff, by default up to
+# two minutes apart, and fails calls at once meanwhile: a replica restarted after a crash would be
+# found again only that late. Every two seconds at most instead.
+_RECONNECT_OPTIONS = [("grpc.initial_reconnect_backoff_ms", 200), ("grpc.max_reconnect_backoff_ms", 2000)]
 
 
 def open_channel(
@@ -36,6 +40,7 @@ def open_channel(
     retries idempotent calls. `token` (default FRACTO_TOKEN) is sent as a bearer token;
     `tls_ca_path` (default FRACTO_TLS_CA) switches to TLS, trusting that PEM certificate authority."""
     options = message_size_options(max_message_mb) + [("grpc.service_config", _SERVICE_CONFIG), ("grpc.enable_retries", 1)]
+    options += _RECONNECT_OPTIONS
     tls_ca_path = tls_ca_path or os.environ.get("FRACTO_TLS_CA") or None
     if tls_ca_path:
         credentials = grpc.ssl_channel_credentials(root_certificates=Path(tls_ca_path).read_bytes())
