@@ -24,7 +24,11 @@ async function measure(page, tool, fractions) {
   const before = await page.evaluate(() => window.viewer.measurements.items.length);
   await page.click(`[data-tool=${tool}]`);
   await clickView(page, fractions);
-  await page.waitForFunction((count) => window.viewer.measurements.items.length === count + 1 && !window.viewer.measurements.pending, before, { timeout: 60000 });
+  try {
+    await page.waitForFunction((count) => window.viewer.measurements.items.length === count + 1 && !window.viewer.measurements.pending, before, { timeout: 60000 });
+  } catch (error) {
+    throw new Error(`${tool} did not finish: ${JSON.stringify(await page.evaluate(() => ({ tool: window.viewer.measurements.tool, picked: window.viewer.measurements.picked, missed: window.viewer.status.missedPicks, items: window.viewer.measurements.items.map((i) => i.text) })))}`);
+  }
   return page.evaluate(() => window.viewer.measurements.items.at(-1).text);
 }
 

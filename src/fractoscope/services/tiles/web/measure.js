@@ -227,7 +227,7 @@ export class Measurements {
 
   marker(position, colour) {
     const geometry = new THREE.BufferGeometry().setFromPoints([position]);
-    const points = new THREE.Points(geometry, new THREE.PointsMaterial({ color: colour, size: 9, sizeAttenuation: false, depthTest: false }));
+    const points = new THREE.Points(geometry, new THREE.PointsMaterial({ color: colour, size: 12, sizeAttenuation: false, depthTest: false }));
     points.renderOrder = 11;
     return points;
   }

@@ -174,6 +174,7 @@ async function open(id, state = {}) {
     }
   });
   scene.add(tiles.group);
+  $("scale-bar").hidden = false;
   applyDisplay();
   const overview = summary.rois[0];
   setStatus(`specimen ${id}: ${summary.rois.length} ROI; overview ${overview.id}` + (overview.magnification ? ` at ${overview.magnification}×` : "")
@@ -267,15 +268,21 @@ function frame() {
 }
 
 // The surface point under a pointer event: specimen µm (x right, y down) and the shown height.
+// A ray exactly along the edge two tiles share can miss both: half a pixel aside it does not.
 function surfacePoint(event) {
   const bounds = renderer.domElement.getBoundingClientRect();
-  const pointer = new THREE.Vector2(((event.clientX - bounds.left) / bounds.width) * 2 - 1, -((event.clientY - bounds.top) / bounds.height) * 2 + 1);
   const caster = new THREE.Raycaster();
-  caster.setFromCamera(pointer, camera);
-  const hit = caster.intersectObject(tiles.group, true).find((h) => !isWallMesh(h.object));
-  if (!hit) return null;
-  const local = hit.point.clone().applyMatrix4(uniforms.toTileset.value);
-  return { x_um: local.x / METRES_PER_UM, y_um: -local.y / METRES_PER_UM, z_um: local.z / METRES_PER_UM };
+  for (const [dx, dy] of [[0, 0], [0.5, 0], [-0.5, 0], [0, 0.5], [0, -0.5]]) {
+    const x = event.clientX + dx - bounds.left;
+    const y = event.clientY + dy - bounds.top;
+    caster.setFromCamera(new THREE.Vector2((x / bounds.width) * 2 - 1, -(y / bounds.height) * 2 + 1), camera);
+    const hit = caster.intersectObject(tiles.group, true).find((h) => !isWallMesh(h.object));
+    if (hit) {
+      const local = hit.point.clone().applyMatrix4(uniforms.toTileset.value);
+      return { x_um: local.x / METRES_PER_UM, y_um: -local.y / METRES_PER_UM, z_um: local.z / METRES_PER_UM };
+    }
+  }
+  return null;
 }
 
 async function measureRoughness() {
@@ -379,8 +386,11 @@ function snapshot() {
     const title = $("colour-bar-title").getBoundingClientRect();
     context.fillText(`${$("colour-bar-title").textContent} (${$("colour-bar-datum").textContent})`, title.left - origin.left, title.bottom - origin.top - 2);
   }
-  if ($("legend").textContent) context.fillText($("legend").textContent, 16, 60);
-  context.fillText(`${specimen?.id ?? ""}: Fractoscope`, 16, view.clientHeight - 40);
+  if ($("legend").textContent) {
+    const legend = $("legend").getBoundingClientRect();
+    context.fillText($("legend").textContent.replace(/\s+/g, " ").trim(), legend.left - origin.left, legend.bottom - origin.top - 3);
+  }
+  context.fillText(`Fractoscope: ${specimen?.id ?? ""}`, 16, 20);
   return canvas.toDataURL("image/png");
 }
 window.viewer.snapshot = snapshot;
@@ -391,6 +401,7 @@ renderer.domElement.addEventListener("pointerup", (event) => {
   // A click (not a drag) picks a point when a measuring tool is on.
   if (!measurements.tool || !tiles || !pressedAt || Math.hypot(event.clientX - pressedAt[0], event.clientY - pressedAt[1]) > 4) return;
   const point = surfacePoint(event);
+  status.missedPicks = (status.missedPicks ?? 0) + (point ? 0 : 1);
   if (point) measurements.pick(point);
 });
 document.querySelectorAll("[data-tool]").forEach((button) => button.addEventListener("click", () => measurements.start(button.dataset.tool)));
@@ -423,6 +434,7 @@ const chooser = $("specimen");
 for (const entry of specimens) chooser.add(new Option(`${entry.id} (${entry.rois.length} ROI)`, entry.id));
 const wanted = query.get("specimen");
 resize();
+applyDisplay();
 if (wanted && !specimens.some((entry) => entry.id === wanted)) {
   // Never silently show another specimen than the one the link names.
   chooser.add(new Option("(choose a specimen)", ""), 0);
