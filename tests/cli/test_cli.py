@@ -56,6 +56,7 @@ def test_height_writes_the_npz_contract(pair_files, tmp_path):
     assert heights.calibration.tilt_sigma_deg == (0.5, 0.5) and heights.record["tilt_axis_deg"] == 90.0
     assert heights.max_slope == pytest.approx(1 / np.sin(np.radians(10)) * np.cos(np.radians(5)))
     assert heights.record["datum"]["level"] == "plane" and heights.record["report"]["valid_fraction"] == summary["valid_fraction"]
+    assert heights.record["method"] == heights.record["parameters"]["method"] == "tgv_zncc"
     assert np.nanmedian(heights.local_sigma_um) < np.nanmedian(heights.sigma_um)  # the tilt's shared error left out
 
 
@@ -177,6 +178,13 @@ def test_demo_builds_the_specimens_and_prints_the_viewer_url(tmp_path):
     assert "viewer: http://127.0.0.1:" in done.stdout and "/viewer/?specimen=synthetic" in done.stdout
     assert "found" in done.stdout  # the ROI's automatic placement checked against the truth
     assert (tmp_path / "data" / "specimens" / "synthetic" / "tileset.json").is_file()
+    lines = done.stdout.splitlines()
+    progress = [line for line in lines if line.startswith("synthetic: ") and " % " in line]
+    assert len(progress) >= 4 and any("matching ROI overview" in line for line in progress)  # a log shows the build going on
+    table = lines[lines.index("Fractoscope demo specimens"):]
+    assert table[1].split() == ["specimen", "ROI", "mag.", "µm/px", "at", "x,", "y", "µm", "Sz", "µm", "Sa", "µm"]
+    assert all(len(line) <= 80 for line in table if not line.startswith(("viewer:", "gRPC:", "data:")))
+    assert any(line.startswith("synthetic  zoom ") and "400x" in line for line in table)
 
 
 @pytest.mark.slow

@@ -7,6 +7,7 @@ import json
 import re
 import subprocess
 from pathlib import Path
+from urllib.parse import parse_qs, urlparse
 
 import numpy as np
 import pytest
@@ -68,6 +69,7 @@ def test_web_viewer_tools_styles_permalink_and_snapshot(built):
     truth, _, data, _ = built
     out = _artefacts("viewer")
     result = _in_chromium("check_viewer.mjs", data, "{base}", "synthetic", str(out))
+    (out / "result.json").write_text(json.dumps(result, indent=1))
     assert not result["errors"] and result["status"]["failed"] == 0, result["errors"]
     missing = result["missing"]
     assert missing["shown"] and "doesnotexist" in missing["message"] and "synthetic" in missing["message"]
@@ -86,7 +88,8 @@ def test_web_viewer_tools_styles_permalink_and_snapshot(built):
     assert result["scaleBar"].endswith("µm")
     assert result["heightColourSpread"] > 0.3  # heights from the dequantized positions span the ramp
     assert result["restyledSpread"] < 0.5 * result["heightColourSpread"]  # cached tiles came back as SEM image, not height colours
-    assert "measurements=profile:" in result["permalink"] and "camera=" in result["permalink"]
+    link = parse_qs(urlparse(result["permalink"]).query)
+    assert link["specimen"] == ["synthetic"] and link["measurements"][0].startswith("profile:") and len(link["camera"][0].split(",")) == 6
     np.testing.assert_allclose(result["reopened"]["camera"], result["camera"], rtol=1e-3)
     assert [text.split(":")[0] for text in result["reopened"]["tools"]] == [text.split(":")[0] for text in tools.values()]
     for again, first in zip(result["reopened"]["tools"], tools.values()):  # points kept to the nm
@@ -122,6 +125,7 @@ def test_the_pollen_overview_settles_coarse_to_fine_with_few_tiles(pollen_data):
     in µm."""
     out = _artefacts("pollen")
     result = _in_chromium("pollen_overview.mjs", pollen_data, "{base}/viewer/?specimen=pollen", str(out), str(SETTLE_LIMIT_S))
+    (out / "result.json").write_text(json.dumps(result, indent=1))
     assert not result["errors"], result["errors"]
     assert result["settleS"] <= SETTLE_LIMIT_S and result["status"]["failed"] == 0
     assert 5 <= result["firstViewRequests"] <= 60, result["firstViewRequests"]
@@ -134,3 +138,18 @@ def test_the_pollen_overview_settles_coarse_to_fine_with_few_tiles(pollen_data):
     assert _numbers_in(bar["min"])[0] == pytest.approx(low, abs=0.1) and _numbers_in(bar["max"])[0] == pytest.approx(high, abs=0.1)
     assert high - low > 30  # the grain stands some 40 µm above the substrate, the datum
     assert "substrate" in bar["datum"] and result["heightColourSpread"] > 0.3
+
+
+@pytest.mark.real_data
+def test_the_pollen_specimen_keeps_its_magnification_and_datum(pollen_data):
+    """The demo's pollen specimen is built with the TIFFs' magnification (1000x), so zooming by
+    magnification works on it, and with its heights from the substrate."""
+    from fractoscope.specimen.quadtree import tiles_in_region
+
+    specimen = SpecimenStore(pollen_data).load("pollen")
+    overview = specimen.rois[0]
+    assert overview.magnification == 1000.0 and overview.datum["level"] == "substrate"
+    cell_um = specimen.pixel_size_at_magnification(2000.0)
+    assert cell_um == pytest.approx(overview.pixel_size_um / 2)
+    chosen = tiles_in_region(specimen.layout, specimen.tiles, (20.0, 20.0, 40.0, 40.0), cell_um=cell_um)
+    assert chosen and all(upsampled for _, upsampled in chosen)  # 2000x is beyond the data: digital zoom

@@ -17,7 +17,6 @@ from fractoscope.client import FractoscopeClient
 from fractoscope.client.manifest import load_manifest
 from fractoscope.services.runtime import keep_freed_memory, settle_garbage_collector
 from fractoscope.services.server import embedded_server
-from fractoscope.sem.image import nominal_magnification
 from fractoscope.services.tiles.http import start_http_server
 from fractoscope.specimen.store import SpecimenStore
 from fractoscope.surface import roughness
@@ -140,9 +139,7 @@ def _write_pollen_manifest(series: Path, directory: Path) -> Path:
     magnification from the Zeiss metadata), its heights from the substrate it lies on."""
     directory.mkdir(parents=True, exist_ok=True)
     manifest = directory / "manifest.json"
-    left = series / "pot_02.tif"
-    magnification = nominal_magnification(left.read_bytes()) or 0.0
-    rois = [{"id": "pot-02-04", "left": str(left.resolve()), "right": str((series / "pot_04.tif").resolve()),
-             "magnification": magnification, "level": "substrate"}]
+    rois = [{"id": "pot-02-04", "left": str((series / "pot_02.tif").resolve()), "right": str((series / "pot_04.tif").resolve()),
+             "level": "substrate"}]
     manifest.write_text(json.dumps({"specimen": "pollen", "rois": rois}, indent=1))
     return manifest

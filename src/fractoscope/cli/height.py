@@ -169,7 +169,7 @@ def calibration_of(result: HeightMap, args) -> Calibration:
 
 def matching_parameters(args) -> dict:
     """The matching settings the command asked for (None: the server's default)."""
-    return {"calibrate_tilt": args.calibrate_tilt, "normalize_local_contrast": args.local_contrast,
+    return {"method": args.method.replace("-", "_"), "calibrate_tilt": args.calibrate_tilt, "normalize_local_contrast": args.local_contrast,
             "propagate_at_full_resolution": args.propagate_at_full_resolution, "tilt_axis_deg": args.tilt_axis_deg}
 
 

@@ -7,6 +7,7 @@ import math
 
 from fractoscope.errors import InvalidInputError
 from fractoscope.rpc import wire
+from fractoscope.sem.image import nominal_magnification
 from fractoscope.specimen.build import RoiRequest
 from fractoscope.specimen.quadtree import TileRecord
 from fractoscope.specimen.queries import checked_region
@@ -54,7 +55,8 @@ def tile_message(specimen: Specimen, record: TileRecord, *, upsampled: bool = Fa
 
 
 def roi_request(spec: tiles_pb2.RoiSpec, index: int) -> RoiRequest:
-    """An ROI spec's placement, validated (errors name `rois[index]`'s fields)."""
+    """An ROI spec's placement, validated (errors name `rois[index]`'s fields); without a
+    magnification, the one its reference image's metadata states."""
     if len(spec.images) != 2:
         raise InvalidInputError(f"rois[{index}].images", f"an ROI needs a stereo pair, got {len(spec.images)} images")
     if spec.HasField("pixel_size_um"):
@@ -68,7 +70,8 @@ def roi_request(spec: tiles_pb2.RoiSpec, index: int) -> RoiRequest:
         centre = (spec.center_um.x_um, spec.center_um.y_um)
         if not all(math.isfinite(v) for v in centre):
             raise InvalidInputError(f"rois[{index}].center_um", "must be finite")
-    return RoiRequest(spec.id, spec.parent, spec.magnification, centre, spec.level)
+    magnification = spec.magnification or nominal_magnification(spec.images[0].image.content) or 0.0
+    return RoiRequest(spec.id, spec.parent, magnification, centre, spec.level)
 
 
 def region(message: tiles_pb2.RegionUm, field: str) -> tuple[float, float, float, float]:

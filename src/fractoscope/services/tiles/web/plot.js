@@ -47,7 +47,7 @@ export function plotProfiles(canvas, profiles) {
   context.lineWidth = 1;
   context.textAlign = "center";
   context.textBaseline = "top";
-  for (const d of niceTicks(0, dMax, 5)) {
+  for (const d of niceTicks(0, dMax, 6)) {
     context.beginPath();
     context.moveTo(x(d), margin.top);
     context.lineTo(x(d), height - margin.bottom);
@@ -56,7 +56,7 @@ export function plotProfiles(canvas, profiles) {
   }
   context.textAlign = "right";
   context.textBaseline = "middle";
-  for (const z of niceTicks(zLow, zHigh, 4)) {
+  for (const z of niceTicks(zLow, zHigh, 6)) {
     context.beginPath();
     context.moveTo(margin.left, y(z));
     context.lineTo(width - margin.right, y(z));

@@ -70,7 +70,7 @@ void main() {
   vec3 base;
   if (isWall > 0.5) {
     // Hatched grey: nothing was measured here, the triangle only bridges a jump.
-    base = mix(vec3(0.09), vec3(0.16), step(0.5, fract((gl_FragCoord.x + gl_FragCoord.y) / 10.0)));
+    base = mix(vec3(0.015), vec3(0.05), step(0.5, fract((gl_FragCoord.x + gl_FragCoord.y) / 10.0)));
   } else if (colouring == 1) {
     base = ramp((vTileset.z - heightRange.x) / max(heightRange.y - heightRange.x, 1e-12));
   } else {

@@ -48,7 +48,7 @@ const measurements = new Measurements({
   elements: { hint: $("tool-hint"), list: $("measurements"), plot: $("profile-plot") },
 });
 window.viewer.measurements = measurements;
-window.viewer.debug = { camera, controls, uniforms, tiles: () => tiles };
+window.viewer.debug = { camera, controls }; // for the browser tests
 
 function resize() {
   const { clientWidth: width, clientHeight: height } = view;
@@ -115,7 +115,13 @@ async function open(id, state = {}) {
   measurements.clear();
   showMessage("");
   Object.assign(status, { loaded: 0, failed: 0, tilesetLoaded: false, settled: false, error: null, openedAt: performance.now() });
-  const summary = await (await api(`/api/specimens/${id}`)).json();
+  const response = await api(`/api/specimens/${id}`);
+  const summary = await response.json();
+  if (!response.ok) {
+    status.error = summary.error ?? `specimen ${id} did not load`;
+    showMessage(status.error);
+    return;
+  }
   specimen = {
     id, rois: summary.rois, level: summary.rois[0]?.level || "",
     pixelSizeUm: Math.min(...summary.rois.map((roi) => roi.pixel_size_um)), heightRangeUm: [0, 1],
@@ -264,7 +270,6 @@ function frame() {
   updateScaleBar();
   updateRoiLabels();
   renderer.render(scene, camera);
-  status.frames = (status.frames ?? 0) + 1;
 }
 
 // The surface point under a pointer event: specimen µm (x right, y down) and the shown height.
