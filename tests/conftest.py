@@ -112,12 +112,13 @@ def built(tmp_path_factory):
 @dataclass(frozen=True)
 class DecodedGlb:
     """A GLB's one mesh as a client sees it: positions (N, 3) metres after the node's transform,
-    normals (N, 3), texture coordinates (N, 2), triangles (M, 3)."""
+    normals (N, 3), texture coordinates (N, 2), the surface's triangles (M, 3) and the walls' (K, 3)."""
 
     positions_m: np.ndarray
     normals: np.ndarray
     uvs: np.ndarray
     triangles: np.ndarray
+    wall_triangles: np.ndarray
 
 
 def decode_glb(glb: bytes) -> DecodedGlb:
@@ -126,7 +127,8 @@ def decode_glb(glb: bytes) -> DecodedGlb:
     plain views (float32, no extensions) as they are."""
     gltf = pygltflib.GLTF2.load_from_bytes(glb)
     blob = gltf.binary_blob()
-    primitive = gltf.meshes[0].primitives[0]
+    primitives = gltf.meshes[0].primitives
+    primitive = primitives[0]
 
     def values(accessor_index: int) -> np.ndarray:
         accessor = gltf.accessors[accessor_index]
@@ -150,8 +152,12 @@ def decode_glb(glb: bytes) -> DecodedGlb:
 
     node = gltf.nodes[0]
     positions_m = np.asarray(node.translation or (0.0, 0.0, 0.0)) + values(primitive.attributes.POSITION) * np.asarray(node.scale or (1.0, 1.0, 1.0))
+    def triangles(material_name: str) -> np.ndarray:
+        chosen = [values(p.indices).reshape(-1, 3) for p in primitives if gltf.materials[p.material].name == material_name]
+        return np.concatenate(chosen) if chosen else np.zeros((0, 3), np.int64)
+
     return DecodedGlb(
-        positions_m, values(primitive.attributes.NORMAL), values(primitive.attributes.TEXCOORD_0), values(primitive.indices).reshape(-1, 3)
+        positions_m, values(primitive.attributes.NORMAL), values(primitive.attributes.TEXCOORD_0), triangles("surface"), triangles("wall")
     )
 
 

@@ -11,6 +11,7 @@ import pytest
 import tifffile
 
 from conftest import fracture_pair
+from fractoscope.formats.height_npz import read_height_npz
 
 FRACTO = str(Path(sys.executable).with_name("fracto"))
 
@@ -36,15 +37,27 @@ def _run(*args, env_extra=None):
 def test_height_writes_the_npz_contract(pair_files, tmp_path):
     (left, right), pair = pair_files
     out = tmp_path / "out.npz"
-    done = _run("height", left, right, "--tilt", "-5", "5", "--pixel-size-um", "0.1", "-o", out, "--json")
+    done = _run("height", left, right, "--tilt", "-5", "5", "--pixel-size-um", "0.1", "-o", out, "--json", "--level", "plane")
     assert done.returncode == 0, done.stderr
     summary = json.loads(done.stdout)
     assert summary["valid_fraction"] > 0.6  # contract check; accuracy is tested on 640² pairs
+    assert summary["datum"]["level"] == "plane"
     with np.load(out) as arrays:
         assert arrays["z_um"].shape == pair.first.shape and arrays["z_um"].dtype == np.float32
         assert arrays["sigma_um"].shape == pair.first.shape
-        error = arrays["z_um"] - pair.z_seen_um
+        assert abs(np.nanmean(arrays["z_um"])) < 0.05 * np.ptp(pair.z_seen_um)  # zero on the fitted plane
+        datum = summary["datum"]
+        rows, cols = np.indices(arrays["z_um"].shape) * 0.1
+        error = arrays["z_um"] + datum["offset_um"] + datum["slope_x"] * cols + datum["slope_y"] * rows - pair.z_seen_um
         assert np.nanstd(error[16:-16, 16:-16]) < 0.03 * np.ptp(pair.z_seen_um)
+    heights = read_height_npz(out)  # the calibration travels with the heights
+    assert heights.calibration.tilt_deg == (-5.0, 5.0) and heights.calibration.tilt_source == ("argument", "argument")
+    assert heights.calibration.pixel_size_um == 0.1 and heights.calibration.pixel_size_source == "argument"
+    assert heights.calibration.tilt_sigma_deg == (0.5, 0.5) and heights.record["tilt_axis_deg"] == 90.0
+    assert heights.max_slope == pytest.approx(1 / np.sin(np.radians(10)) * np.cos(np.radians(5)))
+    assert heights.record["datum"]["level"] == "plane" and heights.record["report"]["valid_fraction"] == summary["valid_fraction"]
+    assert heights.record["method"] == heights.record["parameters"]["method"] == "tgv_zncc"
+    assert np.nanmedian(heights.local_sigma_um) < np.nanmedian(heights.sigma_um)  # the tilt's shared error left out
 
 
 def test_height_names_the_method_and_takes_window_correlation_on_request(pair_files, tmp_path):
@@ -82,16 +95,26 @@ def test_height_against_a_running_server(pair_files, tmp_path, server_address):
 @pytest.mark.parametrize(
     "extra, message",
     [
-        (["--tilt", "3", "3"], "tilt"),
-        ([], "tilt_deg"),
+        (["--tilt", "3", "3", "--pixel-size-um", "0.1"], "error: --tilt: the two tilts must differ"),  # the flag, not images[1].tilt_deg
+        (["--pixel-size-um", "0.1"], "error: give --tilt T1 T2 (no stage tilt in the metadata of left.tif, right.png)"),
+        ([], "error: give --tilt T1 T2 (no stage tilt in the metadata of left.tif, right.png) and --pixel-size-um P "
+             "(no pixel size in the metadata of left.tif)"),  # every missing value at once
+        (["--tilt", "-5", "5", "--pixel-size-um", "-1"], "error: --pixel-size-um: must be between"),
+        (["--tilt", "-5", "5", "--tlit", "3"], "did you mean --tilt?"),
+        (["--tilt", "-5", "5", "--level", "floor"], "--level: expected plane or substrate or X0,Y0,X1,Y1"),
     ],
 )
 def test_bad_input_gives_one_line_and_exit_code_2(pair_files, tmp_path, extra, message):
     (left, right), _ = pair_files
-    done = _run("height", left, right, "--pixel-size-um", "0.1", *extra, "-o", tmp_path / "x.npz")
+    done = _run("height", left, right, *extra, "-o", tmp_path / "x.npz")
     assert done.returncode == 2
-    lines = done.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("error:") and message in lines[0]
+    lines = [line for line in done.stderr.strip().splitlines() if not line.startswith("usage:")]
+    assert len(lines) == 1 and message in lines[0], done.stderr
+
+
+def test_a_mistyped_verb_gets_a_suggestion():
+    done = _run("heigth", "a.tif", "b.tif")
+    assert done.returncode == 2 and "did you mean height?" in done.stderr
 
 
 def test_unreadable_and_mismatched_images_give_one_line_and_exit_code_2(pair_files, tmp_path):
@@ -100,11 +123,11 @@ def test_unreadable_and_mismatched_images_give_one_line_and_exit_code_2(pair_fil
     garbage.write_bytes(b"II*\x00 this is not really a TIFF")
     small = tmp_path / "small.tif"
     tifffile.imwrite(small, pair.second[:200])
-    for second, message in ((garbage, "images[1].image"), (small, "images[1]")):
+    for second, message in ((garbage, "unreadable TIFF"), (small, "differs from the first image's")):
         done = _run("height", left, second, "--tilt", "-5", "5", "--pixel-size-um", "0.1", "-o", tmp_path / "x.npz")
         assert done.returncode == 2
         lines = done.stderr.strip().splitlines()
-        assert len(lines) == 1 and lines[0].startswith(f"error: {message}")
+        assert len(lines) == 1 and lines[0].startswith(f"error: {second}: ") and message in lines[0]  # the file, not images[1]
 
 
 def test_missing_file_and_unreachable_server(pair_files, tmp_path):
@@ -112,7 +135,9 @@ def test_missing_file_and_unreachable_server(pair_files, tmp_path):
     done = _run("height", left, tmp_path / "absent.tif", "--tilt", "-5", "5", "-o", tmp_path / "x.npz")
     assert done.returncode == 2 and "absent.tif" in done.stderr
     done = _run("height", left, left, "--tilt", "-5", "5", "--pixel-size-um", "0.1", "-o", tmp_path / "x.npz", "--server", "127.0.0.1:1")
-    assert done.returncode == 3 and done.stderr.startswith("error:")
+    assert done.returncode == 3
+    assert done.stderr == ("error: the Fractoscope server at 127.0.0.1:1 cannot be reached; start it (fracto-server) or point "
+                           "--server or FRACTO_SERVER at a running one\n")
 
 
 @pytest.mark.slow
@@ -123,9 +148,10 @@ def test_height_then_mesh_writes_valid_glb_levels(pair_files, tmp_path):
     heights = tmp_path / "heights.npz"
     assert _run("height", left, right, "--tilt", "-5", "5", "--pixel-size-um", "0.1", "-o", heights).returncode == 0
     out = tmp_path / "tiles"
-    done = _run("mesh", heights, "--texture", left, "--pixel-size-um", "0.1", "-o", out, "--json")
+    done = _run("mesh", heights, "--texture", left, "-o", out, "--json")  # the pixel size comes from the npz
     assert done.returncode == 0, done.stderr
     summary = json.loads(done.stdout)
+    assert summary["pixel_size_um"] == 0.1 and summary["max_slope"] == pytest.approx(np.cos(np.radians(5)) / np.sin(np.radians(10)))
     errors = [row["geometric_error_m"] for row in summary["levels"]]
     assert len(errors) >= 2 and errors[0] == 0.0 and errors == sorted(errors)
     glbs = sorted(out.rglob("*.glb"))
@@ -137,7 +163,12 @@ def test_height_then_mesh_writes_valid_glb_levels(pair_files, tmp_path):
     plain_glbs = sorted(plain.rglob("*.glb"))
     assert plain_glbs and not any(b"EXT_meshopt_compression" in p.read_bytes() for p in plain_glbs)
     done = _run("mesh", heights, "--texture", right, "--pixel-size-um", "-1", "-o", out)
-    assert done.returncode == 2 and done.stderr.startswith("error: height_map.pixel_size_um")
+    assert done.returncode == 2 and done.stderr.startswith("error: --pixel-size-um: must be between")
+    older = tmp_path / "older.npz"
+    with np.load(heights) as arrays:
+        np.savez(older, z_um=arrays["z_um"])
+    done = _run("mesh", older, "-o", out)
+    assert done.returncode == 2 and "records no calibration" in done.stderr and "--pixel-size-um" in done.stderr
 
 
 @pytest.mark.slow
@@ -147,6 +178,13 @@ def test_demo_builds_the_specimens_and_prints_the_viewer_url(tmp_path):
     assert "viewer: http://127.0.0.1:" in done.stdout and "/viewer/?specimen=synthetic" in done.stdout
     assert "found" in done.stdout  # the ROI's automatic placement checked against the truth
     assert (tmp_path / "data" / "specimens" / "synthetic" / "tileset.json").is_file()
+    lines = done.stdout.splitlines()
+    progress = [line for line in lines if line.startswith("synthetic: ") and " % " in line]
+    assert len(progress) >= 4 and any("matching ROI overview" in line for line in progress)  # a log shows the build going on
+    table = lines[lines.index("Fractoscope demo specimens"):]
+    assert table[1].split() == ["specimen", "ROI", "mag.", "µm/px", "at", "x,", "y", "µm", "Sz", "µm", "Sa", "µm"]
+    assert all(len(line) <= 80 for line in table if not line.startswith(("viewer:", "gRPC:", "data:")))
+    assert any(line.startswith("synthetic  zoom ") and "400x" in line for line in table)
 
 
 @pytest.mark.slow
@@ -234,3 +272,27 @@ def test_height_of_a_tilt_series_with_calibrated_tilts(tmp_path):
     assert estimated[0] == -5.0 and np.abs(np.diff(estimated) - 5.0).max() < 0.2
     too_few = _run("height", *paths[:2], "--calibrate-tilt", "-o", tmp_path / "x.npz")
     assert too_few.returncode == 2 and "three or more" in too_few.stderr
+
+
+@pytest.mark.slow
+@pytest.mark.real_data
+def test_the_real_pair_meshes_with_its_stored_calibration(pollen_series, tmp_path):
+    """The user's first session on the pollen pair: heights with the substrate as datum, then
+    mesh with nothing asked again. Tiles where nothing was measured (the pair's upper corner) are
+    left out instead of ending in a traceback, and the grain's rim becomes walls."""
+    heights = tmp_path / "pot.npz"
+    left, right = pollen_series / "pot_02.tif", pollen_series / "pot_04.tif"
+    done = _run("height", left, right, "--level", "substrate", "-o", heights, "--json")
+    assert done.returncode == 0, done.stderr
+    stored = read_height_npz(heights)
+    assert stored.calibration.tilt_deg == (-3.0, 3.0) and stored.calibration.tilt_source == ("metadata", "metadata")
+    assert stored.pixel_size_um == pytest.approx(0.05582) and stored.calibration.pixel_size_source == "metadata"
+    grain_top = np.nanpercentile(stored.z_um[770:1370, 430:1030], 99)
+    assert abs(np.nanmedian(stored.z_um[stored.z_um < 5])) < 0.5 and 35 < grain_top < 50  # the grain stands on zero
+    done = _run("mesh", heights, "--texture", left, "-o", tmp_path / "tiles", "--json")
+    assert done.returncode == 0, done.stderr
+    summary = json.loads(done.stdout)
+    finest = summary["levels"][0]
+    assert finest["tiles"] < 63  # 7 x 9 tiles of 254 cells; those with no measured point are skipped
+    assert all(level["tiles"] > 0 for level in summary["levels"]) and finest["wall_triangles"] > 1000
+    assert len(list((tmp_path / "tiles").rglob("*.glb"))) == sum(level["tiles"] for level in summary["levels"])

@@ -4,7 +4,7 @@
 import { createServer } from "node:http";
 import { readFile, writeFile } from "node:fs/promises";
 import { extname, join, normalize } from "node:path";
-import { canvasStats, launchChromium } from "./browser.mjs";
+import { addPageHelpers, canvasStats, launchChromium } from "./browser.mjs";
 
 const [tilesetUrl, screenshotPath] = process.argv.slice(2);
 const root = join(import.meta.dirname, "..", "..");
@@ -87,6 +87,7 @@ const browser = await launchChromium();
 const result = { errors: [] };
 try {
   const tab = await browser.newPage();
+  await addPageHelpers(tab);
   tab.on("pageerror", (error) => result.errors.push(String(error)));
   await tab.goto(`http://127.0.0.1:${server.address().port}/`);
   // Wait until tiles have loaded and nothing is downloading or parsing for a moment.

@@ -113,14 +113,20 @@ def test_mesh_requests_decode_to_their_options_arrays_and_origin():
     z_um = np.arange(12, dtype=np.float32).reshape(3, 4)
     texture = (np.arange(12, dtype=np.uint16) * 257).reshape(3, 4)
     request = calls.mesh_request(z_um, texture, pixel_size_um=0.5, origin_um=(1.0, 2.0), method=meshing_pb2.SIMPLIFICATION_METHOD_QUADRIC,
-                                 level_count=3, filter=meshing_pb2.FilterParameters(smoothing_um=0.2), plain_glb=True)
+                                 level_count=3, filter=meshing_pb2.FilterParameters(smoothing_um=0.2), plain_glb=True,
+                                 max_slope=9.5, sigma_um=z_um / 10)
     assert rpc_meshing.options_from_request(request) == MeshingOptions(
-        smoothing_um=np.float32(0.2), method=Simplification.QUADRIC, level_count=3, plain_glb=True,
+        smoothing_um=np.float32(0.2), method=Simplification.QUADRIC, level_count=3, plain_glb=True, max_slope=9.5,
     )
-    decoded_z, decoded_texture, pixel_size_um = rpc_meshing.height_map_arrays(request.height_map)
+    decoded_z, decoded_texture, pixel_size_um, sigma_um = rpc_meshing.height_map_arrays(request.height_map)
     np.testing.assert_array_equal(decoded_z, z_um)
+    np.testing.assert_array_equal(sigma_um, z_um / 10)
     np.testing.assert_array_equal(decoded_texture, np.arange(12, dtype=np.uint8).reshape(3, 4))  # 16-bit grey to 8-bit
     assert pixel_size_um == 0.5 and rpc_meshing.origin_from_request(request) == (1.0, 2.0)
+    request.max_slope = -1
+    with pytest.raises(InvalidInputError) as error:
+        rpc_meshing.options_from_request(request)
+    assert error.value.field == "max_slope"
     request.method = 7
     with pytest.raises(InvalidInputError) as error:
         rpc_meshing.options_from_request(request)

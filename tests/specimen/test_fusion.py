@@ -80,3 +80,14 @@ def test_holes_in_the_finer_roi_show_the_coarser_data():
 def test_a_surface_needs_an_roi():
     with pytest.raises(ValueError):
         FusedSurface([])
+
+
+def test_the_sem_image_shows_where_heights_are_unknown():
+    """Heights unknown over a patch of the only ROI (what matching could not measure): the fused
+    texture there is still the image's, not black, while the heights stay unknown."""
+    z = np.full((120, 120), 3.0)
+    z[40:80, 40:80] = np.nan
+    texture = np.full((120, 120), 180, np.uint8)
+    surface = FusedSurface([_roi("overview", z, pixel_size_um=1.0, texture=texture)])
+    inside = surface.sample(np.array([60.0, 45.0]), np.array([60.0, 70.0]), cell_um=1.0)
+    assert np.isnan(inside.z_um).all() and np.allclose(inside.texture, 180)

@@ -1,10 +1,13 @@
 """What every verb shares: the connection (a server, or the services in-process), progress bars,
-usage errors and exit codes."""
+usage errors and exit codes, and the wording of errors in terms of the command line."""
 
 from __future__ import annotations
 
+import argparse
 import contextlib
+import difflib
 import os
+import re
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -69,3 +72,83 @@ def existing_file(text: str) -> Path:
     if not path.is_file():
         raise UsageError(f"cannot read {text}: no such file")
     return path
+
+
+# Request fields (as errors name them) that stand for a command-line flag.
+_FIELD_FLAGS = [
+    (re.compile(r"^(images\[\d*\]\.)?tilt_deg$"), "--tilt"),
+    (re.compile(r"^(height_map\.)?pixel_size_um$"), "--pixel-size-um"),
+    (re.compile(r"^tilt_axis_deg$"), "--tilt-axis-deg"),
+    (re.compile(r"^parameters\.calibrate_tilt$"), "--calibrate-tilt"),
+    (re.compile(r"^parameters\.normalize_local_contrast$"), "--local-contrast"),
+    (re.compile(r"^level_count$"), "--levels"),
+]
+_IMAGE_FIELD = re.compile(r"^images\[(\d+)\](\.image)?$")
+
+
+def in_command_line_terms(field: str | None, message: str, args) -> str:
+    """An error message about request `field` as the user wrote the command: the flag (`--tilt`)
+    or the file (`right.tif`) instead of the request's field (`images[1].tilt_deg`)."""
+    if not field:
+        return message
+    detail = message.split(": ", 1)[1] if message.startswith(f"{field}: ") else message
+    for pattern, flag in _FIELD_FLAGS:
+        if pattern.match(field):
+            return f"{flag}: {detail}"
+    image = _IMAGE_FIELD.match(field)
+    images = getattr(args, "images", None) or []
+    if image and int(image[1]) < len(images):
+        return f"{images[int(image[1])]}: {detail}"
+    return message
+
+
+def is_connection_failure(message: str) -> bool:
+    """Whether an UNAVAILABLE status is gRPC's own (no connection), not one a service sent."""
+    lowered = message.lower()
+    return any(text in lowered for text in ("failed to connect", "connection refused", "dns resolution failed", "socket closed",
+                                            "connections to all backends failing"))
+
+
+def unavailable_sentence(server: str | None) -> str:
+    """What to say when the server cannot be reached, in one plain sentence."""
+    address = server_address(server)
+    if address:
+        return (f"the Fractoscope server at {address} cannot be reached; start it (fracto-server) or point "
+                "--server or FRACTO_SERVER at a running one")
+    return "the in-process Fractoscope services stopped answering; try again"
+
+
+class SuggestingParser(argparse.ArgumentParser):
+    """An argument parser whose errors are one line, as the other bad-input errors are, and say
+    for an unknown choice what was probably meant."""
+
+    def error(self, message: str):
+        choice = re.search(r"invalid choice: '([^']*)' \(choose from (.*)\)", message)
+        if choice:
+            known = re.findall(r"'([^']*)'", choice[2])
+            message += did_you_mean(choice[1], known)
+        self.exit(2, f"error: {message} (see {self.prog} --help)\n")
+
+
+def did_you_mean(word: str, known) -> str:
+    """"; did you mean X?" for the closest of `known` to `word`, or ""."""
+    close = difflib.get_close_matches(word, list(known), n=1, cutoff=0.6)
+    return f"; did you mean {close[0]}?" if close else ""
+
+
+def reject_unknown(parser: argparse.ArgumentParser, args, extras: list[str]) -> None:
+    """Exits with a usage error naming the arguments nobody took, and for a mistyped flag the flag
+    of the chosen verb it is closest to."""
+    if not extras:
+        return
+    verb = _subparser(parser, getattr(args, "command", None)) or parser
+    flags = [flag for action in verb._actions for flag in action.option_strings]
+    hint = next((did_you_mean(word.split("=", 1)[0], flags) for word in extras if word.startswith("--")), "")
+    verb.error(f"unrecognized arguments: {' '.join(extras)}{hint}")
+
+
+def _subparser(parser: argparse.ArgumentParser, name: str | None) -> argparse.ArgumentParser | None:
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction) and name in action.choices:
+            return action.choices[name]
+    return None

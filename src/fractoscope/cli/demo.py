@@ -6,11 +6,11 @@ from __future__ import annotations
 import json
 import signal
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
 from rich.console import Console
-from rich.table import Table
 
 from fractoscope.cli.common import UsageError
 from fractoscope.client import FractoscopeClient
@@ -68,7 +68,8 @@ def command_demo(args) -> int:
 
 def run_demo(client: FractoscopeClient, data_dir: Path, *, shared_data: Path, console: Console) -> list[str]:
     """Builds the demo specimens (the synthetic multi-scale fracture, and the pollen pair pot_02 /
-    pot_04 when the shared data is present) and prints a summary; returns their ids."""
+    pot_04 when the shared data is present), printing progress as they are built and then a
+    summary no wider than 80 columns; returns their ids."""
     inputs = data_dir / "demo-input"
     truth = write_multiscale_specimen(inputs / "synthetic")
     manifests = [inputs / "synthetic" / "manifest.json"]
@@ -76,41 +77,69 @@ def run_demo(client: FractoscopeClient, data_dir: Path, *, shared_data: Path, co
     if (series / "pot_02.tif").is_file():
         manifests.append(_write_pollen_manifest(series, inputs / "pollen"))
     else:
-        console.print(f"[yellow]{series} not found: the real pollen specimen is skipped[/yellow]")
+        console.print(f"{series} not found: the real pollen specimen is skipped", style="yellow", soft_wrap=True)
 
-    table = Table(title="Fractoscope demo specimens")
-    for column in ("specimen", "ROI", "µm/px", "placed at (x, y) µm", "height range µm", "Sa µm", "check"):
-        table.add_column(column)
-    built = []
+    rows, checks, built = [], [], []
     for manifest in manifests:
         specimen_id, rois = load_manifest(manifest)
-        with console.status(f"reconstructing {specimen_id}"):
-            summary = client.reconstruct_specimen(specimen_id, rois)
+        started = time.monotonic()
+        summary = client.reconstruct_specimen(specimen_id, rois, on_progress=_progress_lines(console, specimen_id, started))
+        console.print(f"{specimen_id}: built in {time.monotonic() - started:.0f} s", soft_wrap=True)
         built.append(specimen_id)
         for roi in summary["rois"]:
             values = client.roughness(specimen_id, roi=roi["id"])
             region = roi["region"]["min"]
-            check = ""
             if specimen_id == "synthetic" and roi["parent"]:
                 error_px = np.hypot(region["x_um"] - truth.roi_origin_px[0] * truth.overview_pixel_size_um,
                                     region["y_um"] - truth.roi_origin_px[1] * truth.overview_pixel_size_um) / truth.overview_pixel_size_um
-                check = f"found {error_px:.2f} px from the truth; fit residual {roi['alignment_residual_um']:.2f} µm"
+                checks.append(f"{specimen_id}/{roi['id']}: found {error_px:.2f} px from the truth; fit residual "
+                              f"{roi['alignment_residual_um']:.2f} µm")
             elif specimen_id == "synthetic":
-                check = f"true Sa {roughness.sa_um(truth.overview.z_seen_um):.3f}"
-            table.add_row(
-                specimen_id, roi["id"], f"{roi['pixel_size_um']:.4g}", f"{region['x_um']:.1f}, {region['y_um']:.1f}",
-                f"{values['Sz']:.2f}", f"{values['Sa']:.3f}", check,
-            )
-    console.print(table)
+                checks.append(f"{specimen_id}/{roi['id']}: Sa {values['Sa']:.3f} µm, true Sa {roughness.sa_um(truth.overview.z_seen_um):.3f} µm")
+            if roi["level"]:
+                checks.append(f"{specimen_id}/{roi['id']}: heights from the {roi['level']} (zero there)")
+            rows.append((specimen_id, roi["id"], f"{roi['magnification']:g}x" if roi["magnification"] else "-",
+                         f"{roi['pixel_size_um']:.4g}", f"{region['x_um']:.1f}, {region['y_um']:.1f}", f"{values['Sz']:.2f}", f"{values['Sa']:.3f}"))
+    console.print(summary_table(rows, checks), soft_wrap=True, highlight=False)
     return built
 
 
+SUMMARY_COLUMNS = ("specimen", "ROI", "mag.", "µm/px", "at x, y µm", "Sz µm", "Sa µm")
+
+
+def summary_table(rows: list[tuple[str, ...]], checks: list[str]) -> str:
+    """The demo's summary as plain text: one line per ROI (no wider than 80 columns for ids of up
+    to 12 characters, so it stays readable in a log), then the checks, one per line."""
+    widths = [max(len(column), *(len(row[k]) for row in rows)) for k, column in enumerate(SUMMARY_COLUMNS)]
+
+    def line(cells) -> str:
+        return "  ".join(cell.ljust(width) if k < 2 else cell.rjust(width) for k, (cell, width) in enumerate(zip(cells, widths))).rstrip()
+
+    rule = "-" * len(line(SUMMARY_COLUMNS))
+    return "\n".join(["Fractoscope demo specimens", line(SUMMARY_COLUMNS), rule, *map(line, rows), rule, *checks])
+
+
+def _progress_lines(console: Console, specimen_id: str, started: float):
+    """A progress callback that prints a line whenever the stage changes or another tenth is
+    done: a log shows what the demo is doing while it builds."""
+    last = {"stage": None, "tenth": -1}
+
+    def report(fraction: float, message: str) -> None:
+        stage, tenth = message.split(" ", 1)[0], int(fraction * 10)
+        if stage == last["stage"] and tenth == last["tenth"]:
+            return
+        last.update(stage=stage, tenth=tenth)
+        console.print(f"{specimen_id}: {100 * fraction:3.0f} % {message} ({time.monotonic() - started:.0f} s)", soft_wrap=True, highlight=False)
+
+    return report
+
+
 def _write_pollen_manifest(series: Path, directory: Path) -> Path:
-    """A one-ROI specimen of the real pollen pair at -3/+3 degrees (tilts and pixel size from the
-    Zeiss metadata)."""
+    """A one-ROI specimen of the real pollen pair at -3/+3 degrees (tilts, pixel size and
+    magnification from the Zeiss metadata), its heights from the substrate it lies on."""
     directory.mkdir(parents=True, exist_ok=True)
     manifest = directory / "manifest.json"
     rois = [{"id": "pot-02-04", "left": str((series / "pot_02.tif").resolve()), "right": str((series / "pot_04.tif").resolve()),
-             "magnification": 0}]
+             "level": "substrate"}]
     manifest.write_text(json.dumps({"specimen": "pollen", "rois": rois}, indent=1))
     return manifest

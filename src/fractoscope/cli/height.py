@@ -1,4 +1,5 @@
-"""`fracto height`: height maps of stereo pairs and tilt series, as .npz (and a picture)."""
+"""`fracto height`: height maps of stereo pairs and tilt series, as .npz (and a picture), with the
+calibration they were computed with (formats.height_npz)."""
 
 from __future__ import annotations
 
@@ -11,6 +12,11 @@ import numpy as np
 
 from fractoscope.cli.common import SERVER_HELP, UsageError, connected, err, existing_file, progress_bar
 from fractoscope.client import FractoscopeClient, HeightMap
+from fractoscope.formats.calibration import Calibration
+from fractoscope.formats.height_npz import write_height_npz
+from fractoscope.sem.image import read_sem_image
+from fractoscope.stereo import geometry
+from fractoscope.surface import datum
 
 
 def add_parsers(commands) -> None:
@@ -31,11 +37,46 @@ def add_parsers(commands) -> None:
                              "about 1.5x slower")
     height.add_argument("--pixel-size-um", type=float, help="pixel size in µm (default: metadata)")
     height.add_argument("--tilt-axis-deg", type=float, help="tilt axis direction in the image, degrees (default 90: vertical)")
-    height.add_argument("-o", "--output", required=True, help="output .npz with z_um, sigma_um, confidence")
+    height.add_argument("--level", type=level_choice, metavar="DATUM",
+                        help="where height zero is: plane (a plane through all heights), substrate (a plane through the "
+                             "lowest extensive level, e.g. what a grain lies on) or X0,Y0,X1,Y1 (a plane through that "
+                             "region, µm from the image's top-left); default: as measured (arbitrary offset)")
+    height.add_argument("-o", "--output", required=True, help="output .npz with z_um, sigma_um, confidence and the calibration")
     height.add_argument("--server", help=SERVER_HELP)
     height.add_argument("--json", action="store_true", help="print a JSON summary instead of text")
     height.add_argument("--png", help="also write a picture: height colour map with hillshade and colour bar in µm")
     height.set_defaults(run=command_height)
+
+
+def level_choice(text: str) -> str | tuple[float, float, float, float]:
+    """--level's value: a datum name or a region X0,Y0,X1,Y1 in µm."""
+    if text in datum.LEVELS:
+        return text
+    try:
+        region = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        region = ()
+    if len(region) != 4:
+        raise argparse.ArgumentTypeError(f"expected {' or '.join(datum.LEVELS)} or X0,Y0,X1,Y1 in µm, got {text!r}")
+    return region
+
+
+def check_calibration(paths: list[Path], args) -> None:
+    """Every calibration value that neither the command line nor the files' metadata gives, named
+    at once (UsageError), before any matching starts."""
+    if args.tilt is not None and args.pixel_size_um is not None:
+        return
+    images = [read_sem_image(path.read_bytes(), field=str(path)) for path in paths]
+    missing = []
+    if args.tilt is None:
+        untilted = [path.name for path, image in zip(paths, images) if image.tilt_deg is None]
+        if untilted:
+            missing.append(f"--tilt {' '.join(f'T{i + 1}' for i in range(len(paths)))} (no stage tilt in the metadata of "
+                           f"{', '.join(untilted)})")
+    if args.pixel_size_um is None and images[0].pixel_size_um is None:
+        missing.append(f"--pixel-size-um P (no pixel size in the metadata of {paths[0].name})")
+    if missing:
+        raise UsageError("give " + " and ".join(missing))
 
 
 def compute_height(client: FractoscopeClient, args, quiet: bool) -> HeightMap:
@@ -46,6 +87,7 @@ def compute_height(client: FractoscopeClient, args, quiet: bool) -> HeightMap:
     if args.calibrate_tilt and len(args.images) < 3:
         raise UsageError("--calibrate-tilt needs three or more images")
     paths = [existing_file(image) for image in args.images]
+    check_calibration(paths, args)
     with progress_bar("matching", enabled=not quiet and err.is_terminal) as advance:
         return client.compute_height_map(
             paths,
@@ -66,12 +108,30 @@ def command_height(args) -> int:
     for warning in result.report.get("warnings", []):
         print(f"warning: {warning}", file=sys.stderr)
     out = Path(args.output)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    arrays = {"z_um": result.z_um, "sigma_um": result.sigma_um, "confidence": result.confidence}
-    if args.calibrate_tilt:
-        arrays["tilt_deg_estimated"] = np.array(result.report["tilt_deg"])
-    np.savez_compressed(out, **arrays)
+    report = result.report
+    local_sigma_um = geometry.local_height_sigma_um(
+        result.sigma_um, result.z_um, tilt_deg=report["tilt_deg"], tilt_uncertainty_deg=report["tilt_uncertainty_deg"]
+    )
+    levelled = None
+    if args.level is not None:
+        try:
+            z_um, levelled = datum.level_heights(result.z_um, pixel_size_um=result.pixel_size_um, level=args.level)
+        except ValueError as error:
+            raise UsageError(f"--level: {error}") from None
+        result = HeightMap(z_um, result.sigma_um, result.confidence, result.texture, result.pixel_size_um, report)
+    write_height_npz(
+        out, z_um=result.z_um, sigma_um=result.sigma_um, confidence=result.confidence, local_sigma_um=local_sigma_um,
+        calibration=calibration_of(result, args),
+        record={
+            "tilt_axis_deg": report["tilt_axis_deg"], "max_slope": geometry.max_measurable_slope(report["tilt_deg"]),
+            "method": report.get("method", ""), "parameters": matching_parameters(args), "report": report,
+            "datum": levelled.to_dict() if levelled else None,
+        },
+        tilt_deg_estimated=np.array(report["tilt_deg"]) if args.calibrate_tilt else None,
+    )
     summary = {"output": str(out), **height_summary(result)}
+    if levelled:
+        summary["datum"] = levelled.to_dict()
     if args.png:
         plot_height_map(result, Path(args.png))
         summary["png"] = args.png
@@ -89,6 +149,28 @@ def command_height(args) -> int:
             nominal = ", ".join(f"{t:+.2f}" for t in report["tilt_deg_nominal"])
             print(f"tilts estimated {estimated} ° (nominal {nominal}; residual {report['tilt_residual_px']:.3f} px)")
     return 0
+
+
+def calibration_of(result: HeightMap, args) -> Calibration:
+    """What the heights were computed with, and where each value came from."""
+    report = result.report
+    given = "argument" if args.tilt is not None else "metadata"
+    views = len(report["tilt_deg"])
+    if args.calibrate_tilt:
+        sources = [given] + ["tilt_calibration"] * (views - 1)
+        sigmas = report["tilt_sigma_deg"]
+    else:
+        sources, sigmas = [given] * views, [report["tilt_uncertainty_deg"]] * views
+    return Calibration(
+        tilt_deg=report["tilt_deg"], tilt_source=sources, tilt_sigma_deg=sigmas, pixel_size_um=result.pixel_size_um,
+        pixel_size_source="argument" if args.pixel_size_um is not None else "metadata",
+    )
+
+
+def matching_parameters(args) -> dict:
+    """The matching settings the command asked for (None: the server's default)."""
+    return {"method": args.method.replace("-", "_"), "calibrate_tilt": args.calibrate_tilt, "normalize_local_contrast": args.local_contrast,
+            "propagate_at_full_resolution": args.propagate_at_full_resolution, "tilt_axis_deg": args.tilt_axis_deg}
 
 
 def plot_height_map(result: HeightMap, path: Path) -> None:

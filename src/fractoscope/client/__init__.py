@@ -120,15 +120,21 @@ class FractoscopeClient(ChannelOwner):
         on_progress: ProgressCallback | None = None,
         request_id: str = "",
         plain_glb: bool = False,
+        max_slope: float = 0.0,
+        sigma_um: np.ndarray | None = None,
     ) -> tuple[list[meshing_pb2.MeshTile], dict]:
         """GLB levels of detail of a height map ((rows, cols) µm, NaN unknown) textured with a grey
         image of the same shape, pixel (0, 0) placed at `origin_um` (x, y); returns the tiles (finest
         level first; MeshTile messages: level, tile_row, tile_col, glb, geometric_error_m,
-        vertex_count, triangle_count) and the filter report. `plain_glb`: float32 GLBs without extensions, for tools
-        that lack a meshopt decoder (about five times larger)."""
+        vertex_count, triangle_count, wall_triangle_count; tiles with nothing measured are left
+        out) and the filter report. `plain_glb`: float32 GLBs without extensions, for tools that
+        lack a meshopt decoder (about five times larger). `max_slope` (the steepest slope the
+        heights' measurement supports) with `sigma_um` (each height's local uncertainty, µm)
+        marks the triangles across steeper jumps as walls (see BuildMeshRequest)."""
         request = calls.mesh_request(
-            z_um, texture, pixel_size_um=pixel_size_um, origin_um=origin_um,
+            z_um, texture, pixel_size_um=pixel_size_um, origin_um=origin_um, sigma_um=sigma_um,
             method=method, level_count=level_count, filter=filter_parameters, request_id=request_id, plain_glb=plain_glb,
+            max_slope=max_slope,
         )
         with raised_as_client_errors():
             return calls.read_mesh(self._meshing.BuildMesh(request, timeout=self._timeout_s), on_progress)

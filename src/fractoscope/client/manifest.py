@@ -6,7 +6,8 @@
                "parent": "overview", "center_um": "auto", "tilt_deg": [-5, 5], "pixel_size_um": 0.05,
                "tilt_axis_deg": 90, "matching": {"propagate_at_full_resolution": true}}]}
 
-"matching" holds MatchingParameters fields (see the protobuf API) for that ROI's pair.
+"matching" holds MatchingParameters fields (see the protobuf API) for that ROI's pair. The
+overview may name a "level" ("plane" or "substrate"): where height zero is (RoiSpec.level).
 """
 
 from __future__ import annotations
@@ -19,7 +20,8 @@ from google.protobuf import json_format
 from fractoscope.errors import InvalidInputError
 from fractoscope.v1 import common_pb2, tiles_pb2
 
-_KEYS = {"id", "left", "right", "tilt_deg", "pixel_size_um", "tilt_axis_deg", "magnification", "parent", "center_um", "matching"}
+_KEYS = {"id", "left", "right", "tilt_deg", "pixel_size_um", "tilt_axis_deg", "magnification", "parent", "center_um", "matching", "level"}
+LEVELS = ("plane", "substrate")
 
 
 def load_manifest(path: str | Path) -> tuple[str, list[tiles_pb2.RoiSpec]]:
@@ -72,6 +74,10 @@ def _roi(entry, index: int, base: Path) -> tiles_pb2.RoiSpec:
         if not (isinstance(centre, list) and len(centre) == 2 and all(_number(v) for v in centre)):
             raise InvalidInputError(f"{where}.center_um", 'must be [x, y] in µm or "auto"')
         spec.center_um.CopyFrom(common_pb2.PointUm(x_um=float(centre[0]), y_um=float(centre[1])))
+    if "level" in entry:
+        if entry["level"] not in LEVELS or entry.get("parent"):
+            raise InvalidInputError(f"{where}.level", f"must be one of {', '.join(LEVELS)}, and is for the overview only")
+        spec.level = entry["level"]
     if "matching" in entry:
         if not isinstance(entry["matching"], dict):
             raise InvalidInputError(f"{where}.matching", "must be an object of MatchingParameters fields")

@@ -69,15 +69,16 @@ def tile_glb(
     extras: dict | None = None,
 ) -> bytes:
     """A `mesh.levels.LodTile` as GLB, compact on `grid` (None: plain float32), its texture as
-    JPEG; pixel (0, 0) at `origin_um` (x, y)."""
+    JPEG; pixel (0, 0) at `origin_um` (x, y); its walls as a second primitive."""
     return mesh_glb(
         to_gltf_positions_m(tile.positions, pixel_size_um=pixel_size_um, origin_um=origin_um),
         tile.normals,
         tile.uvs,
-        tile.triangles,
+        tile.triangles[~tile.walls],
         encode_texture(tile.texture),
         grid=grid,
         extras=extras,
+        wall_triangles=tile.triangles[tile.walls],
     )
 
 
@@ -104,17 +105,22 @@ def mesh_glb(
     *,
     grid: PositionGrid | None,
     extras: dict | None = None,
+    wall_triangles: np.ndarray | None = None,
 ) -> bytes:
     """A GLB holding one mesh: positions (N, 3) metres, unit normals (N, 3), texture coordinates
     (N, 2) in [0, 1] with (0, 0) at the image's top-left, triangles (M, 3) counter-clockwise seen
-    from +Y, and the JPEG texture. With a `grid` the geometry is quantized to it and
-    meshopt-compressed; without, it is plain float32 with no extensions, which any glTF reader
-    opens. `extras` lands on the mesh node."""
+    from +Y, and the JPEG texture. `wall_triangles` (K, 3), on the same vertices, become a second
+    primitive with the material named "wall" (see mesh.walls), so that viewers can show them
+    differently. With a `grid` the geometry is quantized to it and meshopt-compressed; without,
+    it is plain float32 with no extensions, which any glTF reader opens. `extras` lands on the
+    mesh node."""
     count = len(positions_m)
     # 16-bit indices when they stay below 65535, which glTF reserves for primitive restart.
-    indices = np.ascontiguousarray(triangles, np.uint16 if count <= 65535 else np.uint32).ravel()
+    index_type = np.uint16 if count <= 65535 else np.uint32
+    parts = [(triangles, 0), (wall_triangles if wall_triangles is not None else np.zeros((0, 3)), 1)]
+    index_sets = [(np.ascontiguousarray(t, index_type).ravel(), material) for t, material in parts if len(t)]
     attributes = _vertex_attributes(positions_m, normals, uvs, grid)
-    geometry = _GeometryBuffers.of(indices, attributes, count, compressed=grid is not None)
+    geometry = _GeometryBuffers.of([indices for indices, _ in index_sets], attributes, count, compressed=grid is not None)
     image_view = len(geometry.views)
     views = geometry.views + [pygltflib.BufferView(buffer=0, byteOffset=geometry.size, byteLength=len(texture_jpeg))]
     blob = b"".join(geometry.parts + [texture_jpeg, b"\0" * (-len(texture_jpeg) % 4)])
@@ -125,6 +131,12 @@ def mesh_glb(
         buffers.append(pygltflib.Buffer(byteLength=geometry.decoded_size, extensions={MESHOPT: {"fallback": True}}))
         node.translation, node.scale = list(grid.origin_m), list(grid.step_m)
         extensions = [MESHOPT, QUANTIZATION]
+    # Accessors 0 to 2 are the vertex attributes, then one index accessor per primitive.
+    primitives = [
+        pygltflib.Primitive(attributes=pygltflib.Attributes(POSITION=0, NORMAL=1, TEXCOORD_0=2), indices=3 + k, material=material,
+                            mode=pygltflib.TRIANGLES)
+        for k, (_, material) in enumerate(index_sets)
+    ]
     gltf = pygltflib.GLTF2(
         asset=pygltflib.Asset(version="2.0", generator="fractoscope"),
         extensionsUsed=extensions,
@@ -132,24 +144,28 @@ def mesh_glb(
         scene=0,
         scenes=[pygltflib.Scene(nodes=[0])],
         nodes=[node],
-        meshes=[pygltflib.Mesh(primitives=[_PRIMITIVE])],
-        materials=[_MATERIAL],
+        meshes=[pygltflib.Mesh(primitives=primitives)],
+        materials=[_MATERIAL, _WALL_MATERIAL],
         textures=[pygltflib.Texture(source=0, sampler=0)],
         samplers=[pygltflib.Sampler(magFilter=pygltflib.LINEAR, minFilter=pygltflib.LINEAR, wrapS=pygltflib.CLAMP_TO_EDGE, wrapT=pygltflib.CLAMP_TO_EDGE)],
         images=[pygltflib.Image(bufferView=image_view, mimeType="image/jpeg")],
-        accessors=_accessors(indices, attributes, count, normalized=grid is not None),
+        accessors=_accessors([indices for indices, _ in index_sets], attributes, count, normalized=grid is not None),
         bufferViews=views,
         buffers=buffers,
     )
     return _glb(gltf, blob)
 
 
-# Accessors 0 to 3 (indices, positions, normals, texture coordinates) in buffer views 0 to 3.
-_PRIMITIVE = pygltflib.Primitive(
-    attributes=pygltflib.Attributes(POSITION=1, NORMAL=2, TEXCOORD_0=3), indices=0, material=0, mode=pygltflib.TRIANGLES
-)
 _MATERIAL = pygltflib.Material(
+    name="surface",
     pbrMetallicRoughness=pygltflib.PbrMetallicRoughness(baseColorTexture=pygltflib.TextureInfo(index=0), metallicFactor=0.0, roughnessFactor=1.0),
+    doubleSided=True,
+)
+# Walls bridge a jump nothing measured: plain grey, so that a viewer that knows nothing of them
+# still tells them from the textured surface.
+_WALL_MATERIAL = pygltflib.Material(
+    name="wall",
+    pbrMetallicRoughness=pygltflib.PbrMetallicRoughness(baseColorFactor=[0.45, 0.45, 0.45, 1.0], metallicFactor=0.0, roughnessFactor=1.0),
     doubleSided=True,
 )
 
@@ -172,8 +188,8 @@ def _vertex_attributes(positions_m, normals, uvs, grid: PositionGrid | None) -> 
 
 @dataclass(frozen=True)
 class _GeometryBuffers:
-    """Buffer views 0 to 3 (indices, then the attributes) and their bytes in buffer 0 (`parts`,
-    each padded to 4 bytes, `size` in all); compressed views decode into buffer 1, of
+    """Buffer views (the attributes, then the index buffers) and their bytes in buffer 0
+    (`parts`, each padded to 4 bytes, `size` in all); compressed views decode into buffer 1, of
     `decoded_size` bytes."""
 
     views: list
@@ -182,9 +198,9 @@ class _GeometryBuffers:
     decoded_size: int
 
     @classmethod
-    def of(cls, indices: np.ndarray, attributes: list[np.ndarray], count: int, *, compressed: bool) -> _GeometryBuffers:
+    def of(cls, index_sets: list[np.ndarray], attributes: list[np.ndarray], count: int, *, compressed: bool) -> _GeometryBuffers:
         parts, views, offset, decoded_offset = [], [], 0, 0
-        for values, target in [(indices, pygltflib.ELEMENT_ARRAY_BUFFER)] + [(a, pygltflib.ARRAY_BUFFER) for a in attributes]:
+        for values, target in [(a, pygltflib.ARRAY_BUFFER) for a in attributes] + [(i, pygltflib.ELEMENT_ARRAY_BUFFER) for i in index_sets]:
             if not compressed:
                 data = values.tobytes()
                 views.append(pygltflib.BufferView(buffer=0, byteOffset=offset, byteLength=len(data), target=target))
@@ -208,19 +224,21 @@ class _GeometryBuffers:
         return cls(views, parts, offset, decoded_offset)
 
 
-def _accessors(indices: np.ndarray, attributes: list[np.ndarray], count: int, *, normalized: bool) -> list:
-    """Accessors of the indices and the three attributes; integer normals and texture
+def _accessors(index_sets: list[np.ndarray], attributes: list[np.ndarray], count: int, *, normalized: bool) -> list:
+    """Accessors of the three attributes, then of each index buffer; integer normals and texture
     coordinates (`normalized`) stand for [-1, 1] and [0, 1]."""
     axes = [attributes[0][:, axis] for axis in range(3)]  # one column at a time: 17x quicker than axis=0
     low, high = [values.min().item() for values in axes], [values.max().item() for values in axes]
     return [
-        pygltflib.Accessor(bufferView=0, componentType=_COMPONENT_TYPES[indices.dtype], count=int(indices.size), type=pygltflib.SCALAR),
-        pygltflib.Accessor(bufferView=1, componentType=_COMPONENT_TYPES[attributes[0].dtype], count=count, type=pygltflib.VEC3,
+        pygltflib.Accessor(bufferView=0, componentType=_COMPONENT_TYPES[attributes[0].dtype], count=count, type=pygltflib.VEC3,
                            min=low, max=high),
-        pygltflib.Accessor(bufferView=2, componentType=_COMPONENT_TYPES[attributes[1].dtype], normalized=normalized or None,
+        pygltflib.Accessor(bufferView=1, componentType=_COMPONENT_TYPES[attributes[1].dtype], normalized=normalized or None,
                            count=count, type=pygltflib.VEC3),
-        pygltflib.Accessor(bufferView=3, componentType=_COMPONENT_TYPES[attributes[2].dtype], normalized=normalized or None,
+        pygltflib.Accessor(bufferView=2, componentType=_COMPONENT_TYPES[attributes[2].dtype], normalized=normalized or None,
                            count=count, type=pygltflib.VEC2),
+    ] + [
+        pygltflib.Accessor(bufferView=3 + k, componentType=_COMPONENT_TYPES[indices.dtype], count=int(indices.size), type=pygltflib.SCALAR)
+        for k, indices in enumerate(index_sets)
     ]
 
 

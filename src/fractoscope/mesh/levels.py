@@ -10,6 +10,10 @@ cells; neighbouring tiles share their border vertices exactly (decimation keeps 
 there are no cracks. A tile of level k+1 covers the area of the four tiles of level k below it (to
 within half a cell).
 
+Walls (see mesh.walls): with a `max_slope`, triangles that bridge a height jump steeper than the
+measurement supports are flagged, kept apart from the surface and left out of geometric errors.
+Tiles without a triangle (no four neighbouring measured cells) are not produced.
+
 Pixel positions (row_px, col_px) count from the centre of the top-left pixel.
 """
 
@@ -24,6 +28,8 @@ import cv2
 import fast_simplification
 import meshoptimizer
 import numpy as np
+
+from fractoscope.mesh.walls import WALL_SIGMA_FACTOR, grid_wall_triangles, wall_triangles, wall_vertices, within_distance
 
 LOD_TILE_MAX_CELLS = 254  # 255 x 255 vertices: indices fit 16 bits below the restart value 65535
 COARSEST_TRIANGLES = 5_000
@@ -43,6 +49,7 @@ class ClusterLevel:
     z_um, row_px, col_px: centroid of each cell's measured pixels (NaN where it has none).
     texture: mean grey value of each cell's pixels.
     complete: True where every pixel of the cell is measured (its centroid is its centre).
+    sigma_um: mean local uncertainty of each cell's measured pixels (0 where none was given).
     """
 
     cell_px: int
@@ -51,6 +58,7 @@ class ClusterLevel:
     col_px: np.ndarray
     texture: np.ndarray
     complete: np.ndarray
+    sigma_um: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -60,7 +68,8 @@ class LodTile:
     positions: (N, 3) (col_px, row_px, z_um); normals: (N, 3) unit vectors in glTF axes
     (X along columns, Y up, Z along rows); triangles: (M, 3) vertex indices, counter-clockwise
     seen from above; uvs: (N, 2) texture coordinates; texture: (h, w) uint8 grey image of the
-    tile's area at the level's resolution.
+    tile's area at the level's resolution; walls: (M,) bool, the triangles that are walls.
+    geometric_error_um leaves the walls out.
     """
 
     level: int
@@ -72,19 +81,22 @@ class LodTile:
     uvs: np.ndarray
     texture: np.ndarray
     geometric_error_um: float
+    walls: np.ndarray
 
 
-def cluster_levels(z_um: np.ndarray, texture: np.ndarray, *, count: int) -> list[ClusterLevel]:
-    """`count` levels of grid vertex clustering, cells of 1, 2, 4, ... pixels. z_um and texture
-    are (rows, cols) of one shape; z_um is NaN where unknown."""
+def cluster_levels(z_um: np.ndarray, texture: np.ndarray, *, count: int, sigma_um: np.ndarray | None = None) -> list[ClusterLevel]:
+    """`count` levels of grid vertex clustering, cells of 1, 2, 4, ... pixels. z_um, texture and
+    the local uncertainty sigma_um (optional, µm) are (rows, cols) of one shape; z_um is NaN
+    where unknown."""
     measured = np.isfinite(z_um)
     rows = np.broadcast_to(np.arange(z_um.shape[0], dtype=np.float64)[:, None], z_um.shape)
     cols = np.broadcast_to(np.arange(z_um.shape[1], dtype=np.float64)[None, :], z_um.shape)
-    levels = [ClusterLevel(1, z_um.astype(np.float32), rows, cols, texture.astype(np.float32), measured)]
+    sigma = np.zeros(z_um.shape, np.float32) if sigma_um is None else np.where(measured, np.nan_to_num(sigma_um), 0.0).astype(np.float32)
+    levels = [ClusterLevel(1, z_um.astype(np.float32), rows, cols, texture.astype(np.float32), measured, sigma)]
     if count == 1:
         return levels
     # Sums per cell, aggregated 2x2 from level to level: heights, row and column positions,
-    # measured pixels (exact in float32 up to 2**24), grey values, all pixels.
+    # measured pixels (exact in float32 up to 2**24), grey values, all pixels, sigmas.
     sums = [
         _sum_2x2(np.where(measured, z_um, 0.0).astype(np.float64)),
         _sum_2x2(np.where(measured, rows, 0.0)),
@@ -92,9 +104,10 @@ def cluster_levels(z_um: np.ndarray, texture: np.ndarray, *, count: int) -> list
         _sum_2x2(measured.astype(np.float32)),
         _sum_2x2(texture.astype(np.float32)),
         _sum_2x2(np.ones(z_um.shape, np.float32)),
+        _sum_2x2(sigma),
     ]
     for level in range(1, count):
-        z_sum, row_sum, col_sum, weight, texture_sum, area = sums
+        z_sum, row_sum, col_sum, weight, texture_sum, area, sigma_sum = sums
         with np.errstate(invalid="ignore", divide="ignore"):
             has = weight > 0
             levels.append(
@@ -105,6 +118,7 @@ def cluster_levels(z_um: np.ndarray, texture: np.ndarray, *, count: int) -> list
                     col_px=np.where(has, col_sum / weight, np.nan),
                     texture=texture_sum / area,
                     complete=weight == 4**level,
+                    sigma_um=np.where(has, sigma_sum / weight, 0.0),
                 )
             )
         sums = [_sum_2x2(values) for values in sums]
@@ -137,30 +151,53 @@ def iter_tiles(
     pixel_size_um: float,
     method: Simplification = Simplification.VERTEX_CLUSTERING,
     level_count: int | None = None,
+    max_slope: float | None = None,
+    sigma_um: np.ndarray | None = None,
 ) -> Iterator[LodTile]:
     """The tiles of every level, finest level first, as they are built. Each tile carries its
     measured geometric error: the largest vertical distance between its surface and the
-    full-resolution grid surface, µm."""
+    full-resolution grid surface, µm. With `max_slope` (see mesh.walls) triangles steeper than the
+    measurement supports are walls; `sigma_um` (rows, cols), each height's local uncertainty µm,
+    widens what it supports. The error then leaves out walls and the full-resolution pixels
+    within one cell of a full-resolution wall (a level places a cliff only to within its cell,
+    and that sideways error would read as a vertical one of the cliff's whole height), and counts
+    at each pixel only what exceeds three of its sigmas (within which the full-resolution data
+    does not know its own surface better). Tiles without triangles are skipped."""
     if z_um.shape != texture.shape or z_um.ndim != 2:
         raise ValueError(f"z_um and texture must be 2D of one shape, got {z_um.shape} and {texture.shape}")
     count = level_count or level_count_for(z_um.shape)
-    for level, cluster in enumerate(cluster_levels(z_um, texture, count=count)):
-        deviation = _grid_deviation(cluster, z_um) if level > 0 and method is Simplification.VERTEX_CLUSTERING else None
+    tolerance_um = None if sigma_um is None else WALL_SIGMA_FACTOR * np.nan_to_num(sigma_um).astype(np.float32)
+    full_resolution_walls = None
+    for level, cluster in enumerate(cluster_levels(z_um, texture, count=count, sigma_um=sigma_um)):
+        grid_walls = grid_wall_triangles(
+            cluster.col_px * pixel_size_um, cluster.row_px * pixel_size_um, cluster.z_um, max_slope=max_slope, sigma_um=cluster.sigma_um
+        )
+        if level == 0:
+            full_resolution_walls = grid_walls
+        surface_um = _away_from_walls(*full_resolution_walls, z_um, cluster.cell_px) if level > 0 else z_um
+        deviation = _grid_deviation(cluster, surface_um, grid_walls) if level > 0 and method is Simplification.VERTEX_CLUSTERING else None
         for tile_row, row_cells in enumerate(_tile_spans(cluster.z_um.shape[0])):
             for tile_col, col_cells in enumerate(_tile_spans(cluster.z_um.shape[1])):
                 if level == 0 or method is Simplification.VERTEX_CLUSTERING:
                     positions, triangles = _grid_mesh(cluster, row_cells, col_cells)
+                    walls = _grid_tile_walls(grid_walls, cluster, row_cells, col_cells)
                     normals = _grid_normals(cluster, row_cells, col_cells, pixel_size_um)
                 else:
                     positions, triangles = _decimated_mesh(cluster, row_cells, col_cells)
+                    walls = wall_triangles(
+                        positions[:, :2] * pixel_size_um, positions[:, 2], triangles, max_slope=max_slope,
+                        sigma_um=_nearest_cell(cluster, row_cells, col_cells, positions, cluster.sigma_um),
+                    )
                     normals = _decimated_normals(cluster, row_cells, col_cells, positions, pixel_size_um)
+                if len(triangles) == 0:
+                    continue
                 footprint = _footprint(cluster.cell_px, row_cells, col_cells, z_um.shape)
                 if level == 0:
                     error = 0.0
                 elif deviation is not None:
-                    error = _nanmax(deviation[footprint])
+                    error = _nanmax(deviation[footprint] if tolerance_um is None else deviation[footprint] - tolerance_um[footprint])
                 else:
-                    error = _mesh_deviation(positions, triangles, z_um, footprint)
+                    error = _mesh_deviation(positions, triangles[~walls], surface_um, footprint, tolerance_um=tolerance_um)
                 block = cluster.texture[row_cells[0] : row_cells[1] + 1, col_cells[0] : col_cells[1] + 1]
                 yield LodTile(
                     level=level,
@@ -172,11 +209,13 @@ def iter_tiles(
                     uvs=_uvs(positions, cluster.cell_px, row_cells, col_cells),
                     texture=np.clip(np.round(block), 0, 255).astype(np.uint8),
                     geometric_error_um=error,
+                    walls=walls,
                 )
 
 
 def tile_count(shape: tuple[int, int], level_count: int | None = None) -> int:
-    """How many tiles `iter_tiles` yields for a height map of `shape`."""
+    """How many tiles `iter_tiles` yields at most for a height map of `shape` (all of them when
+    every tile has a triangle)."""
     count = level_count or level_count_for(shape)
     total = 0
     for level in range(count):
@@ -217,6 +256,24 @@ def _grid_mesh(cluster: ClusterLevel, row_cells, col_cells) -> tuple[np.ndarray,
     for axis, values in enumerate((cluster.col_px[block], cluster.row_px[block], z)):
         positions[:, axis] = values[measured]
     return positions, _quad_triangles(index)
+
+
+def _away_from_walls(upper: np.ndarray, lower: np.ndarray, z_um: np.ndarray, cell_px: int) -> np.ndarray:
+    """The full-resolution heights with those within `cell_px` pixels of a full-resolution wall
+    ((upper, lower) wall triangles of level 0) unknown."""
+    if not (upper.any() or lower.any()):
+        return z_um
+    return np.where(within_distance(wall_vertices(upper, lower), cell_px), np.float32(np.nan), z_um)
+
+
+def _grid_tile_walls(grid_walls: tuple[np.ndarray, np.ndarray], cluster: ClusterLevel, row_cells, col_cells) -> np.ndarray:
+    """The wall flags of a grid tile's triangles, in `_quad_triangles`' order, from the level's
+    (upper, lower) wall triangles."""
+    quads = (slice(row_cells[0], row_cells[1]), slice(col_cells[0], col_cells[1]))
+    measured = np.isfinite(cluster.z_um[row_cells[0] : row_cells[1] + 1, col_cells[0] : col_cells[1] + 1])
+    complete = measured[:-1, :-1] & measured[:-1, 1:] & measured[1:, :-1] & measured[1:, 1:]
+    upper, lower = (walls[quads][complete] for walls in grid_walls)
+    return np.column_stack([upper, lower]).ravel()
 
 
 @functools.lru_cache(maxsize=16)
@@ -290,9 +347,10 @@ def _grid_height_at(cluster: ClusterLevel, col_px: np.ndarray, row_px: np.ndarra
     return np.where(in_first, first, second)
 
 
-def _grid_deviation(cluster: ClusterLevel, z_full: np.ndarray) -> np.ndarray:
+def _grid_deviation(cluster: ClusterLevel, z_full: np.ndarray, walls: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
     """|grid mesh - full-resolution heights| at every full-resolution pixel (NaN where the mesh
-    has no triangle or the pixel is unknown), for a level of even cell size.
+    has no triangle, a wall triangle (`walls`: (upper, lower) per quad), or the pixel is
+    unknown), for a level of even cell size.
 
     Quads run between cell centres, so the pixels inside quad (i, j) form the block that starts
     at (i s + s/2, j s + s/2), and all quads are evaluated at once. Quads with an incomplete corner cell (map edges, holes), whose vertices are
@@ -329,6 +387,10 @@ def _grid_deviation(cluster: ClusterLevel, z_full: np.ndarray) -> np.ndarray:
         difference[np.nonzero(irregular)[0], :, np.nonzero(irregular)[1], :] = _irregular_quad_deviation(
             cluster, blocks, np.nonzero(irregular)
         )
+    upper_walls, lower_walls = walls
+    if upper_walls.any() or lower_walls.any():
+        in_wall = np.where(u + v <= 1.0, upper_walls[:, None, :, None], lower_walls[:, None, :, None])
+        difference[in_wall] = np.nan
     flat = difference.reshape(quads_r * size, quads_c * size)
     deviation[half : half + flat.shape[0], half : half + flat.shape[1]] = flat[: z_full.shape[0] - half, : z_full.shape[1] - half]
     return deviation
@@ -358,14 +420,16 @@ def _barycentric_height(x, y, p, q, r):
 
 
 def _nanmax(values: np.ndarray) -> float:
+    """The largest finite value, at least 0."""
     finite = values[np.isfinite(values)]
-    return float(finite.max()) if finite.size else 0.0
+    return max(float(finite.max()), 0.0) if finite.size else 0.0
 
 
-def _mesh_deviation(positions, triangles, z_um, footprint, *, chunk_pixels: int = 4_000_000) -> float:
+def _mesh_deviation(positions, triangles, z_um, footprint, *, tolerance_um=None, chunk_pixels: int = 4_000_000) -> float:
     """Largest vertical distance between an irregular (decimated) mesh and the full-resolution
-    heights over the footprint: every pixel inside a triangle's bounding box is tested with
-    barycentric coordinates, in chunks of about `chunk_pixels` candidate pixels."""
+    heights over the footprint, less `tolerance_um` (rows, cols) at each pixel: every pixel inside
+    a triangle's bounding box is tested with barycentric coordinates, in chunks of about
+    `chunk_pixels` candidate pixels."""
     corners = positions[triangles]  # (T, 3 corners, 3 coordinates)
     low = np.floor(corners[:, :, :2].min(axis=1)).astype(np.int64)
     high = np.ceil(corners[:, :, :2].max(axis=1)).astype(np.int64)
@@ -385,7 +449,8 @@ def _mesh_deviation(positions, triangles, z_um, footprint, *, chunk_pixels: int 
         y = low[ids, 1] + offsets // widths[ids]
         p, q, r = (tuple(corners[ids, k, axis] for axis in range(3)) for k in range(3))
         height, inside = _barycentric_height(x.astype(np.float64), y.astype(np.float64), p, q, r)
-        difference = np.abs(height - z_um[y, x])[inside]
+        difference = np.abs(height - z_um[y, x]) if tolerance_um is None else np.abs(height - z_um[y, x]) - tolerance_um[y, x]
+        difference = difference[inside]
         difference = difference[np.isfinite(difference)]
         if difference.size:
             worst = max(worst, float(difference.max()))
@@ -428,10 +493,17 @@ def _grid_normals(cluster: ClusterLevel, row_cells, col_cells, pixel_size_um: fl
 def _decimated_normals(cluster: ClusterLevel, row_cells, col_cells, positions, pixel_size_um: float) -> np.ndarray:
     """Normals of decimated vertices (which lie on the level's surface): the surface normal of the
     nearest cell."""
-    field = _normal_field(cluster, row_cells, col_cells, pixel_size_um)
+    return _nearest_cell(cluster, row_cells, col_cells, positions, _normal_field(cluster, row_cells, col_cells, pixel_size_um))
+
+
+def _nearest_cell(cluster: ClusterLevel, row_cells, col_cells, positions, values: np.ndarray) -> np.ndarray:
+    """`values` of a tile's block of cells ((rows, cols, ...), or the level's whole grid) at the
+    cell nearest each vertex (col_px, row_px, ...)."""
+    if values.shape[:2] == cluster.z_um.shape:
+        values = values[row_cells[0] : row_cells[1] + 1, col_cells[0] : col_cells[1] + 1]
     centre = (cluster.cell_px - 1) / 2.0
-    rows = np.clip(np.round((positions[:, 1] - centre) / cluster.cell_px).astype(np.int64) - row_cells[0], 0, field.shape[0] - 1)
-    cols = np.clip(np.round((positions[:, 0] - centre) / cluster.cell_px).astype(np.int64) - col_cells[0], 0, field.shape[1] - 1)
-    return field[rows, cols]
+    rows = np.clip(np.round((positions[:, 1] - centre) / cluster.cell_px).astype(np.int64) - row_cells[0], 0, values.shape[0] - 1)
+    cols = np.clip(np.round((positions[:, 0] - centre) / cluster.cell_px).astype(np.int64) - col_cells[0], 0, values.shape[1] - 1)
+    return values[rows, cols]
 
 

@@ -26,6 +26,7 @@ class EncodedTile:
     geometric_error_m: float
     vertex_count: int
     triangle_count: int
+    wall_triangle_count: int = 0
 
 
 @dataclass(frozen=True)
@@ -38,6 +39,7 @@ class MeshingOptions:
     method: levels.Simplification = levels.Simplification.VERTEX_CLUSTERING
     level_count: int | None = None
     plain_glb: bool = False  # float32 GLBs without extensions instead of quantized, meshopt-compressed ones
+    max_slope: float | None = None  # steeper triangles are walls (mesh.walls); None: no walls
 
 
 def mesh_height_map(
@@ -47,11 +49,13 @@ def mesh_height_map(
     pixel_size_um: float,
     origin_um: tuple[float, float] = (0.0, 0.0),
     options: MeshingOptions = MeshingOptions(),
+    sigma_um: np.ndarray | None = None,
     progress: Callable[[float, str], None] | None = None,
 ) -> tuple[list[EncodedTile], filtering.FilterReport]:
     """Filters `z_um` ((rows, cols) µm, NaN unknown), builds the levels with `texture` (grey, same
     shape) and encodes every tile with pixel (0, 0) at `origin_um` (x, y); tiles come finest level
-    first."""
+    first, tiles without a measured quad left out. `sigma_um` (same shape, optional) is each
+    height's local uncertainty, which widens what `options.max_slope` lets pass as surface."""
     report = progress or silent
     filtered = filtering.filter_heights(
         z_um,
@@ -63,7 +67,8 @@ def mesh_height_map(
 
     total = levels.tile_count(z_um.shape, options.level_count)
     tiles = levels.iter_tiles(
-        filtered.z_um, texture, pixel_size_um=pixel_size_um, method=options.method, level_count=options.level_count
+        filtered.z_um, texture, pixel_size_um=pixel_size_um, method=options.method, level_count=options.level_count,
+        max_slope=options.max_slope, sigma_um=sigma_um,
     )
     rows, cols = z_um.shape
     corners = np.array([[0.0, 0.0, np.nanmin(filtered.z_um)], [cols - 1.0, rows - 1.0, np.nanmax(filtered.z_um)]])
@@ -87,7 +92,8 @@ def mesh_height_map(
                     geometric_error_m=tile.geometric_error_um * METRES_PER_UM,
                     vertex_count=len(tile.positions),
                     triangle_count=len(tile.triangles),
+                    wall_triangle_count=int(tile.walls.sum()),
                 )
             )
-            report(0.1 + 0.9 * len(encoded) / total, f"level {tile.level}: {len(encoded)} of {total} tiles")
+            report(0.1 + 0.9 * len(encoded) / total, f"level {tile.level}: {len(encoded)} of at most {total} tiles")
     return encoded, filtered.report

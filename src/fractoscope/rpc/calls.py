@@ -81,16 +81,25 @@ def read_height_map(responses: Iterable[matching_pb2.ComputeHeightMapResponse], 
 
 
 def mesh_request(
-    z_um: np.ndarray, texture: np.ndarray | None, *, pixel_size_um: float, origin_um: tuple[float, float] = (0.0, 0.0), **settings
+    z_um: np.ndarray,
+    texture: np.ndarray | None,
+    *,
+    pixel_size_um: float,
+    origin_um: tuple[float, float] = (0.0, 0.0),
+    sigma_um: np.ndarray | None = None,
+    **settings,
 ) -> meshing_pb2.BuildMeshRequest:
     """BuildMesh of a height map ((rows, cols) µm, NaN unknown) and a grey texture of its shape
-    (None: flat grey), pixel (0, 0) at `origin_um` (x, y); `settings` are the request's other
-    fields (method, level_count, filter, request_id, plain_glb)."""
+    (None: flat grey), pixel (0, 0) at `origin_um` (x, y), with each height's local uncertainty
+    `sigma_um` (optional, µm); `settings` are the request's other fields (method, level_count,
+    filter, request_id, plain_glb, max_slope)."""
     request = meshing_pb2.BuildMeshRequest(origin_um=common_pb2.PointUm(x_um=origin_um[0], y_um=origin_um[1]), **settings)
     request.height_map.pixel_size_um = pixel_size_um
     wire.fill_raster(request.height_map.z_um, np.asarray(z_um, np.float32))
     if texture is not None:
         wire.fill_raster(request.height_map.texture, texture)
+    if sigma_um is not None:
+        wire.fill_raster(request.height_map.sigma_um, np.asarray(sigma_um, np.float32))
     return request
 
 

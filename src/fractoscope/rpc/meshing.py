@@ -31,6 +31,7 @@ def options_from_request(request: meshing_pb2.BuildMeshRequest) -> MeshingOption
         method=_METHODS.get(request.method, None) or _invalid("method", f"unknown method {request.method}"),
         level_count=request.level_count or None,
         plain_glb=request.plain_glb,
+        max_slope=request.max_slope or None,
     )
     if not options.outlier_threshold_sigma > 0:
         _invalid("filter.outlier_threshold_sigma", "must be > 0")
@@ -40,6 +41,8 @@ def options_from_request(request: meshing_pb2.BuildMeshRequest) -> MeshingOption
         _invalid("filter.smoothing_um", "must be >= 0")
     if not 0 <= request.level_count <= 16:
         _invalid("level_count", "must be 0 (automatic) to 16")
+    if not (np.isfinite(request.max_slope) and request.max_slope >= 0):
+        _invalid("max_slope", f"must be 0 (no walls) or positive, got {request.max_slope}")
     return options
 
 
@@ -48,7 +51,7 @@ def _invalid(field: str, message: str):
 
 
 def height_map_arrays(height_map: common_pb2.HeightMap, *, field: str = "height_map"):
-    """(z_um, texture, pixel_size_um) from a HeightMap message, validated."""
+    """(z_um, texture, pixel_size_um, sigma_um or None) from a HeightMap message, validated."""
     z_um = wire.raster_to_array(height_map.z_um, field=f"{field}.z_um")
     if z_um.dtype != np.float32:
         _invalid(f"{field}.z_um.data_type", "must be FLOAT32")
@@ -65,7 +68,12 @@ def height_map_arrays(height_map: common_pb2.HeightMap, *, field: str = "height_
         _invalid(f"{field}.z_um", "needs at least 2 x 2 heights")
     if not np.isfinite(z_um).any():
         _invalid(f"{field}.z_um", "has no finite heights: nothing to mesh")
-    return z_um, texture, pixel_size_um
+    sigma_um = None
+    if height_map.HasField("sigma_um"):
+        sigma_um = wire.raster_to_array(height_map.sigma_um, field=f"{field}.sigma_um")
+        if sigma_um.shape != z_um.shape:
+            _invalid(f"{field}.sigma_um", f"shape {sigma_um.shape} differs from z_um's {z_um.shape}")
+    return z_um, texture, pixel_size_um, sigma_um
 
 
 def origin_from_request(request: meshing_pb2.BuildMeshRequest) -> tuple[float, float]:
@@ -80,7 +88,7 @@ def tile_response(tile: EncodedTile) -> meshing_pb2.BuildMeshResponse:
         tile=meshing_pb2.MeshTile(
             level=tile.level, tile_row=tile.tile_row, tile_col=tile.tile_col,
             geometric_error_m=tile.geometric_error_m, vertex_count=tile.vertex_count,
-            triangle_count=tile.triangle_count,
+            triangle_count=tile.triangle_count, wall_triangle_count=tile.wall_triangle_count,
         )
     )
     response.tile.glb = tile.glb  # set in place: nesting a message copies it

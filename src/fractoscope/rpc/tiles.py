@@ -7,11 +7,13 @@ import math
 
 from fractoscope.errors import InvalidInputError
 from fractoscope.rpc import wire
+from fractoscope.sem.image import nominal_magnification
 from fractoscope.specimen.build import RoiRequest
 from fractoscope.specimen.quadtree import TileRecord
 from fractoscope.specimen.queries import checked_region
 from fractoscope.specimen.store import Specimen
 from fractoscope.stereo.geometry import validate_pixel_size_um
+from fractoscope.surface.datum import LEVELS
 from fractoscope.units import METRES_PER_UM
 from fractoscope.v1 import tiles_pb2
 
@@ -24,6 +26,7 @@ def specimen_message(specimen: Specimen) -> tiles_pb2.Specimen:
                 id=roi.id, parent=roi.parent, magnification=roi.magnification, pixel_size_um=roi.pixel_size_um,
                 region=wire.region_message(roi.region_um), alignment_residual_um=roi.alignment_residual_um,
                 matching=wire.report_to_message(roi.matching), registration_score=roi.registration_score,
+                level=(roi.datum or {}).get("level", ""),
             )
         )
     return message
@@ -52,19 +55,23 @@ def tile_message(specimen: Specimen, record: TileRecord, *, upsampled: bool = Fa
 
 
 def roi_request(spec: tiles_pb2.RoiSpec, index: int) -> RoiRequest:
-    """An ROI spec's placement, validated (errors name `rois[index]`'s fields)."""
+    """An ROI spec's placement, validated (errors name `rois[index]`'s fields); without a
+    magnification, the one its reference image's metadata states."""
     if len(spec.images) != 2:
         raise InvalidInputError(f"rois[{index}].images", f"an ROI needs a stereo pair, got {len(spec.images)} images")
     if spec.HasField("pixel_size_um"):
         validate_pixel_size_um(spec.pixel_size_um, field=f"rois[{index}].pixel_size_um")
     if not (math.isfinite(spec.magnification) and spec.magnification >= 0):
         raise InvalidInputError(f"rois[{index}].magnification", "must be finite and >= 0")
+    if spec.level and (spec.level not in LEVELS or spec.parent):
+        raise InvalidInputError(f"rois[{index}].level", f"must be empty or one of {', '.join(LEVELS)}, and is for the overview only")
     centre = None
     if spec.HasField("center_um"):
         centre = (spec.center_um.x_um, spec.center_um.y_um)
         if not all(math.isfinite(v) for v in centre):
             raise InvalidInputError(f"rois[{index}].center_um", "must be finite")
-    return RoiRequest(spec.id, spec.parent, spec.magnification, centre)
+    magnification = spec.magnification or nominal_magnification(spec.images[0].image.content) or 0.0
+    return RoiRequest(spec.id, spec.parent, magnification, centre, spec.level)
 
 
 def region(message: tiles_pb2.RegionUm, field: str) -> tuple[float, float, float, float]:

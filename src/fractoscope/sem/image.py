@@ -17,7 +17,7 @@ import tifffile
 from PIL import Image
 
 from fractoscope.errors import InvalidInputError
-from fractoscope.sem.metadata import fei_calibration, zeiss_calibration
+from fractoscope.sem.metadata import fei_calibration, zeiss_calibration, zeiss_magnification
 
 # Corrupt files are reported to the caller as InvalidInputError; tifffile's own log lines about
 # them would only repeat that on the server's stderr.
@@ -150,3 +150,14 @@ def detect_data_bar_rows(pixels: np.ndarray, *, max_fraction: float = 0.2) -> in
     while count < limit and flat_rows[-1 - count]:
         count += 1
     return count
+
+
+def nominal_magnification(content: bytes) -> float | None:
+    """The magnification a TIFF file's metadata states (Zeiss SmartSEM ``Mag``; FEI files state
+    none that is the nominal one), None for other files. For labels and for finding pixel sizes by
+    magnification; heights use the pixel size."""
+    try:
+        with tifffile.TiffFile(io.BytesIO(content)) as tiff:
+            return zeiss_magnification(tiff.sem_metadata) if tiff.is_sem and tiff.sem_metadata else None
+    except Exception:  # not a TIFF, or a corrupt one: read_sem_image reports those
+        return None

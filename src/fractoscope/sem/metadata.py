@@ -1,7 +1,9 @@
-"""Calibration from SEM vendors' TIFF metadata (as tifffile decodes it): stage tilt, pixel size and
-the image height without the data bar."""
+"""Calibration from SEM vendors' TIFF metadata (as tifffile decodes it): stage tilt, pixel size,
+the image height without the data bar, and the nominal magnification."""
 
 from __future__ import annotations
+
+import re
 
 import numpy as np
 
@@ -44,3 +46,19 @@ def fei_calibration(metadata: dict) -> tuple[float | None, float | None, int | N
     pixel_size_um = float(pixel_m) * 1e6 if isinstance(pixel_m, (int, float)) and pixel_m > 0 else None
     rows = image.get("ResolutionY")
     return tilt_deg, pixel_size_um, int(rows) if isinstance(rows, int) else None
+
+
+_MAGNIFICATION = re.compile(r"^\s*([0-9]*\.?[0-9]+)\s*([kKM]?)\s*[xX]\s*$")
+
+
+def zeiss_magnification(metadata: dict) -> float | None:
+    """The nominal magnification of ``Mag`` ("1.00 K X" is 1000), None when absent or unreadable."""
+    entry = metadata.get("ap_mag")
+    text = entry[1] if isinstance(entry, tuple) and len(entry) >= 2 else None
+    if isinstance(text, (int, float)):
+        return float(text) if text > 0 else None
+    found = _MAGNIFICATION.match(text) if isinstance(text, str) else None
+    if not found:
+        return None
+    value = float(found[1]) * {"": 1.0, "k": 1e3, "K": 1e3, "M": 1e6}[found[2]]
+    return value if value > 0 else None

@@ -18,35 +18,39 @@ from fractoscope.formats.tileset import tileset_json
 from fractoscope.progress import silent
 from fractoscope.specimen import registration
 from fractoscope.specimen.fusion import FusedSurface, PlacedRoi
-from fractoscope.specimen.quadtree import QuadtreeLayout, TileKey, TileRecord, build_tiles
+from fractoscope.specimen.quadtree import QuadtreeLayout, TileKey, TileRecord, TileSamples, build_tiles
 from fractoscope.specimen.store import RoiEntry, Specimen, SpecimenStore, validate_id, write_description, write_roi_arrays
-from fractoscope.surface import filtering
+from fractoscope.stereo import geometry
+from fractoscope.surface import datum, filtering
 
 
 @dataclass(frozen=True)
 class RoiRequest:
-    """One ROI to build: its parent ('' for the overview), magnification, and centre in the parent's
-    frame (x, y) µm, or None to register it automatically."""
+    """One ROI to build: its parent ('' for the overview), magnification, centre in the parent's
+    frame (x, y) µm or None to register it automatically, and for the overview the datum its
+    heights are levelled on ('' none, else one of surface.datum.LEVELS)."""
 
     id: str
     parent: str = ""
     magnification: float = 0.0
     center_um: tuple[float, float] | None = None
+    level: str = ""
 
 
 @dataclass(frozen=True)
 class MeasuredHeights:
-    """What matching returns for an ROI: heights (rows, cols) µm, grey texture, pixel size µm and the
-    matching report (see MatchingReport)."""
+    """What matching returns for an ROI: heights (rows, cols) µm, grey texture, pixel size µm, the
+    matching report (see MatchingReport) and the heights' sigma µm (None: not known)."""
 
     z_um: np.ndarray
     texture: np.ndarray
     pixel_size_um: float
     report: dict
+    sigma_um: np.ndarray | None = None
 
 
-Measure = Callable[[RoiRequest], MeasuredHeights]
-TileMesher = Callable[[np.ndarray, np.ndarray, float, tuple[float, float]], bytes]
+Measure = Callable[[RoiRequest, Callable[[float, str], None]], MeasuredHeights]  # the ROI, a progress callback
+TileMesher = Callable[[TileSamples], bytes]
 
 
 def ordered_rois(rois: Sequence[RoiRequest]) -> list[RoiRequest]:
@@ -92,8 +96,11 @@ def reconstruct_specimen(
     ordered = ordered_rois(rois)
     measured: dict[str, MeasuredHeights] = {}
     for index, roi in enumerate(ordered):
-        report(0.6 * index / len(ordered), f"matching ROI {roi.id}")
-        measured[roi.id] = measure(roi)
+        def matching_progress(fraction: float, message: str, index=index, roi=roi) -> None:
+            report(0.6 * (index + fraction) / len(ordered), f"matching ROI {roi.id}: {message}")
+
+        matching_progress(0.0, "started")
+        measured[roi.id] = measure(roi, matching_progress)
     report(0.6, "placing ROIs")
     placed, entries = _place(ordered, measured)
     surface = FusedSurface(list(placed.values()))
@@ -109,25 +116,33 @@ def reconstruct_specimen(
 
 
 def _place(ordered: list[RoiRequest], measured: dict[str, MeasuredHeights]) -> tuple[dict[str, PlacedRoi], list[RoiEntry]]:
-    """Every ROI's filtered heights and texture placed in the specimen frame, parents first: a
-    child is registered in its parent (unless its centre is given), its heights brought onto the
-    parent's by a fitted plane and its texture onto the parent's brightness and contrast."""
+    """Every ROI's filtered heights and texture placed in the specimen frame, parents first: the
+    overview levelled on its datum if it names one, a child registered in its parent (unless its
+    centre is given), its heights brought onto the parent's by a fitted plane and its texture
+    onto the parent's brightness and contrast."""
     placed: dict[str, PlacedRoi] = {}
     entries: list[RoiEntry] = []
     for roi in ordered:
         heights = measured[roi.id]
         z_um = filtering.filter_heights(heights.z_um).z_um.astype(np.float32)
         texture = _grey8(heights.texture)
+        walls = _wall_settings(heights)
         entry = RoiEntry(roi.id, roi.parent, roi.magnification, heights.pixel_size_um, (0.0, 0.0), z_um.shape, matching=heights.report)
+        if roi.level:
+            try:
+                z_um, levelled = datum.level_heights(z_um, pixel_size_um=heights.pixel_size_um, level=roi.level)
+            except ValueError as error:
+                raise InvalidInputError(f"rois[{roi.id}].level", str(error)) from None
+            entry.datum = levelled.to_dict()
         if roi.parent:
             parent = placed[roi.parent]
             entry.origin_um, entry.registration_score = _child_origin(roi, parent, texture, heights)
-            unaligned = PlacedRoi(roi.id, roi.magnification, heights.pixel_size_um, entry.origin_um, z_um, texture)
+            unaligned = PlacedRoi(roi.id, roi.magnification, heights.pixel_size_um, entry.origin_um, z_um, texture, **walls)
             alignment = registration.align_heights(parent, unaligned)
             z_um = registration.apply_height_alignment(z_um, alignment, pixel_size_um=heights.pixel_size_um)
             texture = registration.match_texture(parent, unaligned)
             entry.alignment_residual_um = alignment.residual_um
-        placed[roi.id] = PlacedRoi(roi.id, roi.magnification, heights.pixel_size_um, entry.origin_um, z_um, texture)
+        placed[roi.id] = PlacedRoi(roi.id, roi.magnification, heights.pixel_size_um, entry.origin_um, z_um, texture, **walls)
         entries.append(entry)
     return placed, entries
 
@@ -138,10 +153,10 @@ def _write_tiles(staging, surface: FusedSurface, layout: QuadtreeLayout, mesh_ti
     meshers = ThreadPoolExecutor(max_workers=2)
     pending, failures = [], []
 
-    def emit(key: TileKey, z_um, texture, cell_um, origin_um) -> None:
+    def emit(key: TileKey, samples: TileSamples) -> None:
         if failures:  # fail fast: a mesher that cannot be reached will not come back mid-build
             raise failures[0]
-        job = meshers.submit(mesh_tile, z_um, texture, cell_um, origin_um)
+        job = meshers.submit(mesh_tile, samples)
         job.add_done_callback(lambda done: done.exception() and failures.append(done.exception()))
         pending.append((key, job))
         report(0.65 + 0.3 * (1 - 0.5 ** (len(pending) / 16)), f"tile {key.uri}")
@@ -155,6 +170,21 @@ def _write_tiles(staging, surface: FusedSurface, layout: QuadtreeLayout, mesh_ti
     finally:
         meshers.shutdown(wait=True, cancel_futures=True)
     return records
+
+
+def _wall_settings(heights: MeasuredHeights) -> dict:
+    """PlacedRoi's max_slope and noise_um from the pair's tilts and its heights' local sigma."""
+    tilts = heights.report.get("tilt_deg") or []
+    if len(tilts) < 2:
+        return {}
+    settings = {"max_slope": geometry.max_measurable_slope(tilts)}
+    if heights.sigma_um is not None:
+        local = geometry.local_height_sigma_um(
+            heights.sigma_um, heights.z_um, tilt_deg=tilts, tilt_uncertainty_deg=heights.report.get("tilt_uncertainty_deg", 0.0)
+        )
+        if np.isfinite(local).any():
+            settings["noise_um"] = float(np.nanmedian(local))
+    return settings
 
 
 def _child_origin(roi: RoiRequest, parent: PlacedRoi, texture: np.ndarray, heights: MeasuredHeights) -> tuple[tuple[float, float], float]:

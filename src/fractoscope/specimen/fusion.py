@@ -3,8 +3,10 @@
 Specimen frame: micrometres in the plane of the overview, x along its columns, y down its rows.
 An ROI's pixel (row i, column j) lies at (origin_x + j·p, origin_y + i·p) for its pixel size p.
 Wherever a finer ROI has data it wins; elsewhere coarser data is resampled. At an ROI's border its
-weight ramps smoothly from 0 to 1 over `FEATHER_PX` of its pixels (from its border and from any
-hole in its data), so neither heights nor texture step where magnifications meet.
+weight ramps smoothly from 0 to 1 over `FEATHER_PX` of its pixels (from its border and, for the
+heights, from any hole in its data), so neither heights nor texture step where magnifications
+meet. The texture is the SEM image, known where heights are not: it blends by the image's
+footprint alone, so that a hole in the heights does not blacken the picture of what is there.
 """
 
 from __future__ import annotations
@@ -26,6 +28,8 @@ class PlacedRoi:
     z_um: (rows, cols) float32 heights, µm, already aligned to its parent; NaN unknown.
     texture: (rows, cols) uint8 grey SEM image on the same grid.
     origin_um: (x, y) of pixel (0, 0) in the specimen frame, µm.
+    max_slope: the steepest slope its pair could measure (mesh.walls; None: unknown, no walls).
+    noise_um: the typical local uncertainty of its heights, µm (median of their local sigma).
     """
 
     id: str
@@ -34,6 +38,8 @@ class PlacedRoi:
     origin_um: tuple[float, float]
     z_um: np.ndarray
     texture: np.ndarray
+    max_slope: float | None = None
+    noise_um: float = 0.0
 
     @property
     def extent_um(self) -> tuple[float, float, float, float]:
@@ -63,6 +69,7 @@ class _PyramidLevel:
     z_um: np.ndarray
     texture: np.ndarray
     weight: np.ndarray
+    texture_weight: np.ndarray
 
 
 class FusedSurface:
@@ -95,6 +102,7 @@ class FusedSurface:
         flat_y = np.pad(y_um.ravel(), (0, padding), mode="edge").reshape(-1, 1024)
         z = np.full(flat_x.shape, np.nan, np.float32)
         texture = np.zeros(flat_x.shape, np.float32)
+        pictured = np.zeros(flat_x.shape, bool)
         source = np.full(flat_x.shape, -1, np.int32)
         for index, (roi, pyramid) in enumerate(zip(self.rois, self._pyramids)):
             if not overlaps(roi.extent_um, (flat_x.min(), flat_y.min(), flat_x.max(), flat_y.max())):
@@ -110,10 +118,13 @@ class FusedSurface:
             roi_weight = _remap(arrays.weight, maps, 0.0)
             roi_weight[~np.isfinite(roi_z)] = 0.0
             roi_texture = _remap(arrays.texture, maps, 0.0)
+            roi_texture_weight = _remap(arrays.texture_weight, maps, 0.0)
             unknown = ~np.isfinite(z)
             blend = np.where(unknown & (roi_weight > 0), 1.0, roi_weight).astype(np.float32)
             z = np.where(blend > 0, np.where(unknown, roi_z, z * (1 - blend) + np.nan_to_num(roi_z) * blend), z)
-            texture = texture * (1 - blend) + roi_texture * blend
+            texture_blend = np.where(~pictured & (roi_texture_weight > 0), 1.0, roi_texture_weight).astype(np.float32)
+            texture = texture * (1 - texture_blend) + roi_texture * texture_blend
+            pictured |= roi_texture_weight > 0
             source = np.where(blend >= 0.5, index, source)
         return FusedSamples(*(values.ravel()[: x_um.size].reshape(x_um.shape) for values in (z, texture, source)))
 
@@ -146,10 +157,11 @@ def _pyramid(roi: PlacedRoi) -> list[_PyramidLevel]:
     """Levels 0, 1, ... of 2x2 averages (unknown heights ignored) down to about 64 pixels."""
     valid = np.isfinite(roi.z_um)
     weight = _border_weight(valid)
+    texture_weight = _border_weight(np.ones(valid.shape, bool))
     z = np.where(valid, roi.z_um, 0).astype(np.float32)
     counts = valid.astype(np.float32)
     texture = roi.texture.astype(np.float32)
-    levels = [_PyramidLevel(np.where(valid, z, np.nan).astype(np.float32), texture, weight.astype(np.float32))]
+    levels = [_PyramidLevel(np.where(valid, z, np.nan).astype(np.float32), texture, weight.astype(np.float32), texture_weight)]
     while min(counts.shape) >= 128:
         rows, cols = (counts.shape[0] // 2) * 2, (counts.shape[1] // 2) * 2
         size = (cols // 2, rows // 2)
@@ -158,5 +170,6 @@ def _pyramid(roi: PlacedRoi) -> list[_PyramidLevel]:
         z = np.where(counts > 0, z_sum / np.maximum(counts, 1e-6), 0).astype(np.float32)
         texture = cv2.resize(texture[:rows, :cols], size, interpolation=cv2.INTER_AREA)
         weight = cv2.resize(weight[:rows, :cols], size, interpolation=cv2.INTER_AREA)
-        levels.append(_PyramidLevel(np.where(counts > 0.25, z, np.nan).astype(np.float32), texture, weight))
+        texture_weight = cv2.resize(texture_weight[:rows, :cols], size, interpolation=cv2.INTER_AREA)
+        levels.append(_PyramidLevel(np.where(counts > 0.25, z, np.nan).astype(np.float32), texture, weight, texture_weight))
     return levels

@@ -6,6 +6,11 @@ tile side, and every tile holds QUADTREE_TILE_CELLS x QUADTREE_TILE_CELLS cells.
 deep only where high-magnification data exists: children there are "optical", their siblings
 outside the ROI are "digital" (coarser data upsampled). Tile URIs are
 `tiles/{level}/{col}/{row}.glb`.
+
+Walls (mesh.walls): each tile is meshed with the steepest slope its dominant ROI's pair could
+measure, and its geometric error, measured against the finest data under it, leaves out wall
+triangles and what lies within one of its cells of a wall, so that the rim of a grain does not
+make every tile along it look coarser than it is.
 """
 
 from __future__ import annotations
@@ -14,9 +19,9 @@ import math
 from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field
 
-import cv2
 import numpy as np
 
+from fractoscope.mesh.walls import WALL_SIGMA_FACTOR, grid_wall_triangles, wall_vertices, within_distance
 from fractoscope.specimen.fusion import FusedSurface, overlaps
 
 OPTICAL, DIGITAL = "optical", "digital"
@@ -112,32 +117,49 @@ class TileRecord:
         return cls(**values)
 
 
-TileSink = Callable[[TileKey, np.ndarray, np.ndarray, float, tuple[float, float]], None]
+@dataclass(frozen=True)
+class TileSamples:
+    """What a tile is meshed from: heights (QUADTREE_TILE_CELLS + 1)² µm (NaN unknown) and grey
+    texture on its vertex grid, the cell size µm, the position of vertex (0, 0) (x, y) µm, and the
+    wall settings of the ROI that shows most of it (see PlacedRoi)."""
+
+    z_um: np.ndarray
+    texture: np.ndarray
+    cell_um: float
+    origin_um: tuple[float, float]
+    max_slope: float | None
+    noise_um: float
+
+
+TileSink = Callable[[TileKey, TileSamples], None]
 
 
 def build_tiles(
     surface: FusedSurface, layout: QuadtreeLayout, emit: TileSink, *, progress: Callable[[str], None] | None = None
 ) -> dict[TileKey, TileRecord]:
-    """Walks the quadtree depth first, samples each tile's heights and texture from the fused surface
-    and hands them to `emit(key, z_um, texture, cell_um, origin_um)` (the mesher); returns the records.
-    Geometric errors are measured: a tile's largest deviation (bilinear between its vertices) from
-    its children's vertices, plus the largest error among the children; leaves have none."""
+    """Walks the quadtree depth first, samples each tile's heights and texture from the fused
+    surface and hands them to `emit(key, TileSamples)` (the mesher); returns the records. Tiles
+    without four neighbouring measured vertices are left out. A tile's geometric error is the
+    larger of its measured height error (`_deviation_um`) and its cell size (the detail of the SEM
+    image it shows), and above its children's; leaves have none."""
     records: dict[TileKey, TileRecord] = {}
     announce = progress or (lambda message: None)
 
-    def visit(key: TileKey) -> np.ndarray | None:
+    def visit(key: TileKey) -> bool:
         bounds = layout.bounds_um(key)
         below = surface.rois_intersecting(bounds)
         if not below:
-            return None
+            return False
         cell_um = layout.cell_um(key.level)
         x_um, y_um = layout.vertex_grid_um(key)
         samples = surface.sample(x_um, y_um, cell_um=cell_um)
-        if not np.isfinite(samples.z_um).any():
-            return None
-        emit(key, samples.z_um, np.clip(samples.texture, 0, 255).astype(np.uint8), cell_um, (bounds[0], bounds[1]))
-        announce(f"tile {key.uri}")
+        if not _has_a_quad(samples.z_um):
+            return False
         shown = surface.rois[_dominant_source(samples.source, below, surface)]
+        tile = TileSamples(samples.z_um, np.clip(samples.texture, 0, 255).astype(np.uint8), cell_um, (bounds[0], bounds[1]),
+                           shown.max_slope, shown.noise_um)
+        emit(key, tile)
+        announce(f"tile {key.uri}")
         record = TileRecord(
             key=key,
             roi=shown.id,
@@ -148,23 +170,77 @@ def build_tiles(
             z_max_um=float(np.nanmax(samples.z_um)),
         )
         records[key] = record
-        if min(roi.pixel_size_um for roi in below) * _REFINE_RATIO < cell_um:
-            deviation, child_error = 0.0, 0.0
+        finest_um = min(roi.pixel_size_um for roi in below)
+        if finest_um * _REFINE_RATIO < cell_um:
             for child in key.children():
-                child_z = visit(child)
-                if child_z is None:
-                    continue
-                record.children.append(child)
-                child_record = records[child]
-                deviation = max(deviation, _deviation_from_child(samples.z_um, child_z, child))
-                child_error = max(child_error, child_record.geometric_error_um)
-                record.z_min_um = min(record.z_min_um, child_record.z_min_um)
-                record.z_max_um = max(record.z_max_um, child_record.z_max_um)
-            record.geometric_error_um = deviation + child_error if record.children else 0.0
-        return samples.z_um
+                if visit(child):
+                    record.children.append(child)
+                    record.z_min_um = min(record.z_min_um, records[child].z_min_um)
+                    record.z_max_um = max(record.z_max_um, records[child].z_max_um)
+        if record.children:
+            levels_below = math.ceil(math.log2(cell_um / (finest_um * _REFINE_RATIO)) - 1e-9)
+            error_um = _deviation_um(surface, layout, key, tile, levels_below=min(levels_below, _ERROR_LEVELS))
+            if levels_below > _ERROR_LEVELS:  # what the tiles _ERROR_LEVELS below leave, by the triangle inequality
+                error_um += max(
+                    (r.geometric_error_um for k, r in records.items() if k.level == key.level + _ERROR_LEVELS and _within(k, key)), default=0.0
+                )
+            # The image shown loses detail finer than a cell as the surface loses height detail;
+            # and viewers refine a tile whose error is not below its parent's without showing it.
+            record.geometric_error_um = max(
+                error_um, cell_um, _ABOVE_CHILDREN * max(records[child].geometric_error_um for child in record.children)
+            )
+        return True
 
     visit(TileKey(0, 0, 0))
     return records
+
+
+_ABOVE_CHILDREN = 1.01
+# A tile's error is measured on the surface sampled up to 2**_ERROR_LEVELS times finer than its
+# cells (at most (64 * 16 + 1)² points): the finest data below a tile of a deep tree.
+_ERROR_LEVELS = 4
+
+
+def _deviation_um(surface: FusedSurface, layout: QuadtreeLayout, key: TileKey, tile: TileSamples, *, levels_below: int) -> float:
+    """The largest vertical distance between a tile's triangles and the fused surface sampled
+    2**levels_below times finer (the finest data under it), µm, as mesh.levels measures a level:
+    wall triangles and the points within one tile cell of a wall of the fine surface left out,
+    and less three of the ROI's local sigmas, within which the finest data does not know its own
+    surface better."""
+    factor = 2**levels_below
+    cells = QUADTREE_TILE_CELLS * factor
+    fine_cell_um = tile.cell_um / factor
+    steps = np.arange(cells + 1) * fine_cell_um
+    fine_x, fine_y = np.meshgrid(tile.origin_um[0] + steps, tile.origin_um[1] + steps)
+    fine_z = surface.sample(fine_x, fine_y, cell_um=fine_cell_um).z_um
+    # The tile's triangles (a, c, b) and (b, c, d) of each quad, at the fine points.
+    position = np.arange(cells + 1) / factor
+    quad = np.minimum(position.astype(np.int64), QUADTREE_TILE_CELLS - 1)
+    offset = position - quad
+    rows, cols = np.meshgrid(quad, quad, indexing="ij")
+    v, u = np.meshgrid(offset, offset, indexing="ij")
+    z = tile.z_um
+    a, b, c, d = z[rows, cols], z[rows, cols + 1], z[rows + 1, cols], z[rows + 1, cols + 1]
+    in_upper = u + v <= 1.0
+    coarse = np.where(in_upper, a + u * (b - a) + v * (c - a), d + (1 - u) * (c - d) + (1 - v) * (b - d))
+    x_um, y_um = layout.vertex_grid_um(key)
+    upper, lower = grid_wall_triangles(x_um, y_um, z, max_slope=tile.max_slope, sigma_um=tile.noise_um)
+    fine_walls = wall_vertices(*grid_wall_triangles(fine_x, fine_y, fine_z, max_slope=tile.max_slope, sigma_um=tile.noise_um))
+    left_out = np.where(in_upper, upper[rows, cols], lower[rows, cols]) | within_distance(fine_walls, factor)
+    deviation = np.abs(coarse - fine_z)[~left_out] - WALL_SIGMA_FACTOR * tile.noise_um
+    deviation = deviation[np.isfinite(deviation)]
+    return float(max(deviation.max(), 0.0)) if deviation.size else 0.0
+
+
+def _within(key: TileKey, ancestor: TileKey) -> bool:
+    shift = key.level - ancestor.level
+    return shift >= 0 and (key.col >> shift, key.row >> shift) == (ancestor.col, ancestor.row)
+
+
+def _has_a_quad(z_um: np.ndarray) -> bool:
+    """Whether any four neighbouring vertices are measured (the mesher makes a triangle of them)."""
+    known = np.isfinite(z_um)
+    return bool((known[:-1, :-1] & known[:-1, 1:] & known[1:, :-1] & known[1:, 1:]).any())
 
 
 def _dominant_source(source: np.ndarray, below, surface: FusedSurface) -> int:
@@ -172,16 +248,6 @@ def _dominant_source(source: np.ndarray, below, surface: FusedSurface) -> int:
     if counts.sum() == 0:
         return surface.rois.index(below[0])
     return int(np.argmax(counts))
-
-
-def _deviation_from_child(parent_z: np.ndarray, child_z: np.ndarray, child: TileKey) -> float:
-    """Largest |parent (bilinear) - child| at the child's vertices, µm (unknown points ignored)."""
-    half = QUADTREE_TILE_CELLS // 2
-    steps = np.arange(QUADTREE_TILE_CELLS + 1, dtype=np.float32) / 2
-    map_x, map_y = np.meshgrid((child.col % 2) * half + steps, (child.row % 2) * half + steps)
-    parent_there = cv2.remap(parent_z.astype(np.float32), map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    difference = np.abs(parent_there - child_z)
-    return float(np.nanmax(difference)) if np.isfinite(difference).any() else 0.0
 
 
 def tiles_in_region(

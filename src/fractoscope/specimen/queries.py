@@ -33,11 +33,14 @@ def positive(value: float, field: str) -> float:
     return value
 
 
-def checked_region(region_um, field: str = "region") -> tuple[float, float, float, float]:
+def checked_region(region_um, field: str = "region", *, allow_point: bool = False) -> tuple[float, float, float, float]:
+    """(x_min, y_min, x_max, y_max) µm as floats: finite, min below max (or equal, with
+    `allow_point`)."""
     values = tuple(float(v) for v in region_um)
     if not all(math.isfinite(v) for v in values):
         raise InvalidInputError(field, "coordinates must be finite")
-    if not (values[0] < values[2] and values[1] < values[3]):
+    ordered = (values[0] <= values[2] and values[1] <= values[3]) if allow_point else (values[0] < values[2] and values[1] < values[3])
+    if not ordered:
         raise InvalidInputError(field, "min must be smaller than max in x and y")
     return values
 
@@ -66,6 +69,23 @@ def profile_along(specimen: Specimen, points_um, *, spacing_um: float = 0.0, mag
     z_um = samples.z_um.astype(np.float64)
     parameters = profiles.profile_parameters(distances, z_um) if np.isfinite(z_um).sum() >= 3 else None
     return SpecimenProfile(distances, z_um, samples.source, [roi.id for roi in specimen.surface.rois], parameters)
+
+
+def height_statistics(specimen: Specimen, region_um) -> dict:
+    """Statistics of the fused surface's measured heights in a region (x_min, y_min, x_max, y_max)
+    µm, sampled at the finest pixel size there (coarser if that would exceed MAX_REGION_SAMPLES):
+    mean, median, std, min, max (µm; None when nothing is measured), the number of measured
+    samples, their share of all samples and the sampling pixel size."""
+    x0, y0, x1, y1 = checked_region(region_um, allow_point=True)
+    cell_um = specimen.finest_pixel_size_um((x0, y0, x1, y1))
+    cell_um = max(cell_um, math.sqrt((x1 - x0) * (y1 - y0) / MAX_REGION_SAMPLES))
+    x_um, y_um = np.meshgrid(np.arange(x0, x1 + 1e-9, cell_um), np.arange(y0, y1 + 1e-9, cell_um))
+    z_um = specimen.surface.sample(x_um, y_um, cell_um=cell_um).z_um
+    known = z_um[np.isfinite(z_um)].astype(np.float64)
+    figures = (known.mean(), np.median(known), known.std(), known.min(), known.max()) if known.size else (None,) * 5
+    names = ("mean_um", "median_um", "std_um", "min_um", "max_um")
+    return {**{name: None if value is None else float(value) for name, value in zip(names, figures)},
+            "count": int(known.size), "measured_fraction": known.size / z_um.size, "pixel_size_um": cell_um}
 
 
 def roughness_of(specimen: Specimen, *, roi: str | None = None, region_um=None) -> dict:

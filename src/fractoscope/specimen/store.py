@@ -35,8 +35,9 @@ def validate_id(value: str, *, field: str) -> str:
 
 @dataclass
 class RoiEntry:
-    """An ROI as stored: placement (origin of pixel (0, 0), µm), shape (rows, cols), fit figures
-    and the matching report."""
+    """An ROI as stored: placement (origin of pixel (0, 0), µm), shape (rows, cols), fit figures,
+    the matching report and the datum its heights were levelled on (surface.datum.Datum.to_dict;
+    None: as measured)."""
 
     id: str
     parent: str
@@ -47,6 +48,7 @@ class RoiEntry:
     alignment_residual_um: float = 0.0
     registration_score: float = 0.0
     matching: dict = field(default_factory=dict)
+    datum: dict | None = None
 
     @property
     def region_um(self) -> tuple[float, float, float, float]:

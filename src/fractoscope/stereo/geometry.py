@@ -66,11 +66,40 @@ def height_sigma_um(
             np.where(np.isfinite(sigma), (np.float32(b[index + 1]) / sigma) ** 2, np.float32(0)) for index, sigma in enumerate(disparity_sigma_px)
         )
         disparity_sigma_um = np.float32(pixel_size_um) / np.sqrt(information)
+    sigma_um = np.hypot(disparity_sigma_um, _tilt_part_um(z_um, tilt_deg=tilt_deg, tilt_uncertainty_deg=tilt_uncertainty_deg))
+    sigma_um[~np.isfinite(z_um)] = np.nan
+    return sigma_um
+
+
+def local_height_sigma_um(sigma_um: np.ndarray, z_um: np.ndarray, *, tilt_deg: Sequence[float], tilt_uncertainty_deg: float) -> np.ndarray:
+    """The part of `height_sigma_um` that neighbouring pixels do not share: the disparity
+    noise, without the tilt error, which scales all heights about one level together and so
+    moves a height difference by only ε_z times that difference. (rows, cols) float32 µm, NaN
+    where z_um is NaN; arguments as `height_sigma_um` got them."""
+    tilt_part = _tilt_part_um(z_um, tilt_deg=tilt_deg, tilt_uncertainty_deg=tilt_uncertainty_deg)
+    with np.errstate(invalid="ignore"):
+        local = np.sqrt(np.maximum(np.square(sigma_um, dtype=np.float32) - np.square(tilt_part), 0)).astype(np.float32)
+    local[~np.isfinite(z_um)] = np.nan
+    return local
+
+
+def _tilt_part_um(z_um: np.ndarray, *, tilt_deg: Sequence[float], tilt_uncertainty_deg: float) -> np.ndarray:
+    """ε_z |z - z_ref| for the widest pair, about the median height (of every 4th row and column,
+    which tell it well enough), float32 µm."""
+    _, b = tilt_series.coefficients(tilt_deg)
     widest = (float(tilt_deg[0]), float(tilt_deg[np.argmax(np.abs(b))]))
     relative = relative_height_error_from_tilt(tilt_deg=widest, tilt_uncertainty_deg=tilt_uncertainty_deg)
     sample = z_um[::4, ::4]
     sample = sample[np.isfinite(sample)]
     reference_um = np.float32(np.median(sample)) if sample.size else np.float32(0)
-    sigma_um = np.hypot(disparity_sigma_um, np.float32(relative) * np.abs(z_um - reference_um))
-    sigma_um[~np.isfinite(z_um)] = np.nan
-    return sigma_um
+    return np.float32(relative) * np.abs(z_um - reference_um)
+
+
+def max_measurable_slope(tilt_deg: Sequence[float]) -> float:
+    """The steepest slope (height over horizontal distance) a matcher can measure between
+    neighbouring points: a disparity that changes by more than one pixel per pixel is an
+    occlusion (the disparity gradient limit; one view sees what the other cannot), and one pixel
+    of disparity is cos t_r / |sin(t_i - t_r)| pixels of height for the widest pair (9.6 for
+    ±3°, 2.9 for ±10°)."""
+    _, b = tilt_series.coefficients(tilt_deg)
+    return float(1.0 / np.max(np.abs(b)))

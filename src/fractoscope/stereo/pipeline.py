@@ -111,7 +111,7 @@ def compute_series_height_map(
     axis_estimated = _estimated_tilt_axis_deg(matched.placements, tilt_axis_deg, warnings)
     report = _report(
         tilts=tilts, tilt_axis_deg=tilt_axis_deg, pixel_size=pixel_size, matched=matched, z_um=z_um,
-        bar_rows=rectified.bar_rows, axis_estimated=axis_estimated, warnings=warnings, calibration=calibration,
+        bar_rows=rectified.bar_rows, axis_estimated=axis_estimated, warnings=warnings, calibration=calibration, tilt_uncertainty=tilt_uncertainty,
     )
     report["elapsed_s"] = time.perf_counter() - started
     report["method"] = MatchingMethod(options.method).value
@@ -282,7 +282,7 @@ def _estimated_tilt_axis_deg(placements: list[alignment.Alignment], tilt_axis_de
     return axis_estimated
 
 
-def _report(*, tilts, tilt_axis_deg, pixel_size, matched: _MatchedViews, z_um, bar_rows, axis_estimated, warnings, calibration) -> dict:
+def _report(*, tilts, tilt_axis_deg, pixel_size, matched: _MatchedViews, z_um, bar_rows, axis_estimated, warnings, calibration, tilt_uncertainty) -> dict:
     """The MatchingReport's figures (see the protobuf API), but for the elapsed time."""
     first_placement = matched.placements[0]
     first_disparity = matched.disparities[1]
@@ -303,6 +303,7 @@ def _report(*, tilts, tilt_axis_deg, pixel_size, matched: _MatchedViews, z_um, b
         "tilt_axis_deg_estimated": axis_estimated,
         "warnings": warnings,
         "strip_count": matched.strip_count,
+        "tilt_uncertainty_deg": float(tilt_uncertainty),
         **calibration,
     }
 

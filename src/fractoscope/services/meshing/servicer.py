@@ -18,12 +18,14 @@ class MeshingServicer(meshing_pb2_grpc.MeshingServiceServicer):
 
     @abort_on_error
     def BuildMesh(self, request, context):
-        z_um, texture, pixel_size_um = rpc_meshing.height_map_arrays(request.height_map)
+        z_um, texture, pixel_size_um, sigma_um = rpc_meshing.height_map_arrays(request.height_map)
         options = rpc_meshing.options_from_request(request)
         origin_um = rpc_meshing.origin_from_request(request)
 
         def work(progress):
-            return mesh_height_map(z_um, texture, pixel_size_um=pixel_size_um, origin_um=origin_um, options=options, progress=progress)
+            return mesh_height_map(
+                z_um, texture, pixel_size_um=pixel_size_um, origin_um=origin_um, options=options, sigma_um=sigma_um, progress=progress
+            )
 
         for event in stream_progress(context, work):
             if isinstance(event, common_pb2.Progress):

@@ -4,8 +4,9 @@
   origins), a strong ETag (answered with 304 when the client has it), gzip when accepted.
 - `/viewer/` the web viewer (this package's data folder `web/`) and `/vendor/` the three.js and
   3DTilesRendererJS modules it imports (installed by `make install` into node_modules).
-- `/api/specimens[/{id}[/profile|/roughness]]` JSON for the viewer: summaries, profiles
-  (`?from=X,Y&to=X,Y[&magnification=M]`) and roughness (`?roi=ID` or `?region=X0,Y0,X1,Y1`), µm.
+- `/api/specimens[/{id}[/profile|/roughness|/heights]]` JSON for the viewer: summaries, profiles
+  (`?from=X,Y&to=X,Y[&magnification=M]`), roughness (`?roi=ID` or `?region=X0,Y0,X1,Y1`) and the
+  statistics of the heights in a region (`?region=X0,Y0,X1,Y1`), µm.
 """
 
 from __future__ import annotations
@@ -41,7 +42,7 @@ WEB_ROOT = Path(__file__).resolve().parent / "web"
 _VENDOR = Path(os.environ.get("FRACTO_VENDOR_ROOT", Path(__file__).resolve().parents[4] / "node_modules"))
 VENDOR_ROOTS = {"three": _VENDOR / "three", "3d-tiles-renderer": _VENDOR / "3d-tiles-renderer"}
 _STATIC = re.compile(r"^/(?P<area>viewer|vendor)/(?P<path>[A-Za-z0-9_./-]*)$")
-_API = re.compile(r"^/api/specimens(?:/(?P<specimen>[A-Za-z0-9_-]{1,64})(?:/(?P<query>profile|roughness))?)?$")
+_API = re.compile(r"^/api/specimens(?:/(?P<specimen>[A-Za-z0-9_-]{1,64})(?:/(?P<query>profile|roughness|heights))?)?$")
 
 
 class _Body:
@@ -138,6 +139,8 @@ class _TileApp:
                     "source": [names[i] for i in found.source_index.tolist()],
                     "parameters": found.parameters,
                 }
+            if query == "heights":
+                return HTTPStatus.OK, specimen_queries.height_statistics(self.store.load(specimen_id), _numbers(arguments, "region", 4))
             region = _numbers(arguments, "region", 4) if "region" in arguments else None
             roi = arguments.get("roi", [None])[0]
             specimen = self.store.load(specimen_id)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 
 import grpc
+import numpy as np
 
 from fractoscope.errors import InvalidInputError, NotFoundError, UnavailableError
 from fractoscope.rpc import calls, wire
@@ -14,6 +15,7 @@ from fractoscope.rpc.status import ClientError, abort_on_error, raised_as_client
 from fractoscope.services.caches import BoundedCache
 from fractoscope.services.streaming import stream_progress
 from fractoscope.specimen import quadtree
+from fractoscope.specimen.quadtree import TileSamples
 from fractoscope.specimen import queries as specimen_queries
 from fractoscope.specimen.build import MeasuredHeights, RoiRequest, reconstruct_specimen
 from fractoscope.specimen.store import Specimen, SpecimenStore, validate_id
@@ -66,12 +68,15 @@ class TileServicer(tiles_pb2_grpc.TileServiceServicer):
             matching = matching_pb2_grpc.MatchingServiceStub(matching_channel)
             meshing = meshing_pb2_grpc.MeshingServiceStub(meshing_channel)
 
-            def measure(roi: RoiRequest) -> MeasuredHeights:
+            def measure(roi: RoiRequest, progress) -> MeasuredHeights:
                 index, spec = specs[roi.id]
-                return _measure(matching, spec, index, request_id=request.request_id, timeout_s=timeout_s)
+                return _measure(matching, spec, index, request_id=request.request_id, timeout_s=timeout_s, progress=progress)
 
-            def mesh_tile(z_um, texture, cell_um, origin_um) -> bytes:
-                mesh_request = calls.mesh_request(z_um, texture, pixel_size_um=cell_um, origin_um=origin_um, level_count=1)
+            def mesh_tile(tile: TileSamples) -> bytes:
+                mesh_request = calls.mesh_request(
+                    tile.z_um, tile.texture, pixel_size_um=tile.cell_um, origin_um=tile.origin_um, level_count=1,
+                    max_slope=tile.max_slope or 0.0, sigma_um=np.full(tile.z_um.shape, tile.noise_um, np.float32),
+                )
                 with raised_as_client_errors():
                     tiles, _ = calls.read_mesh(meshing.BuildMesh(mesh_request, timeout=timeout_s), None)
                 return tiles[0].glb
@@ -173,8 +178,9 @@ class SerializedGetTile(grpc.ServerInterceptor):
         return continuation(handler_call_details)
 
 
-def _measure(stub, spec: tiles_pb2.RoiSpec, index: int, *, request_id: str, timeout_s: float) -> MeasuredHeights:
-    """One ROI's height map from the matching service; its errors name the ROI's fields."""
+def _measure(stub, spec: tiles_pb2.RoiSpec, index: int, *, request_id: str, timeout_s: float, progress) -> MeasuredHeights:
+    """One ROI's height map from the matching service, its progress passed on; its errors name the
+    ROI's fields."""
     tilts = [item.tilt_deg for item in spec.images] if all(item.HasField("tilt_deg") for item in spec.images) else None
     request = calls.height_map_request(
         [(item.image.content, "") for item in spec.images],
@@ -186,9 +192,9 @@ def _measure(stub, spec: tiles_pb2.RoiSpec, index: int, *, request_id: str, time
     )
     try:
         with raised_as_client_errors():
-            result = calls.read_height_map(stub.ComputeHeightMap(request, timeout=timeout_s), None)
+            result = calls.read_height_map(stub.ComputeHeightMap(request, timeout=timeout_s), progress)
     except ClientError as error:
         if error.field:
             raise InvalidInputError(f"rois[{index}].{error.field}", str(error).split(": ", 1)[-1]) from None
         raise
-    return MeasuredHeights(result.z_um, result.texture, result.pixel_size_um, result.report)
+    return MeasuredHeights(result.z_um, result.texture, result.pixel_size_um, result.report, result.sigma_um)

@@ -1,19 +1,27 @@
-// Fractoscope web viewer: streams a specimen's 3D Tiles with 3DTilesRendererJS, colours it by the
-// SEM image or by height, shades optical vs digital tiles, measures profiles and roughness.
+// Fractoscope web viewer: streams a specimen's 3D Tiles with 3DTilesRendererJS, draws them lit and
+// coloured by the SEM image or by height (surface.js), measures on the surface (measure.js) and
+// the roughness of the view, and keeps its state in a permalink.
 // Tileset frame (3D Tiles, Z up, metres): x = specimen x, y = -specimen y, z = height.
 import * as THREE from "three";
 import { OrbitControls } from "three/addons/controls/OrbitControls.js";
 import { MeshoptDecoder } from "three/addons/libs/meshopt_decoder.module.js";
 import { TilesRenderer } from "3d-tiles-renderer";
 import { GLTFExtensionsPlugin } from "3d-tiles-renderer/plugins";
+import { Measurements } from "./measure.js";
+import { formatUm, niceTicks } from "./plot.js";
+import { MAX_ROIS, RAMP, isWallMesh, lightDirection, rampGradient, sharedUniforms, surfaceMaterial } from "./surface.js";
 
 const METRES_PER_UM = 1e-6;
+// Tiles are refined until their geometric error is at most this many pixels on screen.
+const ERROR_TARGET_PX = 6;
+const query = new URLSearchParams(location.search);
 // A server with tokens gets one through the page's URL (?token=...): sent with every request.
-const token = new URLSearchParams(location.search).get("token");
+const token = query.get("token");
 const authorization = token ? { Authorization: `Bearer ${token}` } : {};
 const api = (path) => fetch(path, { headers: authorization });
-const view = document.getElementById("view");
-const status = { loaded: 0, failed: 0, tilesetLoaded: false, downloading: 0, visible: 0 };
+const $ = (id) => document.getElementById(id);
+const view = $("view");
+const status = { loaded: 0, failed: 0, tilesetLoaded: false, downloading: 0, queued: 0, visible: 0, settled: false, error: null };
 window.viewer = { status, profile: null, roughness: null };
 
 const renderer = new THREE.WebGLRenderer({ antialias: true, preserveDrawingBuffer: true });
@@ -25,109 +33,199 @@ const camera = new THREE.PerspectiveCamera(45, 1, 1e-9, 10);
 camera.up.set(0, 0, 1);
 const controls = new OrbitControls(camera, renderer.domElement);
 controls.screenSpacePanning = true;
-const profileLine = new THREE.Line(new THREE.BufferGeometry(), new THREE.LineBasicMaterial({ color: 0xff3355, depthTest: false }));
-profileLine.renderOrder = 10;
-scene.add(profileLine);
+const uniforms = sharedUniforms();
+const overlay = new THREE.Group(); // measurement lines and markers, in the tileset frame
+scene.add(overlay);
 
 let tiles = null;
-let specimenId = null;
-let heightRangeM = [0, 1];
-let colouring = "texture";
-let shadeZoom = false;
-let picking = null;
+let specimen = null; // {id, rois, level, pixelSizeUm, heightRangeUm}
+// The scene is drawn again only when something changed: software rendering (headless browsers,
+// remote desktops) then leaves the main thread to the tiles' decoding.
+let needsRender = true;
+const requestRender = () => { needsRender = true; };
+const measurements = new Measurements({
+  overlay, api, specimen: () => specimen, onChange: () => updatePermalink(), redraw: requestRender,
+  elements: { hint: $("tool-hint"), list: $("measurements"), plot: $("profile-plot") },
+});
+window.viewer.measurements = measurements;
+window.viewer.debug = { camera, controls }; // for the browser tests
 
 function resize() {
   const { clientWidth: width, clientHeight: height } = view;
   renderer.setSize(width, height);
   camera.aspect = width / height;
   camera.updateProjectionMatrix();
+  measurements.setResolution(width, height);
   if (tiles) tiles.setResolutionFromRenderer(camera, renderer);
+  requestRender();
 }
 window.addEventListener("resize", resize);
 
-function heightColour(fraction, colour) {
-  // A perceptual blue-green-yellow ramp (close to viridis).
-  const stops = [[0.27, 0.0, 0.33], [0.13, 0.57, 0.55], [0.99, 0.91, 0.14]];
-  const t = Math.min(Math.max(fraction, 0), 1) * (stops.length - 1);
-  const i = Math.min(Math.floor(t), stops.length - 2);
-  const f = t - i;
-  colour.setRGB(...stops[i].map((v, k) => v + (stops[i + 1][k] - v) * f), THREE.SRGBColorSpace);
+// What the display controls say, into the shared uniforms (every tile, shown or cached, at once).
+function applyDisplay() {
+  const value = (id) => Number($(id).value);
+  uniforms.colouring.value = document.querySelector("input[name=colouring]:checked").value === "height" ? 1 : 0;
+  uniforms.shadeZoom.value = $("zoom-kinds").checked ? 1 : 0;
+  uniforms.showRois.value = $("roi-outlines").checked ? 1 : 0;
+  uniforms.showWalls.value = $("walls").checked ? 1 : 0;
+  uniforms.lighting.value = value("lighting");
+  lightDirection(value("light-azimuth"), value("light-elevation"), uniforms.lightDirection.value);
+  const exaggeration = 10 ** value("exaggeration");
+  for (const group of [tiles?.group, overlay]) group?.scale.set(1, 1, exaggeration);
+  $("light-azimuth-value").textContent = `${value("light-azimuth")}°`;
+  $("light-elevation-value").textContent = `${value("light-elevation")}°`;
+  $("lighting-value").textContent = value("lighting").toFixed(2);
+  $("exaggeration-value").textContent = `${exaggeration.toPrecision(exaggeration < 10 ? 2 : 3)}`;
+  $("legend").innerHTML = uniforms.shadeZoom.value
+    ? '<span class="swatch" style="background:#7f7"></span>optical zoom (measured) &nbsp; <span class="swatch" style="background:#f96"></span>digital zoom (upsampled)'
+    : "";
+  $("roi-labels").hidden = !uniforms.showRois.value;
+  updateColourBar();
+  updatePermalink();
+  requestRender();
 }
 
-function styleMesh(mesh) {
-  const data = mesh.userData;
-  if (!data.imageMaterial) {
-    data.imageMaterial = new THREE.MeshBasicMaterial({ map: mesh.material.map, side: THREE.DoubleSide });
-    mesh.material.dispose();
-  }
-  if (colouring === "height" && !data.heightMaterial) {
-    // glTF positions are Y-up: the height is y, in metres, once the node's transform turns the
-    // quantized positions (KHR_mesh_quantization) back into metres.
-    const positions = mesh.geometry.getAttribute("position");
-    const colours = new Float32Array(positions.count * 3);
-    const colour = new THREE.Color();
-    const vertex = new THREE.Vector3();
-    const [low, high] = heightRangeM;
-    mesh.updateMatrix();
-    for (let i = 0; i < positions.count; i++) {
-      const heightM = vertex.fromBufferAttribute(positions, i).applyMatrix4(mesh.matrix).y;
-      heightColour((heightM - low) / (high - low || 1), colour);
-      colours.set([colour.r, colour.g, colour.b], i * 3);
-    }
-    mesh.geometry.setAttribute("color", new THREE.BufferAttribute(colours, 3));
-    data.heightMaterial = new THREE.MeshBasicMaterial({ vertexColors: true, side: THREE.DoubleSide });
-  }
-  mesh.material = colouring === "height" ? data.heightMaterial : data.imageMaterial;
-  const tint = !shadeZoom ? 0xffffff : data.zoom === "DIGITAL" ? 0xff9966 : 0x99ff99;
-  data.imageMaterial.color.set(tint);
-  if (data.heightMaterial) data.heightMaterial.color.set(tint);
+function updateColourBar() {
+  const bar = $("colour-bar");
+  bar.hidden = !(uniforms.colouring.value === 1 && specimen);
+  if (bar.hidden) return;
+  const [low, high] = specimen.heightRangeUm;
+  $("colour-bar-ramp").style.background = rampGradient();
+  const ticks = niceTicks(low, high, 5).filter((t) => (t - low) / (high - low) > 0.08 && (high - t) / (high - low) > 0.08);
+  const label = (value, id) => `<span ${id ? `id="${id}"` : ""} style="top:${(100 * (high - value)) / (high - low)}%">${formatUm(value, 2)}</span>`;
+  $("colour-bar-ticks").innerHTML = label(high, "colour-bar-max") + ticks.map((t) => label(t)).join("") + label(low, "colour-bar-min");
+  $("colour-bar-datum").textContent = specimen.level ? `0 µm: the ${specimen.level}` : "heights relative (offset arbitrary)";
 }
 
-function restyle() {
-  if (tiles) tiles.group.traverse((object) => { if (object.isMesh) styleMesh(object); });
-  document.getElementById("legend").textContent = shadeZoom ? "green: optical zoom (measured), orange: digital zoom (upsampled)" : "";
+function showMessage(text) {
+  $("message").hidden = !text;
+  $("message").textContent = text || "";
 }
 
-function open(id) {
+function setStatus(text, isError = false) {
+  $("status").textContent = text;
+  $("status").classList.toggle("error", isError);
+}
+
+async function open(id, state = {}) {
   if (tiles) {
     scene.remove(tiles.group);
     tiles.dispose();
   }
-  specimenId = id;
-  Object.assign(status, { loaded: 0, failed: 0, tilesetLoaded: false });
+  measurements.clear();
+  showMessage("");
+  Object.assign(status, { loaded: 0, failed: 0, tilesetLoaded: false, settled: false, error: null, openedAt: performance.now() });
+  const response = await api(`/api/specimens/${id}`);
+  const summary = await response.json();
+  if (!response.ok) {
+    status.error = summary.error ?? `specimen ${id} did not load`;
+    showMessage(status.error);
+    return;
+  }
+  specimen = {
+    id, rois: summary.rois, level: summary.rois[0]?.level || "",
+    pixelSizeUm: Math.min(...summary.rois.map((roi) => roi.pixel_size_um)), heightRangeUm: [0, 1],
+  };
+  setRoiOutlines(summary.rois);
   tiles = new TilesRenderer(`/specimens/${id}/tileset.json`);
   tiles.fetchOptions.headers = authorization;
   // Tiles are meshoptimizer-compressed (EXT_meshopt_compression).
   tiles.registerPlugin(new GLTFExtensionsPlugin({ meshoptDecoder: MeshoptDecoder }));
-  tiles.errorTarget = 4;
+  tiles.errorTarget = ERROR_TARGET_PX;
   tiles.setCamera(camera);
   tiles.setResolutionFromRenderer(camera, renderer);
   tiles.addEventListener("load-tileset", () => {
+    if (status.tilesetLoaded) return;
     status.tilesetLoaded = true;
     const box = tiles.root.boundingVolume.box;
-    heightRangeM = [box[2] - box[11], box[2] + box[11]];
+    specimen.heightRangeUm = [(box[2] - box[11]) / METRES_PER_UM, (box[2] + box[11]) / METRES_PER_UM];
+    uniforms.heightRange.value.set(box[2] - box[11], box[2] + box[11]);
     const sphere = new THREE.Sphere();
     tiles.getBoundingSphere(sphere);
-    controls.target.copy(sphere.center);
-    camera.position.copy(sphere.center).add(new THREE.Vector3(0, -0.4 * sphere.radius, 2.2 * sphere.radius));
     camera.near = sphere.radius * 1e-3;
     camera.far = sphere.radius * 20;
+    if (state.camera) {
+      const [x, y, z, tx, ty, tz] = state.camera.map((v) => v * METRES_PER_UM);
+      camera.position.set(x, -y, z);
+      controls.target.set(tx, -ty, tz);
+    } else {
+      frameOverview();
+    }
     camera.updateProjectionMatrix();
     controls.update();
+    updateColourBar();
+    if (state.measurements) measurements.decode(state.measurements);
   });
+  for (const event of ["load-model", "dispose-model", "tile-visibility-change", "needs-update"]) tiles.addEventListener(event, requestRender);
   tiles.addEventListener("load-model", ({ scene: model, tile }) => {
     status.loaded += 1;
     const zoom = tile.metadata?.properties?.zoom;
     model.traverse((object) => {
       if (object.isMesh) {
-        object.userData.zoom = zoom;
-        styleMesh(object);
+        const loaded = object.material;
+        object.material = surfaceMaterial(loaded, zoom, uniforms);
+        loaded.dispose();
       }
     });
   });
-  tiles.addEventListener("load-error", () => { status.failed += 1; });
+  tiles.addEventListener("dispose-model", ({ scene: model }) => {
+    // The renderer disposes materials it finds; our materials hold the textures in uniforms.
+    model.traverse((object) => object.material?.uniforms?.map?.value?.dispose());
+  });
+  tiles.addEventListener("load-error", ({ url, error }) => {
+    status.failed += 1;
+    if (String(url).endsWith("tileset.json")) {
+      status.error = `the tileset of ${id} did not load (${error?.message ?? error})`;
+      showMessage(status.error);
+    }
+  });
   scene.add(tiles.group);
-  document.getElementById("status").textContent = `specimen ${id}`;
+  $("scale-bar").hidden = false;
+  applyDisplay();
+  const overview = summary.rois[0];
+  setStatus(`specimen ${id}: ${summary.rois.length} ROI; overview ${overview.id}` + (overview.magnification ? ` at ${overview.magnification}×` : "")
+    + `, ${+overview.pixel_size_um.toPrecision(3)} µm/px` + (specimen.level ? `; heights from the ${specimen.level}` : ""));
+}
+
+// Looks at the overview ROI from above and a little to the front, all of it in the view.
+function frameOverview() {
+  const { min, max } = specimen.rois[0].region;
+  const [low, high] = specimen.heightRangeUm;
+  const centre = new THREE.Vector3((min.x_um + max.x_um) / 2, -(min.y_um + max.y_um) / 2, (low + high) / 2).multiplyScalar(METRES_PER_UM);
+  const halfWidth = ((max.x_um - min.x_um) / 2) * METRES_PER_UM;
+  const halfHeight = ((max.y_um - min.y_um) / 2) * METRES_PER_UM;
+  const distance = (1.15 * Math.max(halfHeight, halfWidth / camera.aspect)) / Math.tan(THREE.MathUtils.degToRad(camera.fov / 2));
+  controls.target.copy(centre);
+  camera.position.copy(centre).add(new THREE.Vector3(0, -0.18, 0.98).multiplyScalar(distance));
+}
+
+function setRoiOutlines(rois) {
+  // Children only: the overview's outline is the specimen's edge.
+  const shown = rois.filter((roi) => roi.parent).slice(0, MAX_ROIS);
+  uniforms.roiCount.value = shown.length;
+  shown.forEach((roi, i) => {
+    const { min, max } = roi.region;
+    uniforms.rois.value[i].set(min.x_um * METRES_PER_UM, -max.y_um * METRES_PER_UM, max.x_um * METRES_PER_UM, -min.y_um * METRES_PER_UM);
+  });
+  $("roi-labels").replaceChildren(...shown.map((roi) => {
+    const label = document.createElement("span");
+    label.textContent = `${roi.id}${roi.magnification ? ` · ${roi.magnification}×` : ""} · ${+roi.pixel_size_um.toPrecision(3)} µm/px`;
+    label.dataset.x = roi.region.min.x_um;
+    label.dataset.y = roi.region.min.y_um;
+    return label;
+  }));
+}
+
+function updateRoiLabels() {
+  const top = specimen ? specimen.heightRangeUm[1] : 0;
+  const exaggeration = overlay.scale.z;
+  for (const label of $("roi-labels").children) {
+    const point = new THREE.Vector3(label.dataset.x * METRES_PER_UM, -label.dataset.y * METRES_PER_UM, top * METRES_PER_UM * exaggeration).project(camera);
+    const visible = point.z < 1 && Math.abs(point.x) < 1 && Math.abs(point.y) < 1;
+    label.style.display = visible ? "" : "none";
+    label.style.left = `${((point.x + 1) / 2) * view.clientWidth}px`;
+    label.style.top = `${((1 - point.y) / 2) * view.clientHeight}px`;
+  }
 }
 
 function niceLength(metres) {
@@ -139,8 +237,22 @@ function updateScaleBar() {
   const distance = camera.position.distanceTo(controls.target);
   const metresPerPixel = (2 * distance * Math.tan(THREE.MathUtils.degToRad(camera.fov / 2))) / view.clientHeight;
   const length = niceLength(metresPerPixel * 150);
-  document.getElementById("scale-line").style.width = `${length / metresPerPixel}px`;
-  document.getElementById("scale-label").textContent = `${+(length / METRES_PER_UM).toPrecision(3)} µm`;
+  $("scale-line").style.width = `${length / metresPerPixel}px`;
+  $("scale-label").textContent = `${+(length / METRES_PER_UM).toPrecision(3)} µm`;
+}
+
+// Tiles' progress: what is shown, loading and failed, and whether the view has settled.
+function updateProgress() {
+  const stats = tiles.stats;
+  const pending = stats.queued + stats.downloading + stats.parsing;
+  Object.assign(status, { visible: tiles.visibleTiles.size, downloading: stats.downloading + stats.parsing, queued: stats.queued });
+  const settled = status.tilesetLoaded && status.loaded > 0 && pending === 0;
+  if (settled && !status.settled) status.settledAfterS = (performance.now() - status.openedAt) / 1000;
+  status.settled = settled;
+  $("tile-progress-text").textContent = `tiles: ${status.visible} shown, ${pending} loading` + (status.failed ? `, ${status.failed} failed` : "");
+  $("tile-progress-text").classList.toggle("busy", pending > 0);
+  $("tile-progress-bar").style.width = `${(100 * status.loaded) / Math.max(status.loaded + pending, 1)}%`;
+  $("hud").style.opacity = pending ? 1 : 0.6;
 }
 
 function frame() {
@@ -148,55 +260,34 @@ function frame() {
   controls.update();
   camera.updateMatrixWorld();
   if (tiles) {
+    tiles.group.updateMatrixWorld();
+    uniforms.toTileset.value.copy(tiles.group.matrixWorld).invert();
     tiles.update();
-    status.visible = tiles.visibleTiles.size;
-    status.downloading = tiles.stats.downloading + tiles.stats.parsing;
+    updateProgress();
   }
+  if (!needsRender) return;
+  needsRender = false;
   updateScaleBar();
+  updateRoiLabels();
   renderer.render(scene, camera);
 }
 
-function specimenPointUm(event) {
+// The surface point under a pointer event: specimen µm (x right, y down) and the shown height.
+// A ray exactly along the edge two tiles share can miss both: half a pixel aside it does not.
+function surfacePoint(event) {
   const bounds = renderer.domElement.getBoundingClientRect();
-  const pointer = new THREE.Vector2(((event.clientX - bounds.left) / bounds.width) * 2 - 1, -((event.clientY - bounds.top) / bounds.height) * 2 + 1);
   const caster = new THREE.Raycaster();
-  caster.setFromCamera(pointer, camera);
-  const hit = caster.intersectObject(tiles.group, true)[0];
-  return hit ? { world: hit.point.clone(), x_um: hit.point.x / METRES_PER_UM, y_um: -hit.point.y / METRES_PER_UM } : null;
-}
-
-function plotProfile(result) {
-  const canvas = document.getElementById("profile-plot");
-  const context = canvas.getContext("2d");
-  context.clearRect(0, 0, canvas.width, canvas.height);
-  const points = result.distance_um.map((d, i) => [d, result.z_um[i]]).filter(([, z]) => z !== null);
-  if (points.length < 2) return;
-  const [dMax, zLow, zHigh] = [result.distance_um.at(-1), Math.min(...points.map((p) => p[1])), Math.max(...points.map((p) => p[1]))];
-  const x = (d) => 30 + (d / dMax) * (canvas.width - 40);
-  const y = (z) => canvas.height - 20 - ((z - zLow) / (zHigh - zLow || 1)) * (canvas.height - 30);
-  context.strokeStyle = "#c23";
-  context.beginPath();
-  points.forEach(([d, z], i) => (i ? context.lineTo(x(d), y(z)) : context.moveTo(x(d), y(z))));
-  context.stroke();
-  context.fillStyle = "#333";
-  context.fillText(`${dMax.toFixed(1)} µm`, canvas.width - 50, canvas.height - 5);
-  context.fillText(`${(zHigh - zLow).toFixed(2)} µm`, 2, 12);
-}
-
-async function measureProfile(start, end) {
-  const query = `from=${start.x_um},${start.y_um}&to=${end.x_um},${end.y_um}`;
-  const response = await api(`/api/specimens/${specimenId}/profile?${query}`);
-  const result = await response.json();
-  window.viewer.profile = result;
-  if (!response.ok) {
-    document.getElementById("profile-stats").textContent = result.error;
-    return;
+  for (const [dx, dy] of [[0, 0], [0.5, 0], [-0.5, 0], [0, 0.5], [0, -0.5]]) {
+    const x = event.clientX + dx - bounds.left;
+    const y = event.clientY + dy - bounds.top;
+    caster.setFromCamera(new THREE.Vector2((x / bounds.width) * 2 - 1, -(y / bounds.height) * 2 + 1), camera);
+    const hit = caster.intersectObject(tiles.group, true).find((h) => !isWallMesh(h.object));
+    if (hit) {
+      const local = hit.point.clone().applyMatrix4(uniforms.toTileset.value);
+      return { x_um: local.x / METRES_PER_UM, y_um: -local.y / METRES_PER_UM, z_um: local.z / METRES_PER_UM };
+    }
   }
-  plotProfile(result);
-  const p = result.parameters;
-  document.getElementById("profile-stats").textContent = p
-    ? `Ra ${p.Ra.toFixed(3)} µm, Rq ${p.Rq.toFixed(3)} µm, Rz ${p.Rz.toFixed(3)} µm`
-    : "no heights along this line";
+  return null;
 }
 
 async function measureRoughness() {
@@ -205,50 +296,161 @@ async function measureRoughness() {
   const halfWidth = halfHeight * camera.aspect;
   const [cx, cy] = [controls.target.x / METRES_PER_UM, -controls.target.y / METRES_PER_UM];
   const [hx, hy] = [halfWidth / METRES_PER_UM, halfHeight / METRES_PER_UM];
-  const response = await api(`/api/specimens/${specimenId}/roughness?region=${cx - hx},${cy - hy},${cx + hx},${cy + hy}`);
+  const response = await api(`/api/specimens/${specimen.id}/roughness?region=${cx - hx},${cy - hy},${cx + hx},${cy + hy}`);
   const result = await response.json();
   window.viewer.roughness = result;
-  document.getElementById("roughness-stats").textContent = response.ok
+  $("roughness-stats").textContent = response.ok
     ? `Sa ${result.Sa.toFixed(3)} µm, Sq ${result.Sq.toFixed(3)} µm, Sdr ${result.Sdr.toFixed(2)} %, Hurst ${result.hurst_exponent.toFixed(2)}`
     : result.error;
 }
 
+// Runs `work` with `button` disabled and a spinner with the seconds it has taken so far.
+async function busy(button, work) {
+  const label = button.textContent;
+  const started = performance.now();
+  button.disabled = true;
+  button.classList.add("busy");
+  const timer = setInterval(() => { button.textContent = `${label}: ${((performance.now() - started) / 1000).toFixed(0)} s`; }, 500);
+  try {
+    await work();
+  } finally {
+    clearInterval(timer);
+    button.textContent = label;
+    button.disabled = false;
+    button.classList.remove("busy");
+  }
+}
+
+// The camera, the display and the measurements as a URL (µm in the specimen frame).
+function permalink() {
+  const url = new URL(location.href);
+  const params = url.searchParams;
+  const round = (v) => +(v / METRES_PER_UM).toFixed(3);
+  params.set("specimen", specimen?.id ?? "");
+  params.set("camera", [camera.position.x, -camera.position.y, camera.position.z, controls.target.x, -controls.target.y, controls.target.z].map(round).join(","));
+  params.set("colouring", uniforms.colouring.value ? "height" : "texture");
+  params.set("light", [$("light-azimuth").value, $("light-elevation").value, $("lighting").value].join(","));
+  params.set("exaggeration", $("exaggeration").value);
+  params.set("show", [["zoom-kinds", "zoom"], ["roi-outlines", "rois"], ["walls", "walls"]].filter(([id]) => $(id).checked).map(([, name]) => name).join(","));
+  const encoded = measurements.encode();
+  if (encoded) params.set("measurements", encoded);
+  else params.delete("measurements");
+  return url.toString();
+}
+
+function updatePermalink() {
+  if (specimen) $("permalink-text").value = permalink();
+}
+
+function applyState(params) {
+  const light = (params.get("light") || "").split(",");
+  [["light-azimuth", light[0]], ["light-elevation", light[1]], ["lighting", light[2]], ["exaggeration", params.get("exaggeration")]]
+    .forEach(([id, value]) => { if (value !== undefined && value !== null && value !== "" && Number.isFinite(Number(value))) $(id).value = value; });
+  if (params.get("colouring")) document.querySelector(`input[name=colouring][value=${params.get("colouring") === "height" ? "height" : "texture"}]`).checked = true;
+  if (params.has("show")) {
+    const shown = params.get("show").split(",");
+    $("zoom-kinds").checked = shown.includes("zoom");
+    $("roi-outlines").checked = shown.includes("rois");
+    $("walls").checked = shown.includes("walls");
+  }
+  const cameraValues = (params.get("camera") || "").split(",").map(Number);
+  return {
+    camera: cameraValues.length === 6 && cameraValues.every(Number.isFinite) ? cameraValues : null,
+    measurements: params.get("measurements"),
+  };
+}
+
+// The view as a PNG, with the colour bar, the scale bar and the legend drawn into it.
+function snapshot() {
+  const canvas = document.createElement("canvas");
+  const source = renderer.domElement;
+  [canvas.width, canvas.height] = [source.width, source.height];
+  const context = canvas.getContext("2d");
+  const ratio = source.width / view.clientWidth;
+  context.drawImage(source, 0, 0);
+  context.scale(ratio, ratio);
+  context.font = "13px system-ui, sans-serif";
+  context.fillStyle = "#fff";
+  context.shadowColor = "#000";
+  context.shadowBlur = 3;
+  const line = $("scale-line").getBoundingClientRect();
+  const origin = view.getBoundingClientRect();
+  context.fillRect(line.left - origin.left, line.top - origin.top, line.width, line.height);
+  context.fillText($("scale-label").textContent, line.left - origin.left, line.bottom - origin.top + 16);
+  if (!$("colour-bar").hidden) {
+    const ramp = $("colour-bar-ramp").getBoundingClientRect();
+    const gradient = context.createLinearGradient(0, ramp.bottom - origin.top, 0, ramp.top - origin.top);
+    RAMP.forEach((c, i) => gradient.addColorStop(i / (RAMP.length - 1), `rgb(${c.map((v) => Math.round(v * 255)).join(",")})`));
+    context.fillStyle = gradient;
+    context.fillRect(ramp.left - origin.left, ramp.top - origin.top, ramp.width, ramp.height);
+    context.fillStyle = "#fff";
+    for (const tick of $("colour-bar-ticks").children) {
+      const box = tick.getBoundingClientRect();
+      context.fillText(tick.textContent, box.left - origin.left + 8, box.top - origin.top + box.height * 0.8);
+    }
+    const title = $("colour-bar-title").getBoundingClientRect();
+    context.fillText(`${$("colour-bar-title").textContent} (${$("colour-bar-datum").textContent})`, title.left - origin.left, title.bottom - origin.top - 2);
+  }
+  if ($("legend").textContent) {
+    const legend = $("legend").getBoundingClientRect();
+    context.fillText($("legend").textContent.replace(/\s+/g, " ").trim(), legend.left - origin.left, legend.bottom - origin.top - 3);
+  }
+  context.fillText(`Fractoscope: ${specimen?.id ?? ""}`, 16, 20);
+  return canvas.toDataURL("image/png");
+}
+window.viewer.snapshot = snapshot;
+
 let pressedAt = null;
 renderer.domElement.addEventListener("pointerdown", (event) => { pressedAt = [event.clientX, event.clientY]; });
 renderer.domElement.addEventListener("pointerup", (event) => {
-  // A click (not a drag) picks a point when the profile tool is on.
-  if (!picking || !pressedAt || Math.hypot(event.clientX - pressedAt[0], event.clientY - pressedAt[1]) > 4) return;
-  const point = specimenPointUm(event);
-  if (!point) return;
-  picking.push(point);
-  profileLine.geometry.setFromPoints(picking.map((p) => p.world));
-  if (picking.length === 2) {
-    const [start, end] = picking;
-    picking = null;
-    document.getElementById("profile-tool").classList.remove("active");
-    measureProfile(start, end);
+  // A click (not a drag) picks a point when a measuring tool is on.
+  if (!measurements.tool || !tiles || !pressedAt || Math.hypot(event.clientX - pressedAt[0], event.clientY - pressedAt[1]) > 4) return;
+  const point = surfacePoint(event);
+  status.missedPicks = (status.missedPicks ?? 0) + (point ? 0 : 1);
+  if (point) measurements.pick(point);
+});
+document.querySelectorAll("[data-tool]").forEach((button) => button.addEventListener("click", () => measurements.start(button.dataset.tool)));
+$("clear-measurements").addEventListener("click", () => measurements.clear());
+$("roughness-button").addEventListener("click", (event) => busy(event.currentTarget, measureRoughness));
+document.querySelectorAll("#panel input").forEach((input) => input.addEventListener("input", applyDisplay));
+controls.addEventListener("change", requestRender);
+controls.addEventListener("end", updatePermalink);
+$("permalink").addEventListener("click", async () => {
+  const link = permalink();
+  $("permalink-text").value = link;
+  $("permalink-text").select();
+  try {
+    await navigator.clipboard.writeText(link);
+    setStatus("link copied");
+  } catch {
+    setStatus("link below: copy it from there");
   }
 });
-document.getElementById("profile-tool").addEventListener("click", (event) => {
-  picking = [];
-  event.target.classList.add("active");
-  document.getElementById("profile-stats").textContent = "click two points on the surface";
+$("snapshot").addEventListener("click", () => {
+  const download = document.createElement("a");
+  download.href = snapshot();
+  download.download = `fractoscope-${specimen?.id ?? "view"}.png`;
+  download.click();
 });
-document.getElementById("roughness-button").addEventListener("click", measureRoughness);
-document.querySelectorAll("input[name=colouring]").forEach((input) =>
-  input.addEventListener("change", () => { colouring = input.value; restyle(); }));
-document.getElementById("zoom-kinds").addEventListener("change", (event) => { shadeZoom = event.target.checked; restyle(); });
-document.getElementById("specimen").addEventListener("change", (event) => open(event.target.value));
+$("specimen").addEventListener("change", (event) => open(event.target.value));
 
 const specimens = await (await api("/api/specimens")).json();
-const chooser = document.getElementById("specimen");
-for (const specimen of specimens) chooser.add(new Option(`${specimen.id} (${specimen.rois.length} ROI)`, specimen.id));
-const wanted = new URLSearchParams(location.search).get("specimen");
-if (specimens.length) {
-  chooser.value = specimens.some((s) => s.id === wanted) ? wanted : specimens[0].id;
-  open(chooser.value);
-} else {
-  document.getElementById("status").textContent = "no specimens yet: run fracto reconstruct";
-}
+const chooser = $("specimen");
+for (const entry of specimens) chooser.add(new Option(`${entry.id} (${entry.rois.length} ROI)`, entry.id));
+const wanted = query.get("specimen");
 resize();
+applyDisplay();
+if (wanted && !specimens.some((entry) => entry.id === wanted)) {
+  // Never silently show another specimen than the one the link names.
+  chooser.add(new Option("(choose a specimen)", ""), 0);
+  chooser.value = "";
+  status.error = `no specimen "${wanted}" here` + (specimens.length ? `; there are: ${specimens.map((s) => s.id).join(", ")}` : "");
+  showMessage(status.error);
+  setStatus(status.error, true);
+} else if (specimens.length) {
+  chooser.value = wanted || specimens[0].id;
+  await open(chooser.value, applyState(query));
+} else {
+  setStatus("no specimens yet: run fracto reconstruct");
+}
 frame();
