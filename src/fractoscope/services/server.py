@@ -28,6 +28,7 @@ from fractoscope.specimen.store import SpecimenStore
 from fractoscope.stereo.matching import DEFAULT_STRIP_PIXELS
 from fractoscope.v1 import matching_pb2, matching_pb2_grpc, meshing_pb2, meshing_pb2_grpc, tiles_pb2, tiles_pb2_grpc
 
+_log = logging.getLogger("fractoscope.server")
 _REGISTRATIONS = {
     "matching": (matching_pb2.DESCRIPTOR.services_by_name["MatchingService"], matching_pb2_grpc.add_MatchingServiceServicer_to_server),
     "meshing": (meshing_pb2.DESCRIPTOR.services_by_name["MeshingService"], meshing_pb2_grpc.add_MeshingServiceServicer_to_server),
@@ -72,7 +73,9 @@ def create_server(
     interceptors = [AuthInterceptor(tokens)] if tokens is not None and tokens.enabled else []
     if "tiles" in services:
         store = store or SpecimenStore(Path(data_dir))
-        store.discard_unfinished()  # this server is the store's one writer
+        restored, _ = store.recover()  # this server is the store's one writer
+        for specimen_id in restored:
+            _log.warning(f"specimen {specimen_id!r}: a build was killed while it replaced the stored one, which is restored")
         servicers["tiles"] = TileServicer(store, matching_address=matching_address, meshing_address=meshing_address)
         interceptors.append(SerializedGetTile(servicers["tiles"]))  # after the token check
     server = grpc.server(
@@ -140,17 +143,16 @@ def main(argv: list[str] | None = None) -> None:
     )
     settle_garbage_collector()
     server.start()
-    log = logging.getLogger("fractoscope.server")
-    log.info(f"serving {', '.join(services)} on port {port}")
+    _log.info(f"serving {', '.join(services)} on port {port}")
     http = None
     if store is not None and args.http_address:
         host, _, http_port = args.http_address.rpartition(":")
         http = start_http_server(store, host or "0.0.0.0", int(http_port), tokens=tokens)
-        log.info(f"serving tilesets over HTTP on port {http.server_port}")
+        _log.info(f"serving tilesets over HTTP on port {http.server_port}")
     stopped = threading.Event()
 
     def stop(signum, frame):
-        log.info("stopping")
+        _log.info("stopping")
         server.stop(args.grace_s).wait()
         if http is not None:
             http.shutdown()
