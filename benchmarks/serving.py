@@ -48,6 +48,13 @@ TILES_PROTO = "fractoscope/v1/tiles.proto"
 # (1 + 8), so that some builds are refused.
 BUILDERS = 12
 HEALTH_CHECKS_PER_S = 20
+# grpc.health.v1's Check, for ghz (grpcio-health-checking ships no .proto file).
+HEALTH_PROTO = """syntax = "proto3";
+package grpc.health.v1;
+message HealthCheckRequest { string service = 1; }
+message HealthCheckResponse { enum ServingStatus { UNKNOWN = 0; SERVING = 1; NOT_SERVING = 2; } ServingStatus status = 1; }
+service Health { rpc Check(HealthCheckRequest) returns (HealthCheckResponse); }
+"""
 # wrk's script: every connection walks the tile list; at the end one JSON line with the figures.
 WRK_SCRIPT = """
 local paths = {}
@@ -135,12 +142,13 @@ def grpc_calls(address: str, method: str, messages: list[dict], *, concurrency: 
     ], cpus)
 
 
-def health_checks(address: str, *, duration_s: float, cpus) -> dict:
-    """grpc.health.v1 Check at HEALTH_CHECKS_PER_S for `duration_s`, described by the server's
-    reflection, each with a deadline of 10 s; ghz's figures, and its slowest check."""
+def health_checks(address: str, *, duration_s: float, cpus, scratch: Path) -> dict:
+    """grpc.health.v1 Check at HEALTH_CHECKS_PER_S for `duration_s`, each with a deadline of
+    10 s; ghz's figures, and its slowest check."""
+    (scratch / "health.proto").write_text(HEALTH_PROTO)
     return _ghz([
-        "--call", "grpc.health.v1.Health.Check", "-d", "{}", "--rps", str(HEALTH_CHECKS_PER_S), "-c", "2",
-        "-z", f"{duration_s:g}s", "--duration-stop", "wait", "--timeout", "10s", address,
+        "--import-paths", str(scratch), "--proto", "health.proto", "--call", "grpc.health.v1.Health.Check", "-d", "{}",
+        "--rps", str(HEALTH_CHECKS_PER_S), "-c", "2", "-z", f"{duration_s:g}s", "--duration-stop", "wait", "--timeout", "10s", address,
     ], cpus)
 
 
@@ -187,7 +195,8 @@ def mixed(address: str, base_url: str, tile_paths: list[str], rois: list, *, ser
     figures = {}
     readers = [
         threading.Thread(target=lambda: figures.__setitem__("http_get_tile", http_tiles(base_url, tile_paths, **load))),
-        threading.Thread(target=lambda: figures.__setitem__("health", health_checks(address, duration_s=duration_s, cpus=load["cpus"]))),
+        threading.Thread(target=lambda: figures.__setitem__("health", health_checks(
+            address, duration_s=duration_s, cpus=load["cpus"], scratch=load["scratch"]))),
     ]
     started = time.perf_counter()
     with MemorySampler(server_pid) as memory:
