@@ -68,7 +68,7 @@ def test_the_estimate_covers_the_measured_peak_of_a_height_map(tmp_path, size_px
 
 
 def test_a_request_over_the_memory_budget_is_refused_before_any_work_naming_its_size(tmp_path):
-    server, port = create_server("127.0.0.1:0", data_dir=tmp_path / "data", max_request_mb=200)
+    server, port = create_server("127.0.0.1:0", data_dir=tmp_path / "data", max_request_mb=300)
     server.start()
     noise = np.random.default_rng(0).integers(0, 256, (1024, 1024), dtype=np.uint8)  # refused before it is decoded
     files = [tiff_bytes(noise), tiff_bytes(noise)]
@@ -79,7 +79,7 @@ def test_a_request_over_the_memory_budget_is_refused_before_any_work_naming_its_
                 client.compute_height_map(files, tilt_deg=(-5, 5), pixel_size_um=0.1, on_progress=lambda *report: progress.append(report))
             assert refused.value.code == grpc.StatusCode.RESOURCE_EXHAUSTED and progress == []
             message = str(refused.value)
-            assert "1024 x 1024 pixels" in message and "200 MiB" in message and "FRACTO_MAX_REQUEST_MB" in message
+            assert "1024 x 1024 pixels" in message and "300 MiB" in message and "FRACTO_MAX_REQUEST_MB" in message
             assert refused.value.retry_after_s is None  # retrying will not help
 
             spec = tiles_pb2.RoiSpec(id="overview", pixel_size_um=0.1)
@@ -107,5 +107,4 @@ def test_estimates_grow_with_the_views_the_rotated_canvas_and_the_strips():
     assert budget.height_map_bytes((4096, 4096), 3) > pair  # another matched view's full-image arrays
     assert budget.height_map_bytes((4096, 4096), 2, tilt_axis_deg=45.0) > 1.5 * pair  # the canvas that turns the axis vertical
     assert budget.height_map_bytes((4096, 4096), 2, strip_pixels=8_000_000) > pair
-    huge = budget.height_map_bytes((16384, 16384), 2)
-    assert 20 * 2**30 < huge < 30 * 2**30  # the 16384² pair that took the server past 13 GB still aligning
+    assert budget.height_map_bytes((16384, 16384), 2) > 13e9  # that pair took a server past 13 GB, still aligning

@@ -1,14 +1,15 @@
 """The memory budget of one request: its peak estimated from its pixel counts before any work,
 and refused (RESOURCE_EXHAUSTED naming the size) when it exceeds FRACTO_MAX_REQUEST_MB.
 
-The factors are measured peaks with headroom: a fracto-server process's VmHWM during one call
-above its VmRSS before (glibc keeping freed memory, as it serves), checked by
-tests/services/test_budget.py. A height map (the request read, decoding, alignment, dense
-matching, the response serialized) took 231 MiB for a 1,024² pair matched in 300,000-pixel
-strips and 616-709 MiB for a 2,048² pair (estimates: 317 and 1,051 MiB); in-process, 1,215 MB
-for 4,096² and 2,098 MB for a 4,096² three-view series. That is about 85 MB, plus 50 B per pixel
-and matched view for the full-image arrays, plus 98 B per pixel of the largest strip. Meshing
-took about 30 MB plus 51-60 B per height-map pixel (1,024² to 2,048², every level).
+The factors are measured peaks with headroom: a fracto-server process's VmHWM during its first
+call above its VmRSS before (glibc keeping freed memory, as it serves), which
+tests/services/test_budget.py checks. A height map by the default method (TGV_ZNCC: the request
+read, decoding, alignment, dense matching, the response serialized) took 156 MiB for a 512² pair,
+349 MiB for 1,024² in one strip and 281 MiB in 300,000-pixel strips, 813 MiB for 2,048², and
+in-process 1,224 MB for 4,096² (estimates: 275, 500, 357, 1,091 and 2,099 MiB); WINDOW_ZNCC
+took 222 MiB for 1,024² in 300,000-pixel strips, and in-process 1,215 MB for 4,096² and
+2,098 MB for a 4,096² three-view series. Meshing took about 30 MB plus 51-60 B per height-map
+pixel (1,024² to 2,048², every level).
 """
 
 from __future__ import annotations
@@ -22,12 +23,12 @@ from fractoscope.stereo import alignment, matching
 from fractoscope.stereo.pipeline import DEFAULT_TILT_AXIS_DEG
 
 MB = 1024 * 1024
-# Per call, whatever its size: the messages, lazily built OpenCV and SIFT buffers, thread stacks.
-BASE_BYTES = 160 * MB
-# Full-image arrays per pixel and matched view (measured about 50 B).
+# Per call, whatever its size: a first call's numba compilation, lazily built OpenCV and SIFT
+# buffers, thread stacks, the messages (measured about 96 MB).
+BASE_BYTES = 200 * MB
+# Full-image arrays per pixel and matched view (measured 50-75 B).
 HEIGHT_MAP_BYTES_PER_PIXEL = 80
-# Per pixel of the largest strip (measured about 98 B with window ZNCC; a refinement keeping 11
-# more float32 arrays per strip pixel adds 44 B, still within this).
+# Per pixel of the largest strip (measured 100-180 B).
 STRIP_BYTES_PER_PIXEL = 220
 # Per height-map pixel, every level of detail (measured 51-60 B).
 MESH_BYTES_PER_PIXEL = 100

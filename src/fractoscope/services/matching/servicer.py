@@ -21,9 +21,8 @@ from fractoscope.sem.image import image_shape, read_sem_image
 from fractoscope.services import budget
 from fractoscope.services.jobs import Job, JobRunner
 from fractoscope.services.matching.peers import PeerStripMatcher, StripPeers
-from fractoscope.stereo.matching import DEFAULT_STRIP_PIXELS
+from fractoscope.stereo.matching import DEFAULT_STRIP_PIXELS, match_strip
 from fractoscope.stereo.pipeline import DEFAULT_TILT_AXIS_DEG, HeightMapResult, compute_series_height_map, validate_options
-from fractoscope.stereo.window_zncc import match_strip
 from fractoscope.v1 import common_pb2, matching_pb2, matching_pb2_grpc
 
 _log = logging.getLogger("fractoscope.matching")
