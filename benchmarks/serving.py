@@ -6,15 +6,19 @@ process holding the multi-scale demo specimen, loaded with
 
 each for a fixed time at a fixed number of concurrent requests, round-robin over every tile, 64
 zoom regions and 256 profile lines. Reported per query: requests per second, p50/p99 latency,
-errors, and the server's resident memory sampled every half second. Last, the same GetTile load
-on a bare gRPC server returning one cached tile-sized response (bare_grpc_server): the floor that
-gRPC Python sets on these CPUs, whatever the tile service does.
+errors, and the server's resident memory sampled every half second. Then the mixed phase:
+`BUILDERS` clients reconstructing the demo specimen under new ids, one build after another (a
+RESOURCE_EXHAUSTED answer, the documented refusal of a full build queue, is counted and retried
+after its hint), while wrk reads tiles and ghz checks health 20 times a second, all for the same
+time; reported: builds done and refused, other errors, the tiles' and health checks' latency,
+and the server's peak memory. Last, the same GetTile load on a bare gRPC server returning one
+cached tile-sized response (bare_grpc_server): the floor that gRPC Python sets on these CPUs,
+whatever the tile service does.
 
 With two or more CPUs the server runs on the first half and the load generator on the rest, so
 that neither takes the other's CPU time; the figures are then the server's on its share.
 Writes bench-results/NAME.json and prints a table.
 """
-
 from __future__ import annotations
 
 import argparse
@@ -32,7 +36,7 @@ from pathlib import Path
 import grpc
 import numpy as np
 
-from fractoscope.client import FractoscopeClient
+from fractoscope.client import ClientError, FractoscopeClient
 from fractoscope.client.manifest import load_manifest
 from fractoscope.formats.tileset import content_uris
 from fractoscope.synthetic.examples import write_multiscale_specimen
@@ -40,6 +44,17 @@ from fractoscope.synthetic.examples import write_multiscale_specimen
 ROOT = Path(__file__).resolve().parents[1]
 GHZ = ROOT / ".tools" / "bin" / "ghz"
 TILES_PROTO = "fractoscope/v1/tiles.proto"
+# Clients building at once in the mixed phase: more than a one-CPU server's build worker and queue
+# (1 + 8), so that some builds are refused.
+BUILDERS = 12
+HEALTH_CHECKS_PER_S = 20
+# grpc.health.v1's Check, for ghz (grpcio-health-checking ships no .proto file).
+HEALTH_PROTO = """syntax = "proto3";
+package grpc.health.v1;
+message HealthCheckRequest { string service = 1; }
+message HealthCheckResponse { enum ServingStatus { UNKNOWN = 0; SERVING = 1; NOT_SERVING = 2; } ServingStatus status = 1; }
+service Health { rpc Check(HealthCheckRequest) returns (HealthCheckResponse); }
+"""
 # wrk's script: every connection walks the tile list; at the end one JSON line with the figures.
 WRK_SCRIPT = """
 local paths = {}
@@ -87,7 +102,7 @@ class MemorySampler:
 
     def _run(self) -> None:
         while not self._stop.is_set():
-            self.samples.append(_rss_mb(self.pid))
+            self.samples.append(_status_mb(self.pid, "VmRSS"))
             self._stop.wait(self.interval_s)
 
     def __enter__(self) -> MemorySampler:
@@ -97,7 +112,7 @@ class MemorySampler:
     def __exit__(self, *exc) -> None:
         self._stop.set()
         self._thread.join()
-        self.samples.append(_rss_mb(self.pid))
+        self.samples.append(_status_mb(self.pid, "VmRSS"))
 
     def summary(self) -> dict:
         return {"first": self.samples[0], "min": min(self.samples), "max": max(self.samples), "last": self.samples[-1]}
@@ -121,11 +136,24 @@ def http_tiles(base_url: str, paths: list[str], *, concurrency: int, duration_s:
 def grpc_calls(address: str, method: str, messages: list[dict], *, concurrency: int, duration_s: float, cpus, scratch: Path) -> dict:
     data = scratch / f"{method}.json"
     data.write_text(json.dumps(messages))
-    command = [
-        str(GHZ), "--insecure", "--import-paths", str(ROOT / "proto"), "--proto", TILES_PROTO,
-        "--call", f"fractoscope.v1.TileService.{method}", "-D", str(data), "-c", str(concurrency),
-        "-z", f"{duration_s:g}s", "--duration-stop", "wait", "--timeout", "10s", "--format", "json", address,
-    ]
+    return _ghz([
+        "--import-paths", str(ROOT / "proto"), "--proto", TILES_PROTO, "--call", f"fractoscope.v1.TileService.{method}",
+        "-D", str(data), "-c", str(concurrency), "-z", f"{duration_s:g}s", "--duration-stop", "wait", "--timeout", "10s", address,
+    ], cpus)
+
+
+def health_checks(address: str, *, duration_s: float, cpus, scratch: Path) -> dict:
+    """grpc.health.v1 Check at HEALTH_CHECKS_PER_S for `duration_s`, each with a deadline of
+    10 s; ghz's figures, and its slowest check."""
+    (scratch / "health.proto").write_text(HEALTH_PROTO)
+    return _ghz([
+        "--import-paths", str(scratch), "--proto", "health.proto", "--call", "grpc.health.v1.Health.Check", "-d", "{}",
+        "--rps", str(HEALTH_CHECKS_PER_S), "-c", "2", "-z", f"{duration_s:g}s", "--duration-stop", "wait", "--timeout", "10s", address,
+    ], cpus)
+
+
+def _ghz(arguments: list[str], cpus) -> dict:
+    command = [str(GHZ), "--insecure", "--format", "json", *arguments]
     if cpus is not None:
         command[1:1] = ["--cpus", str(len(cpus))]
     report = json.loads(subprocess.run(command, capture_output=True, text=True, check=True, preexec_fn=_pinned(cpus)).stdout)
@@ -133,7 +161,53 @@ def grpc_calls(address: str, method: str, messages: list[dict], *, concurrency: 
     ok = report.get("statusCodeDistribution", {}).get("OK", 0)
     return {
         "requests_per_s": report["rps"], "p50_ms": latency.get(50, float("nan")), "p99_ms": latency.get(99, float("nan")),
-        "requests": report["count"], "errors": report["count"] - ok, "tool": "ghz",
+        "max_ms": report.get("slowest", float("nan")) / 1e6, "requests": report["count"], "errors": report["count"] - ok, "tool": "ghz",
+    }
+
+
+def mixed(address: str, base_url: str, tile_paths: list[str], rois: list, *, server_pid: int, load: dict) -> dict:
+    """Builds, tile reads over HTTP and health checks together for `load["duration_s"]` (see the
+    module's docstring); the figures of each and the server's memory."""
+    duration_s = load["duration_s"]
+    outcomes = {"built": 0, "refused": 0, "errors": []}
+    lock = threading.Lock()
+    stop_at = time.monotonic() + duration_s
+
+    def builder(index: int) -> None:
+        with FractoscopeClient(address, timeout_s=600) as client:
+            count = 0
+            while time.monotonic() < stop_at:
+                try:
+                    client.reconstruct_specimen(f"mixed-{index}-{count}", rois)
+                    outcome = "built"
+                except ClientError as error:
+                    if error.code != grpc.StatusCode.RESOURCE_EXHAUSTED:
+                        with lock:
+                            outcomes["errors"].append(f"{error.code.name}: {error}")
+                        continue
+                    outcome = "refused"
+                    time.sleep(min(error.retry_after_s or 1.0, max(stop_at - time.monotonic(), 0.0)))
+                with lock:
+                    outcomes[outcome] += 1
+                count += 1
+
+    builders = [threading.Thread(target=builder, args=(index,)) for index in range(BUILDERS)]
+    figures = {}
+    readers = [
+        threading.Thread(target=lambda: figures.__setitem__("http_get_tile", http_tiles(base_url, tile_paths, **load))),
+        threading.Thread(target=lambda: figures.__setitem__("health", health_checks(
+            address, duration_s=duration_s, cpus=load["cpus"], scratch=load["scratch"]))),
+    ]
+    started = time.perf_counter()
+    with MemorySampler(server_pid) as memory:
+        for thread in builders + readers:
+            thread.start()
+        for thread in builders + readers:
+            thread.join()
+    return {
+        **figures, "builders": BUILDERS, "builds": outcomes["built"], "builds_refused": outcomes["refused"],
+        "build_errors": outcomes["errors"], "wall_s": time.perf_counter() - started,
+        "server_rss_mb": memory.summary(), "server_peak_mb": _status_mb(server_pid, "VmHWM"),
     }
 
 
@@ -191,6 +265,7 @@ def main() -> None:
             with MemorySampler(server.pid) as memory:
                 results[name] = phase()
             results[name]["server_rss_mb"] = memory.summary()
+        results["mixed"] = mixed(address, base_url, tile_paths, rois, server_pid=server.pid, load=load)
         with FractoscopeClient(address, timeout_s=600) as client:
             tile_bytes = int(np.mean([len(client.get_tile(specimen_id, uri)) for uri in uris]))
     finally:
@@ -212,6 +287,13 @@ def main() -> None:
         memory = row["server_rss_mb"]
         print(f"{name:14} {row['tool']:>5} {row['requests_per_s']:8.0f} {row['p50_ms']:8.2f} {row['p99_ms']:8.2f} {row['errors']:7d} "
               f"{memory['first']:>10.0f} / {memory['max']:.0f} / {memory['last']:.0f}")
+    mixed_row = results["mixed"]
+    tiles, health = mixed_row["http_get_tile"], mixed_row["health"]
+    print(f"mixed, {args.duration_s:g} s: {mixed_row['builds']} builds by {BUILDERS} clients, {mixed_row['builds_refused']} refused "
+          f"(RESOURCE_EXHAUSTED), {len(mixed_row['build_errors'])} failed; tiles {tiles['requests_per_s']:.0f}/s at p99 "
+          f"{tiles['p99_ms']:.1f} ms, {tiles['errors']} errors; health p99 {health['p99_ms']:.1f} ms, slowest {health['max_ms']:.1f} ms, "
+          f"{health['errors']} errors; server memory max {mixed_row['server_rss_mb']['max']:.0f} MB sampled, "
+          f"{mixed_row['server_peak_mb']:.0f} MB peak of the whole run")
     print(f"written to {out / (args.name + '.json')}")
 
 
@@ -246,10 +328,10 @@ def _wait_until_serving(client: FractoscopeClient, timeout_s: float = 60.0) -> N
             time.sleep(0.2)
 
 
-def _rss_mb(pid: int) -> float:
-    """Resident memory of a process, MB (Linux /proc)."""
+def _status_mb(pid: int, field: str) -> float:
+    """A memory figure of /proc/PID/status (VmRSS, VmHWM: the peak so far), MB."""
     for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
+        if line.startswith(f"{field}:"):
             return int(line.split()[1]) / 1024
     return float("nan")
 

@@ -16,6 +16,9 @@ from fractoscope import synthetic
 from fractoscope.client import FractoscopeClient
 from fractoscope.client.manifest import load_manifest
 from fractoscope.services.server import create_server
+from fractoscope.specimen.fusion import PlacedRoi
+from fractoscope.specimen.quadtree import OPTICAL, QuadtreeLayout, TileKey, TileRecord
+from fractoscope.specimen.store import RoiEntry, SpecimenStore, write_description, write_roi_arrays
 from fractoscope.synthetic.examples import write_multiscale_specimen
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
@@ -71,6 +74,22 @@ def inner_mask(shape, border_px=16) -> np.ndarray:
     mask = np.zeros(shape, bool)
     mask[border_px:-border_px, border_px:-border_px] = True
     return mask
+
+
+def write_small_specimen(store: SpecimenStore, specimen_id: str, *, height_um: float = 1.0, request_id: str = "job") -> None:
+    """A one-ROI specimen without building it: a 16 x 24 map of `height_um` at 0.5 µm/px and its
+    root tile, whose GLB is b"glTF" followed by the byte int(height_um)."""
+    root = TileKey(0, 0, 0)
+    roi = PlacedRoi("overview", 100.0, 0.5, (2.0, 3.0), np.full((16, 24), height_um, np.float32), np.full((16, 24), 7, np.uint8))
+    entry = RoiEntry(roi.id, "", roi.magnification, roi.pixel_size_um, roi.origin_um, roi.z_um.shape, matching={"valid_fraction": 1.0})
+    record = TileRecord(root, roi.id, roi.magnification, OPTICAL, 0.0, height_um, height_um)
+    with store.writing(specimen_id) as staging:
+        (staging / root.uri).parent.mkdir(parents=True)
+        (staging / root.uri).write_bytes(b"glTF" + bytes([int(height_um)]))
+        (staging / "tileset.json").write_text("{}")
+        write_roi_arrays(staging, roi)
+        write_description(staging, specimen_id=specimen_id, request_id=request_id, rois=[entry],
+                          layout=QuadtreeLayout((2.0, 3.0), 12.0), tiles={root: record})
 
 
 @pytest.fixture(scope="session")

@@ -24,3 +24,16 @@ class CancelledError(FractoscopeError):
 
 class UnavailableError(FractoscopeError):
     """A service this one depends on cannot be reached; the request can be retried later."""
+
+
+class ResourceExhaustedError(FractoscopeError):
+    """The server cannot take this on now (full work queue, memory budget, disk); `retry_after_s`
+    hints when a retry may succeed (None: not without changing the request or the server)."""
+
+    def __init__(self, message: str, *, retry_after_s: float | None = None):
+        super().__init__(message)
+        self.retry_after_s = retry_after_s
+
+
+class UnauthenticatedError(FractoscopeError):
+    """Credentials are missing or refused: the caller's, or this server's toward a service it calls."""

@@ -300,14 +300,14 @@ def test_matching_replicas_share_the_strips_of_a_pair_and_the_stitched_map_is_ex
 
 
 def test_a_replica_that_is_its_own_strip_peer_never_deadlocks():
-    """Two height maps at once on a two-thread replica whose strip peer is itself: one farms its
-    strips out, the other matches here, and both finish."""
+    """Two height maps at once on a replica whose strip peer is itself: both farm their strips out
+    to it, whose strips run on workers of their own that wait on nothing, and both finish."""
     from concurrent.futures import ThreadPoolExecutor
 
     pair = fracture_pair(size_px=384, seed=6)
     files = [tiff_bytes(image) for image in (pair.first, pair.second)]
     port = _free_port()
-    server, _ = create_server(f"127.0.0.1:{port}", services=("matching",), workers=2,
+    server, _ = create_server(f"127.0.0.1:{port}", services=("matching",), workers=2, build_workers=2,
                               strip_peers=f"127.0.0.1:{port}", strip_pixels=50_000)
     server.start()
     try:
@@ -315,7 +315,7 @@ def test_a_replica_that_is_its_own_strip_peer_never_deadlocks():
             jobs = [pool.submit(client.compute_height_map, files, tilt_deg=(-5, 5), pixel_size_um=0.1) for _ in range(2)]
             reports = [job.result().report for job in jobs]
         assert all(report["strip_count"] >= 3 for report in reports)
-        assert sorted(len(report["strip_workers"]) for report in reports) == [0, 1]  # one farmed out, one here
+        assert [len(report["strip_workers"]) for report in reports] == [1, 1]  # both farmed out, to this replica
     finally:
         server.stop(grace=None)
 

@@ -80,7 +80,7 @@ def test_bad_requests_get_invalid_argument_naming_the_field(client, case, field)
 @pytest.fixture()
 def peers(server_address):
     """The loopback server as a strip peer, as a coordinating matching replica sees it."""
-    with StripPeers(server_address, timeout_s=120) as connected:
+    with StripPeers(server_address) as connected:
         yield connected
 
 
@@ -97,40 +97,10 @@ def peers(server_address):
 def test_a_bad_strip_gets_invalid_argument_naming_the_field(peers, change, field):
     pair = fracture_pair(size_px=128)
     task = StripTask(pair.first.astype(np.float32), pair.second.astype(np.float32), 15, 16, 0.5, 1.0)
-    result, worker = peers.match_strip(task)
+    result, worker = peers.match_strip(task, timeout_s=120)
     assert np.isfinite(result.disparity_px).mean() > 0.5 and worker
-    kept, _ = peers.match_strip(dataclasses.replace(task, keep_rows=(8, 40)))  # only those rows come back
+    kept, _ = peers.match_strip(dataclasses.replace(task, keep_rows=(8, 40)), timeout_s=120)  # only those rows come back
     np.testing.assert_array_equal(kept.disparity_px, result.disparity_px[8:40])
     with pytest.raises(ClientError) as error:
-        peers.match_strip(change(task))
+        peers.match_strip(change(task), timeout_s=120)
     assert error.value.code == grpc.StatusCode.INVALID_ARGUMENT and error.value.field == field
-
-
-def test_cancelled_call_stops_the_work_at_its_next_progress_report():
-    """A client that goes away (cancel or deadline) must not leave the server computing."""
-    import threading
-
-    from fractoscope.errors import CancelledError
-    from fractoscope.services.streaming import stream_progress
-
-    class GoneClient:
-        def add_callback(self, callback):
-            self.cancel = callback
-
-    context, stopped = GoneClient(), threading.Event()
-
-    def endless_work(progress):
-        try:
-            while True:
-                progress(0.5, "working")
-        except CancelledError:
-            stopped.set()
-            raise
-
-    events = stream_progress(context, endless_work)
-    assert next(events).stage == "working"
-    context.cancel()
-    with pytest.raises(CancelledError):
-        for _ in events:
-            pass
-    assert stopped.wait(10)  # the endless work ended: its next progress report raised

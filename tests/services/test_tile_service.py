@@ -218,6 +218,7 @@ def test_a_rebuilt_specimen_is_never_served_from_the_caches_of_the_old_build(bui
         (lambda c: c.get_specimen("../etc"), grpc.StatusCode.INVALID_ARGUMENT, "specimen_id"),
         (lambda c: c.get_tile("synthetic", "../../specimen.json"), grpc.StatusCode.INVALID_ARGUMENT, "uri"),
         (lambda c: c.get_tile("synthetic", "tiles/9/0/0.glb"), grpc.StatusCode.NOT_FOUND, None),
+        (lambda c: c.get_tile("synthetic", "tiles/00/0/0.glb"), grpc.StatusCode.INVALID_ARGUMENT, "uri"),  # one URI per tile
         (lambda c: c.profile("synthetic", [(0.0, 0.0)]), grpc.StatusCode.INVALID_ARGUMENT, "points"),
         (lambda c: c.zoom("synthetic", (10.0, 10.0, 5.0, 20.0), magnification=100), grpc.StatusCode.INVALID_ARGUMENT, "region"),
         (lambda c: c.zoom("synthetic", (0.0, 0.0, 5.0, 5.0), magnification=-1), grpc.StatusCode.INVALID_ARGUMENT, "magnification"),
@@ -272,7 +273,7 @@ def test_http_endpoint_serves_tiles_with_cors_etag_and_gzip(built):
             assert response.read(4) == b"glTF"
             assert response.headers["Content-Type"] == "model/gltf-binary"
         with pytest.raises(urllib.error.HTTPError) as unchanged:
-            urllib.request.urlopen(urllib.request.Request(f"{base}/tileset.json", headers={"If-None-Match": etag}))
+            urllib.request.urlopen(urllib.request.Request(f"{base}/tileset.json", headers={"If-None-Match": etag, "Accept-Encoding": "gzip"}))
         assert unchanged.value.code == 304
         for bad in ("/tiles/../specimen.json", "/rois/zoom.npz", "/tiles/7/0/0.glb"):
             with pytest.raises(urllib.error.HTTPError) as missing:

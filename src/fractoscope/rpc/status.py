@@ -4,37 +4,61 @@ exceptions again (callers: the client, and services calling each other)."""
 from __future__ import annotations
 
 import contextlib
+import errno
 import functools
 import inspect
 import logging
 from collections.abc import Iterator
 
 import grpc
-from google.protobuf import any_pb2
+from google.protobuf import any_pb2, duration_pb2
 from google.rpc import code_pb2, error_details_pb2, status_pb2
 from grpc_status import rpc_status
 
-from fractoscope.errors import CancelledError, FractoscopeError, InvalidInputError, NotFoundError, UnavailableError
+from fractoscope.errors import (
+    CancelledError,
+    FractoscopeError,
+    InvalidInputError,
+    NotFoundError,
+    ResourceExhaustedError,
+    UnauthenticatedError,
+    UnavailableError,
+)
 
 _log = logging.getLogger("fractoscope.services")
 
 
-class ClientError(Exception):
-    """A call failed; `code` is the gRPC status code, `field` the offending request field if any."""
+# A full disk or quota: the data volume, not the request, is at fault.
+_DISK_FULL = (errno.ENOSPC, errno.EDQUOT)
 
-    def __init__(self, code: grpc.StatusCode, message: str, field: str | None = None):
+
+class ClientError(Exception):
+    """A call failed; `code` is the gRPC status code, `field` the offending request field if any,
+    `retry_after_s` the server's hint (google.rpc.RetryInfo) for RESOURCE_EXHAUSTED, s."""
+
+    def __init__(self, code: grpc.StatusCode, message: str, field: str | None = None, retry_after_s: float | None = None):
         super().__init__(message)
         self.code = code
         self.field = field
+        self.retry_after_s = retry_after_s
 
 
 def abort_with_error(context: grpc.ServicerContext, error: Exception) -> None:
     """Ends the call with a status naming the problem; unexpected errors are logged, not leaked."""
     if isinstance(error, InvalidInputError):
         violation = error_details_pb2.BadRequest.FieldViolation(field=error.field, description=error.message)
-        detail = any_pb2.Any()
-        detail.Pack(error_details_pb2.BadRequest(field_violations=[violation]))
+        detail = _packed(error_details_pb2.BadRequest(field_violations=[violation]))
         status = status_pb2.Status(code=code_pb2.INVALID_ARGUMENT, message=str(error), details=[detail])
+    elif isinstance(error, ResourceExhaustedError):
+        status = status_pb2.Status(code=code_pb2.RESOURCE_EXHAUSTED, message=str(error))
+        if error.retry_after_s is not None:
+            delay = duration_pb2.Duration()
+            delay.FromMilliseconds(round(error.retry_after_s * 1000))
+            status.details.append(_packed(error_details_pb2.RetryInfo(retry_delay=delay)))
+    elif isinstance(error, OSError) and error.errno in _DISK_FULL:
+        status = status_pb2.Status(code=code_pb2.RESOURCE_EXHAUSTED, message=f"the server's disk is full ({error.strerror})")
+    elif isinstance(error, UnauthenticatedError):
+        status = status_pb2.Status(code=code_pb2.UNAUTHENTICATED, message=str(error))
     elif isinstance(error, NotFoundError):
         status = status_pb2.Status(code=code_pb2.NOT_FOUND, message=str(error))
     elif isinstance(error, UnavailableError):
@@ -47,6 +71,12 @@ def abort_with_error(context: grpc.ServicerContext, error: Exception) -> None:
         _log.exception("internal error")
         status = status_pb2.Status(code=code_pb2.INTERNAL, message=f"internal error ({type(error).__name__})")
     context.abort_with_status(rpc_status.to_status(status))
+
+
+def _packed(detail) -> any_pb2.Any:
+    packed = any_pb2.Any()
+    packed.Pack(detail)
+    return packed
 
 
 def abort_on_error(method):
@@ -75,16 +105,19 @@ def abort_on_error(method):
 @contextlib.contextmanager
 def raised_as_client_errors() -> Iterator[None]:
     """Turns a failed call's grpc.RpcError into ClientError, with the field a BadRequest detail
-    names."""
+    names and the delay a RetryInfo detail gives."""
     try:
         yield
     except grpc.RpcError as error:
         status = rpc_status.from_call(error)
-        field = None
-        if status is not None:
-            for detail in status.details:
-                if detail.Is(error_details_pb2.BadRequest.DESCRIPTOR):
-                    bad_request = error_details_pb2.BadRequest()
-                    detail.Unpack(bad_request)
-                    field = bad_request.field_violations[0].field if bad_request.field_violations else None
-        raise ClientError(error.code(), error.details() or str(error.code()), field) from None
+        field = retry_after_s = None
+        for detail in status.details if status is not None else ():
+            if detail.Is(error_details_pb2.BadRequest.DESCRIPTOR):
+                bad_request = error_details_pb2.BadRequest()
+                detail.Unpack(bad_request)
+                field = bad_request.field_violations[0].field if bad_request.field_violations else None
+            elif detail.Is(error_details_pb2.RetryInfo.DESCRIPTOR):
+                retry = error_details_pb2.RetryInfo()
+                detail.Unpack(retry)
+                retry_after_s = retry.retry_delay.ToMilliseconds() / 1000
+        raise ClientError(error.code(), error.details() or str(error.code()), field, retry_after_s) from None

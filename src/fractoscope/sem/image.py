@@ -25,6 +25,11 @@ logging.getLogger("tifffile").setLevel(logging.CRITICAL)
 
 # Largest image accepted, pixels: a small file may declare a huge image (a decompression bomb).
 MAX_IMAGE_PIXELS = int(os.environ.get("FRACTO_MAX_IMAGE_PIXELS", 16384 * 16384))
+# Pillow's own bomb check (89 Mpx by default) would refuse PNGs within our limit as corrupt; ours
+# runs on the PNG header before Pillow sees the file.
+Image.MAX_IMAGE_PIXELS = max(Image.MAX_IMAGE_PIXELS or 0, MAX_IMAGE_PIXELS)
+_TIFF_MAGIC = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")
+_PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 
 @dataclass(frozen=True)
@@ -50,14 +55,10 @@ class SemImage:
 
 def read_sem_image(content: bytes, *, field: str = "image") -> SemImage:
     """Decodes a TIFF or PNG file's bytes; `field` names the input in error messages."""
-    if not content:
-        raise InvalidInputError(field, "the image file is empty")
-    if content[:4] in (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+"):
-        pixels, tilt_deg, pixel_size_um, bar_rows = _read_tiff(content, field)
-    elif content[:8] == b"\x89PNG\r\n\x1a\n":
+    if _is_png(content, field):
         pixels, tilt_deg, pixel_size_um, bar_rows = _read_png(content, field), None, None, None
     else:
-        raise InvalidInputError(field, "not a TIFF or PNG file")
+        pixels, tilt_deg, pixel_size_um, bar_rows = _read_tiff(content, field)
     if pixels.ndim != 2 or min(pixels.shape) < 32:
         raise InvalidInputError(field, f"expected a grey image of at least 32x32 pixels, got shape {pixels.shape}")
     if bar_rows is None:
@@ -65,10 +66,43 @@ def read_sem_image(content: bytes, *, field: str = "image") -> SemImage:
     return SemImage(pixels, tilt_deg, pixel_size_um, bar_rows)
 
 
+def image_shape(content: bytes, *, field: str = "image") -> tuple[int, int]:
+    """(rows, cols) that a TIFF or PNG file declares, from its header, without decoding it: for
+    estimates before any work. Errors as read_sem_image's, the pixel limit included."""
+    if _is_png(content, field):
+        shape = _png_shape(content, field)
+    else:
+        try:
+            with tifffile.TiffFile(io.BytesIO(content)) as tiff:
+                shape = int(tiff.pages.first.imagelength), int(tiff.pages.first.imagewidth)
+        except Exception as exc:  # as in _read_tiff
+            raise InvalidInputError(field, f"unreadable TIFF, corrupt or truncated ({type(exc).__name__}: {exc})") from None
+    _check_size(shape, field)
+    return shape
+
+
+def _is_png(content: bytes, field: str) -> bool:
+    """True for a PNG file, False for a TIFF file; InvalidInputError for anything else."""
+    if not content:
+        raise InvalidInputError(field, "the image file is empty")
+    if content[:8] == _PNG_MAGIC:
+        return True
+    if content[:4] in _TIFF_MAGIC:
+        return False
+    raise InvalidInputError(field, "not a TIFF or PNG file")
+
+
+def _png_shape(content: bytes, field: str) -> tuple[int, int]:
+    """(rows, cols) from a PNG's IHDR chunk, which must come first."""
+    if len(content) < 24 or content[12:16] != b"IHDR":
+        raise InvalidInputError(field, "unreadable PNG, corrupt or truncated (no IHDR chunk)")
+    return int.from_bytes(content[20:24], "big"), int.from_bytes(content[16:20], "big")
+
+
 def _read_png(content: bytes, field: str) -> np.ndarray:
+    _check_size(_png_shape(content, field), field)
     try:
         with Image.open(io.BytesIO(content)) as picture:
-            _check_size(picture.size[::-1], field)
             if picture.mode in ("RGB", "RGBA", "P", "LA"):
                 picture = picture.convert("L")
             pixels = np.asarray(picture)

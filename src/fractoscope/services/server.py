@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import os
 import signal
 import threading
 from collections.abc import Iterator
@@ -17,22 +18,33 @@ from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
 
 from fractoscope.rpc.limits import DEFAULT_MAX_MESSAGE_MB, message_size_options
-from fractoscope.services.auth import AuthInterceptor, TokenTable
-from fractoscope.services.config import DEFAULT_DATA_DIR, SERVICE_NAMES, build_parser
+from fractoscope.services.auth import AuthInterceptor, TokenTable, peer_token_problem
+from fractoscope.services.budget import MemoryBudget
+from fractoscope.services.config import DEFAULT_BUILD_QUEUE, DEFAULT_DATA_DIR, SERVICE_NAMES, build_parser, default_build_workers
+from fractoscope.services.jobs import JobRunner
 from fractoscope.services.matching.servicer import MatchingServicer
 from fractoscope.services.meshing.servicer import MeshingServicer
 from fractoscope.services.runtime import configure_logging, keep_freed_memory, settle_garbage_collector
+from fractoscope.services.threads import ThreadPoolRouting
 from fractoscope.services.tiles.http import start_http_server
 from fractoscope.services.tiles.servicer import SerializedGetTile, TileServicer
 from fractoscope.specimen.store import SpecimenStore
 from fractoscope.stereo.matching import DEFAULT_STRIP_PIXELS
 from fractoscope.v1 import matching_pb2, matching_pb2_grpc, meshing_pb2, meshing_pb2_grpc, tiles_pb2, tiles_pb2_grpc
 
+_log = logging.getLogger("fractoscope.server")
 _REGISTRATIONS = {
     "matching": (matching_pb2.DESCRIPTOR.services_by_name["MatchingService"], matching_pb2_grpc.add_MatchingServiceServicer_to_server),
     "meshing": (meshing_pb2.DESCRIPTOR.services_by_name["MeshingService"], meshing_pb2_grpc.add_MeshingServiceServicer_to_server),
     "tiles": (tiles_pb2.DESCRIPTOR.services_by_name["TileService"], tiles_pb2_grpc.add_TileServiceServicer_to_server),
 }
+# The calls that follow jobs (see jobs), answered on threads of their own (see threads).
+_JOB_METHODS = (
+    "/fractoscope.v1.MatchingService/ComputeHeightMap", "/fractoscope.v1.MatchingService/MatchStrip",
+    "/fractoscope.v1.MeshingService/BuildMesh", "/fractoscope.v1.TileService/ReconstructSpecimen",
+)
+# Threads beyond those for every call the job runners admit, to refuse the others at once.
+_SPARE_JOB_CALL_THREADS = 8
 
 
 def create_server(
@@ -41,6 +53,9 @@ def create_server(
     services: tuple[str, ...] = SERVICE_NAMES,
     max_message_mb: int = DEFAULT_MAX_MESSAGE_MB,
     workers: int = 8,
+    build_workers: int | None = None,
+    build_queue: int = DEFAULT_BUILD_QUEUE,
+    max_request_mb: int | None = None,
     data_dir: str | Path = DEFAULT_DATA_DIR,
     store: SpecimenStore | None = None,
     matching_address: str | None = None,
@@ -53,37 +68,61 @@ def create_server(
     strip_in_flight: int = 4,
 ) -> tuple[grpc.Server, int]:
     """A server with the named services, health and reflection, bound to `address`; returns it
-    (not started) with the bound port. The tile service keeps specimens in `store` (default: a
-    store under `data_dir`; pass the one an HTTP endpoint of this process serves) and calls
-    matching and meshing at their addresses (default: this server on loopback). With `tokens`,
-    calls need a bearer token (see auth); with a certificate and key, the port speaks TLS. The
-    matching service farms strips of about `strip_pixels` out to `strip_peers` when given,
+    (not started) with the bound port. `workers` threads answer queries; builds, height maps and
+    meshes run `build_workers` at a time (default: half the CPUs) with `build_queue` waiting, and
+    strips for peers likewise, each request within `max_request_mb` of estimated memory (see
+    budget); health checks have threads of their own. The tile service keeps specimens in `store`
+    (default: a store under `data_dir`; pass the one an HTTP endpoint of this process serves) and
+    calls matching and meshing at their addresses (default: in this process). With `tokens`, calls
+    need a bearer token (see auth); with a certificate and key, the port speaks TLS. The matching
+    service farms strips of about `strip_pixels` out to `strip_peers` when given,
     `strip_in_flight` at a time."""
     for name in services:
         if name not in _REGISTRATIONS:
             raise ValueError(f"unknown service {name!r}; known: {', '.join(SERVICE_NAMES)}")
+    build_workers = build_workers or default_build_workers()
+    builds = JobRunner("builds", workers=build_workers, queue_limit=build_queue)
+    strips = JobRunner("strips", workers=build_workers, queue_limit=build_queue)
+    memory = MemoryBudget.for_server(max_request_mb, concurrent_requests=build_workers)
     servicers = {}
     if "matching" in services:
         servicers["matching"] = MatchingServicer(
-            strip_peers=strip_peers, strip_pixels=strip_pixels, strip_in_flight=strip_in_flight, coordinator_slots=max(1, workers // 2)
+            builds=builds, strips=strips, memory=memory, strip_peers=strip_peers, strip_pixels=strip_pixels, strip_in_flight=strip_in_flight,
         )
     if "meshing" in services:
-        servicers["meshing"] = MeshingServicer()
-    interceptors = [AuthInterceptor(tokens)] if tokens is not None and tokens.enabled else []
+        servicers["meshing"] = MeshingServicer(builds=builds, memory=memory)
+    tokens = tokens if tokens is not None and tokens.enabled else None
+    interceptors = [AuthInterceptor(tokens)] if tokens else []
+    interceptors.append(ThreadPoolRouting(_JOB_METHODS, job_call_threads=builds.max_followers + strips.max_followers + _SPARE_JOB_CALL_THREADS))
     if "tiles" in services:
         store = store or SpecimenStore(Path(data_dir))
-        store.discard_unfinished()  # this server is the store's one writer
-        servicers["tiles"] = TileServicer(store, matching_address=matching_address, meshing_address=meshing_address)
+        restored, _ = store.recover()  # this server is the store's one writer
+        for specimen_id in restored:
+            _log.warning(f"specimen {specimen_id!r}: a build was killed while it replaced the stored one, which is restored")
+        servicers["tiles"] = TileServicer(
+            store, builds=builds, memory=memory,
+            local_matching=servicers.get("matching") if matching_address is None else None, matching_address=matching_address,
+            local_meshing=servicers.get("meshing") if meshing_address is None else None, meshing_address=meshing_address,
+        )
         interceptors.append(SerializedGetTile(servicers["tiles"]))  # after the token check
+    _warn_of_peer_credentials(tokens, servicers)
     server = grpc.server(
         futures.ThreadPoolExecutor(max_workers=workers), options=message_size_options(max_message_mb), interceptors=interceptors
     )
     _register(server, servicers)
     port = _bind(server, address, tls_cert_path, tls_key_path)
-    if "tiles" in servicers:
-        servicers["tiles"].matching_address = matching_address or f"127.0.0.1:{port}"
-        servicers["tiles"].meshing_address = meshing_address or f"127.0.0.1:{port}"
+    _log.info(f"builds: {build_workers} at a time, {build_queue} waiting, {memory.limit_bytes // 2**20} MiB of memory per request")
     return server, port
+
+
+def _warn_of_peer_credentials(tokens: TokenTable | None, servicers: dict) -> None:
+    """Warns when this server requires tokens but its own calls to other servers will not carry
+    a good one (see auth.peer_token_problem)."""
+    tiles, matching = servicers.get("tiles"), servicers.get("matching")
+    peers = [target for target in (tiles and tiles.matching_address, tiles and tiles.meshing_address, matching and matching.strip_peers) if target]
+    problem = peer_token_problem(tokens, os.environ.get("FRACTO_TOKEN")) if tokens and peers else None
+    if problem:
+        _log.warning(f"{problem} ({', '.join(peers)}); builds that need them will fail with UNAUTHENTICATED")
 
 
 def _register(server: grpc.Server, servicers: dict) -> None:
@@ -134,23 +173,23 @@ def main(argv: list[str] | None = None) -> None:
     store = SpecimenStore(Path(args.data)) if "tiles" in services else None
     server, port = create_server(
         args.address, services=services, max_message_mb=args.max_message_mb, workers=args.workers,
+        build_workers=args.build_workers, build_queue=args.build_queue, max_request_mb=args.max_request_mb,
         store=store, matching_address=args.matching_address, meshing_address=args.meshing_address,
         tokens=tokens, tls_cert_path=args.tls_cert, tls_key_path=args.tls_key,
         strip_peers=args.strip_peers, strip_pixels=args.strip_pixels, strip_in_flight=args.strip_in_flight,
     )
     settle_garbage_collector()
     server.start()
-    log = logging.getLogger("fractoscope.server")
-    log.info(f"serving {', '.join(services)} on port {port}")
+    _log.info(f"serving {', '.join(services)} on port {port}")
     http = None
     if store is not None and args.http_address:
         host, _, http_port = args.http_address.rpartition(":")
         http = start_http_server(store, host or "0.0.0.0", int(http_port), tokens=tokens)
-        log.info(f"serving tilesets over HTTP on port {http.server_port}")
+        _log.info(f"serving tilesets over HTTP on port {http.server_port}")
     stopped = threading.Event()
 
     def stop(signum, frame):
-        log.info("stopping")
+        _log.info("stopping")
         server.stop(args.grace_s).wait()
         if http is not None:
             http.shutdown()

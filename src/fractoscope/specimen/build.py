@@ -15,7 +15,7 @@ import numpy as np
 
 from fractoscope.errors import InvalidInputError
 from fractoscope.formats.tileset import tileset_json
-from fractoscope.progress import silent
+from fractoscope.progress import ProgressCallback, silent
 from fractoscope.specimen import registration
 from fractoscope.specimen.fusion import FusedSurface, PlacedRoi
 from fractoscope.specimen.quadtree import QuadtreeLayout, TileKey, TileRecord, TileSamples, build_tiles
@@ -49,7 +49,8 @@ class MeasuredHeights:
     sigma_um: np.ndarray | None = None
 
 
-Measure = Callable[[RoiRequest, Callable[[float, str], None]], MeasuredHeights]  # the ROI, a progress callback
+# An ROI's heights, reporting the matching's progress (fraction 0 to 1) to the callback.
+Measure = Callable[[RoiRequest, ProgressCallback], MeasuredHeights]
 TileMesher = Callable[[TileSamples], bytes]
 
 
@@ -88,21 +89,24 @@ def reconstruct_specimen(
     mesh_tile: TileMesher,
     store: SpecimenStore,
     request_id: str = "",
-    progress: Callable[[float, str], None] | None = None,
+    progress: ProgressCallback | None = None,
 ) -> Specimen:
-    """Builds and stores a specimen; returns it as stored."""
+    """Builds and stores a specimen; returns it as stored. Errors name the ROI by its index in
+    `rois` (`rois[1].center_um`)."""
     report = progress or silent
     validate_id(specimen_id, field="specimen_id")
     ordered = ordered_rois(rois)
     measured: dict[str, MeasuredHeights] = {}
     for index, roi in enumerate(ordered):
-        def matching_progress(fraction: float, message: str, index=index, roi=roi) -> None:
-            report(0.6 * (index + fraction) / len(ordered), f"matching ROI {roi.id}: {message}")
+        start, share = 0.6 * index / len(ordered), 0.6 / len(ordered)
+        report(start, f"matching ROI {roi.id}")
 
-        matching_progress(0.0, "started")
-        measured[roi.id] = measure(roi, matching_progress)
+        def roi_progress(fraction: float, message: str, roi=roi, start=start) -> None:
+            report(start + share * fraction, f"matching ROI {roi.id}: {message}")
+
+        measured[roi.id] = measure(roi, roi_progress)
     report(0.6, "placing ROIs")
-    placed, entries = _place(ordered, measured)
+    placed, entries = _place(ordered, measured, {roi.id: index for index, roi in enumerate(rois)})
     surface = FusedSurface(list(placed.values()))
     layout = QuadtreeLayout.covering(surface)
     with store.writing(specimen_id) as staging:
@@ -115,11 +119,14 @@ def reconstruct_specimen(
     return store.load(specimen_id)
 
 
-def _place(ordered: list[RoiRequest], measured: dict[str, MeasuredHeights]) -> tuple[dict[str, PlacedRoi], list[RoiEntry]]:
+def _place(
+    ordered: list[RoiRequest], measured: dict[str, MeasuredHeights], indices: dict[str, int]
+) -> tuple[dict[str, PlacedRoi], list[RoiEntry]]:
     """Every ROI's filtered heights and texture placed in the specimen frame, parents first: the
     overview levelled on its datum if it names one, a child registered in its parent (unless its
     centre is given), its heights brought onto the parent's by a fitted plane and its texture
-    onto the parent's brightness and contrast."""
+    onto the parent's brightness and contrast. A placement that fails names the ROI as `rois[i]`
+    (its index in the request, `indices`)."""
     placed: dict[str, PlacedRoi] = {}
     entries: list[RoiEntry] = []
     for roi in ordered:
@@ -132,13 +139,16 @@ def _place(ordered: list[RoiRequest], measured: dict[str, MeasuredHeights]) -> t
             try:
                 z_um, levelled = datum.level_heights(z_um, pixel_size_um=heights.pixel_size_um, level=roi.level)
             except ValueError as error:
-                raise InvalidInputError(f"rois[{roi.id}].level", str(error)) from None
+                raise InvalidInputError(f"rois[{indices[roi.id]}].level", str(error)) from None
             entry.datum = levelled.to_dict()
         if roi.parent:
             parent = placed[roi.parent]
-            entry.origin_um, entry.registration_score = _child_origin(roi, parent, texture, heights)
-            unaligned = PlacedRoi(roi.id, roi.magnification, heights.pixel_size_um, entry.origin_um, z_um, texture, **walls)
-            alignment = registration.align_heights(parent, unaligned)
+            try:
+                entry.origin_um, entry.registration_score = _child_origin(roi, parent, texture, heights)
+                unaligned = PlacedRoi(roi.id, roi.magnification, heights.pixel_size_um, entry.origin_um, z_um, texture, **walls)
+                alignment = registration.align_heights(parent, unaligned)
+            except InvalidInputError as error:  # registration names fields as rois.*
+                raise InvalidInputError(error.field.replace("rois", f"rois[{indices[roi.id]}]", 1), error.message) from None
             z_um = registration.apply_height_alignment(z_um, alignment, pixel_size_um=heights.pixel_size_um)
             texture = registration.match_texture(parent, unaligned)
             entry.alignment_residual_um = alignment.residual_um
@@ -198,6 +208,11 @@ def _child_origin(roi: RoiRequest, parent: PlacedRoi, texture: np.ndarray, heigh
     found = registration.register_child(
         parent.texture, texture[:image_rows], parent_pixel_size_um=parent.pixel_size_um, child_pixel_size_um=heights.pixel_size_um
     )
+    if found.score < registration.MIN_REGISTRATION_SCORE:
+        raise InvalidInputError(
+            "rois.center_um", f"automatic placement found no convincing match for ROI {roi.id!r} in {roi.parent!r} (registration "
+            f"score {found.score:.3f}, below {registration.MIN_REGISTRATION_SCORE}); give its center_um"
+        )
     col_px, row_px = found.origin_px
     origin = (parent.origin_um[0] + col_px * parent.pixel_size_um, parent.origin_um[1] + row_px * parent.pixel_size_um)
     return origin, found.score

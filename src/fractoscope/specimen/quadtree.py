@@ -16,6 +16,7 @@ make every tile along it look coarser than it is.
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field
 
@@ -29,6 +30,9 @@ OPTICAL, DIGITAL = "optical", "digital"
 # quadtree gets deeper instead.
 QUADTREE_TILE_CELLS = 64
 _REFINE_RATIO = math.sqrt(2)
+# A tile URI's one form: numbers of up to 6 ASCII digits without leading zeros.
+_NUMBER = r"(0|[1-9][0-9]{0,5})"
+TILE_URI = re.compile(rf"tiles/{_NUMBER}/{_NUMBER}/{_NUMBER}\.glb", re.ASCII)
 
 
 @dataclass(frozen=True, order=True)
@@ -48,14 +52,13 @@ class TileKey:
 
     @classmethod
     def from_uri(cls, uri: str) -> TileKey:
-        """Parses `tiles/{level}/{col}/{row}.glb`; ValueError for anything else."""
-        parts = uri.split("/")
-        if len(parts) != 4 or parts[0] != "tiles" or not parts[3].endswith(".glb"):
+        """Parses `tiles/{level}/{col}/{row}.glb` in its one canonical form (ASCII digits, no
+        leading zeros: `uri` equals the key's `uri`); ValueError for anything else, so that no two
+        names reach one tile."""
+        match = TILE_URI.fullmatch(uri)
+        if match is None:
             raise ValueError(f"not a tile URI: {uri!r}")
-        numbers = [parts[1], parts[2], parts[3][: -len(".glb")]]
-        if not all(n.isdigit() and len(n) <= 6 for n in numbers):
-            raise ValueError(f"not a tile URI: {uri!r}")
-        return cls(*(int(n) for n in numbers))
+        return cls(*(int(n) for n in match.groups()))
 
 
 @dataclass(frozen=True)

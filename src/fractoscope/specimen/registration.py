@@ -12,6 +12,11 @@ from fractoscope.errors import InvalidInputError
 from fractoscope.specimen.fusion import PlacedRoi
 
 
+# The lowest peak correlation an automatic placement is trusted with: a true match of the demo's
+# ROI scores 0.9, a pure-noise ROI 0.04.
+MIN_REGISTRATION_SCORE = 0.3
+
+
 @dataclass(frozen=True)
 class Registration:
     """Where a child image's pixel (0, 0) lies in its parent's image, parent pixels (col, row), and
@@ -94,7 +99,9 @@ def align_heights(parent: PlacedRoi, child: PlacedRoi) -> HeightAlignment:
     design = np.column_stack([np.ones(difference.size), x_child_um.ravel(), y_child_um.ravel()])
     use = np.isfinite(difference)
     if use.sum() < 16:
-        raise InvalidInputError("rois", f"ROI {child.id!r} overlaps its parent {parent.id!r} in fewer than 16 measured points")
+        raise InvalidInputError(
+            "rois.center_um", f"ROI {child.id!r} placed there overlaps its parent {parent.id!r} in fewer than 16 measured points"
+        )
     for _ in range(2):
         coefficients, *_ = np.linalg.lstsq(design[use], difference[use], rcond=None)
         residual = difference - design @ coefficients

@@ -1,13 +1,16 @@
 """Specimens on disk: `DATA/specimens/{id}/` holds specimen.json, tileset.json, tiles/ and rois/.
 
-A specimen is written in a staging folder and renamed into place, so readers see the old one or
-the new one complete, never half of one.
+A specimen is written in a staging folder, fsynced, and renamed into place (the stored one first
+renamed aside as its retired twin, then removed), so readers see the old one or the new one
+complete, never half of one. A process killed between the two renames leaves the retired copy
+and no specimen; `recover`, at the next start, renames it back.
 """
 
 from __future__ import annotations
 
 import contextlib
 import json
+import os
 import re
 import shutil
 import threading
@@ -24,6 +27,8 @@ from fractoscope.specimen.fusion import FusedSurface, PlacedRoi, footprint_um, o
 from fractoscope.specimen.quadtree import QuadtreeLayout, TileKey, TileRecord
 
 _ID = re.compile(r"[A-Za-z0-9_-]{1,64}")
+# Folders of unfinished writes: `{prefix}{id}-{token}`, the token shared by a write's two.
+_STAGING, _RETIRED = ".staging-", ".retired-"
 
 
 def validate_id(value: str, *, field: str) -> str:
@@ -126,14 +131,27 @@ class SpecimenStore:
         self.root.mkdir(parents=True, exist_ok=True)
         self._cache: dict[str, tuple[int, Specimen]] = {}
         self._lock = threading.Lock()
+        self._commit_lock = threading.Lock()
 
-    def discard_unfinished(self) -> int:
-        """Removes what builds of a killed process left behind (no reader ever sees it); only the
-        one writer may call this, when it starts. Returns how many were removed."""
-        leftovers = list(self.root.glob(".staging-*")) + list(self.root.glob(".retired-*"))
-        for leftover in leftovers:
-            shutil.rmtree(leftover, ignore_errors=True)
-        return len(leftovers)
+    def recover(self) -> tuple[list[str], int]:
+        """Undoes what writes of a killed process left; only the one writer may call this, when it
+        starts. A retired specimen whose replacement never came into place (the process died
+        between the two renames) is restored; every other leftover (staging folders, retired
+        copies already replaced) is removed. Returns the restored ids and the number removed."""
+        restored, removed = [], 0
+        for retired in sorted(self.root.glob(f"{_RETIRED}*")):
+            specimen_id = retired.name[len(_RETIRED):].rpartition("-")[0]
+            if _ID.fullmatch(specimen_id) and not (self.root / specimen_id).exists():
+                retired.rename(self.root / specimen_id)
+                restored.append(specimen_id)
+            else:
+                shutil.rmtree(retired, ignore_errors=True)
+                removed += 1
+        for staging in self.root.glob(f"{_STAGING}*"):
+            shutil.rmtree(staging, ignore_errors=True)
+            removed += 1
+        _sync_folder(self.root)
+        return restored, removed
 
     def ids(self) -> list[str]:
         return sorted(p.name for p in self.root.iterdir() if p.is_dir() and _ID.fullmatch(p.name) and (p / "specimen.json").is_file())
@@ -156,20 +174,45 @@ class SpecimenStore:
 
     @contextlib.contextmanager
     def writing(self, specimen_id: str) -> Iterator[Path]:
-        """A staging folder to write a specimen into; on success it replaces the stored one at once,
-        on failure it is removed and the stored one stays as it was."""
-        staging = self.root / f".staging-{specimen_id}-{uuid.uuid4().hex}"
+        """A staging folder to write a specimen into; on success it is fsynced and replaces the
+        stored one at once, on failure it is removed and the stored one stays as it was."""
+        token = uuid.uuid4().hex
+        staging = self.root / f"{_STAGING}{specimen_id}-{token}"
         staging.mkdir()
         try:
             yield staging
-            target = self.root / specimen_id
-            retired = self.root / f".retired-{specimen_id}-{uuid.uuid4().hex}"
-            if target.exists():
-                target.rename(retired)
-            staging.rename(target)
+            _sync_tree(staging)
+            target, retired = self.root / specimen_id, self.root / f"{_RETIRED}{specimen_id}-{token}"
+            with self._commit_lock:  # two builds of one id must not interleave their renames
+                if target.exists():
+                    target.rename(retired)
+                    _sync_folder(self.root)
+                staging.rename(target)
+                _sync_folder(self.root)
             shutil.rmtree(retired, ignore_errors=True)
         finally:
             shutil.rmtree(staging, ignore_errors=True)
+
+
+def _sync_tree(folder: Path) -> None:
+    """Flushes every file and folder under `folder` (and itself) to disk, deepest first."""
+    for directory, _, files in os.walk(folder, topdown=False):
+        for name in files:
+            descriptor = os.open(os.path.join(directory, name), os.O_RDONLY)
+            try:
+                os.fsync(descriptor)
+            finally:
+                os.close(descriptor)
+        _sync_folder(Path(directory))
+
+
+def _sync_folder(folder: Path) -> None:
+    """Flushes a folder's entries (the renames within it) to disk."""
+    descriptor = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        os.fsync(descriptor)
+    finally:
+        os.close(descriptor)
 
 
 def write_description(directory: Path, *, specimen_id: str, request_id: str, rois: list[RoiEntry], layout: QuadtreeLayout, tiles: dict[TileKey, TileRecord]) -> None:

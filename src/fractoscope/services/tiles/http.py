@@ -1,7 +1,9 @@
 """Plain HTTP for standard 3D Tiles viewers and our web viewer.
 
-- `/specimens/{id}/tileset.json` and the tiles it names: CORS headers (viewers run on other
-  origins), a strong ETag (answered with 304 when the client has it), gzip when accepted.
+- `/specimens/{id}/tileset.json` and the tiles it names, each under its one URI (a tile number
+  zero-padded or in other digits is a 404, not another cache entry): CORS headers (viewers run on
+  other origins), gzip when Accept-Encoding accepts it (q > 0), a strong ETag per representation
+  (the gzip one has its own) and 304 when If-None-Match holds it (weak comparison, RFC 9110).
 - `/viewer/` the web viewer (this package's data folder `web/`) and `/vendor/` the three.js and
   3DTilesRendererJS modules it imports (installed by `make install` into node_modules).
 - `/api/specimens[/{id}[/profile|/roughness|/heights]]` JSON for the viewer: summaries, profiles
@@ -30,9 +32,10 @@ from fractoscope.rpc.tiles import specimen_message
 from fractoscope.services.auth import TokenTable
 from fractoscope.services.caches import BoundedCache
 from fractoscope.specimen import queries as specimen_queries
+from fractoscope.specimen.quadtree import TILE_URI
 from fractoscope.specimen.store import SpecimenStore
 
-_ROUTE = re.compile(r"^/specimens/(?P<specimen>[A-Za-z0-9_-]{1,64})/(?P<path>tileset\.json|tiles/\d{1,6}/\d{1,6}/\d{1,6}\.glb)$")
+_ROUTE = re.compile(rf"/specimens/(?P<specimen>[A-Za-z0-9_-]{{1,64}})/(?P<path>tileset\.json|{TILE_URI.pattern})", re.ASCII)
 _TYPES = {
     ".json": "application/json", ".glb": "model/gltf-binary", ".html": "text/html; charset=utf-8",
     ".js": "text/javascript", ".css": "text/css", ".svg": "image/svg+xml",
@@ -41,17 +44,20 @@ WEB_ROOT = Path(__file__).resolve().parent / "web"
 # From a checkout the repository's node_modules; an installed image says where via the environment.
 _VENDOR = Path(os.environ.get("FRACTO_VENDOR_ROOT", Path(__file__).resolve().parents[4] / "node_modules"))
 VENDOR_ROOTS = {"three": _VENDOR / "three", "3d-tiles-renderer": _VENDOR / "3d-tiles-renderer"}
-_STATIC = re.compile(r"^/(?P<area>viewer|vendor)/(?P<path>[A-Za-z0-9_./-]*)$")
-_API = re.compile(r"^/api/specimens(?:/(?P<specimen>[A-Za-z0-9_-]{1,64})(?:/(?P<query>profile|roughness|heights))?)?$")
+_STATIC = re.compile(r"/(?P<area>viewer|vendor)/(?P<path>[A-Za-z0-9_./-]*)")
+_API = re.compile(r"/api/specimens(?:/(?P<specimen>[A-Za-z0-9_-]{1,64})(?:/(?P<query>profile|roughness|heights))?)?")
+# An entity tag in If-None-Match: its opaque part, weak or not.
+_ENTITY_TAG = re.compile(r'(?:W/)?("[^"]*")')
 
 
 class _Body:
-    """One response body with its ETag and gzip form, computed once."""
+    """One response body with its gzip form and the strong ETag of each, computed once."""
 
     def __init__(self, raw: bytes):
         self.raw = raw
-        self.etag = '"' + hashlib.sha256(raw).hexdigest()[:32] + '"'
         self.gzipped = gzip.compress(raw, compresslevel=6)
+        digest = hashlib.sha256(raw).hexdigest()[:32]
+        self.etag, self.gzip_etag = f'"{digest}"', f'"{digest}-gzip"'
 
 
 def body_cache(limit_bytes: int = 256 * 1024 * 1024) -> BoundedCache[_Body]:
@@ -85,14 +91,14 @@ class _TileApp:
             offered = request.headers.get("Authorization") or "Bearer " + request.query.get("token", "")
             if self.tokens.grant(offered) is None:
                 return _plain(HTTPStatus.UNAUTHORIZED, "a valid bearer token is required\n")
-        if (api := _API.match(path)) is not None:
+        if (api := _API.fullmatch(path)) is not None:
             arguments = {key: request.query.getall(key) for key in request.query.keys()}
             status, answer = await _off_loop(self._api_answer, api["specimen"], api["query"], arguments)
             return web.Response(status=status, body=json.dumps(answer, allow_nan=False).encode(),
                                 headers={**_CORS, "Content-Type": "application/json", "Cache-Control": "no-store"})
-        if (static := _STATIC.match(path)) is not None:
+        if (static := _STATIC.fullmatch(path)) is not None:
             return await self._static(request, static["area"], static["path"] or "index.html")
-        route = _ROUTE.match(path)
+        route = _ROUTE.fullmatch(path)
         if route is None:
             return _plain(HTTPStatus.NOT_FOUND, "not found\n")
         relative = route["path"]
@@ -159,13 +165,45 @@ async def _off_loop(function, *args):
 
 
 def _body_response(request: web.Request, body: _Body, content_type: str) -> web.Response:
-    if request.headers.get("If-None-Match") == body.etag:
-        return web.Response(status=HTTPStatus.NOT_MODIFIED, headers={**_CORS, "ETag": body.etag})
-    headers = {**_CORS, "Content-Type": content_type, "ETag": body.etag, "Cache-Control": "no-cache", "Vary": "Accept-Encoding"}
-    if "gzip" in request.headers.get("Accept-Encoding", ""):
+    """The raw or gzip representation as Accept-Encoding chooses, or 304 when If-None-Match names
+    its ETag; the 304 carries the headers a 200 would validate (RFC 9110, 15.4.5)."""
+    gzipped = accepts_gzip(",".join(request.headers.getall("Accept-Encoding", [])))
+    etag = body.gzip_etag if gzipped else body.etag
+    headers = {**_CORS, "ETag": etag, "Cache-Control": "no-cache", "Vary": "Accept-Encoding"}
+    if not_modified(",".join(request.headers.getall("If-None-Match", [])), etag):
+        return web.Response(status=HTTPStatus.NOT_MODIFIED, headers=headers)
+    headers["Content-Type"] = content_type
+    if gzipped:
         headers["Content-Encoding"] = "gzip"
         return web.Response(body=body.gzipped, headers=headers)
     return web.Response(body=body.raw, headers=headers)
+
+
+def not_modified(if_none_match: str, etag: str) -> bool:
+    """Whether If-None-Match fails for a representation with `etag`, so a GET gets 304 (RFC 9110,
+    13.1.2): the header is `*` or lists an entity tag weakly equal to it (the opaque parts equal,
+    `W/` or not). An empty header never does."""
+    return if_none_match.strip() == "*" or etag.removeprefix("W/") in _ENTITY_TAG.findall(if_none_match)
+
+
+def accepts_gzip(accept_encoding: str) -> bool:
+    """Whether Accept-Encoding admits gzip (RFC 9110, 12.5.3): `gzip` (or `x-gzip`) with a
+    weight above 0, or else `*` with one; a malformed weight counts as 0."""
+    weights = {}
+    for element in accept_encoding.split(","):
+        coding, *parameters = (part.strip() for part in element.split(";"))
+        weight = 1.0
+        for parameter in parameters:
+            name, _, value = parameter.partition("=")
+            if name.strip().lower() == "q":
+                try:
+                    weight = float(value)
+                except ValueError:
+                    weight = 0.0
+        if coding:
+            weights[coding.lower()] = weight
+    weight = weights.get("gzip", weights.get("x-gzip", weights.get("*", 0.0)))
+    return weight > 0
 
 
 def _plain(status: HTTPStatus, text: str, **headers: str) -> web.Response:

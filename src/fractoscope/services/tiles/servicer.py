@@ -2,43 +2,78 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
+from typing import Protocol
 
 import grpc
 import numpy as np
 
-from fractoscope.errors import InvalidInputError, NotFoundError, UnavailableError
+from fractoscope.errors import CancelledError, InvalidInputError, NotFoundError, ResourceExhaustedError, UnauthenticatedError, UnavailableError
+from fractoscope.mesh.pipeline import EncodedTile
+from fractoscope.progress import ProgressCallback, silent
 from fractoscope.rpc import calls, wire
 from fractoscope.rpc import tiles as rpc_tiles
 from fractoscope.rpc.channel import open_channel
 from fractoscope.rpc.status import ClientError, abort_on_error, raised_as_client_errors
+from fractoscope.sem.image import image_shape
+from fractoscope.services import budget
 from fractoscope.services.caches import BoundedCache
-from fractoscope.services.streaming import stream_progress
+from fractoscope.services.jobs import Job, JobRunner
 from fractoscope.specimen import quadtree
 from fractoscope.specimen.quadtree import TileSamples
 from fractoscope.specimen import queries as specimen_queries
-from fractoscope.specimen.build import MeasuredHeights, RoiRequest, reconstruct_specimen
+from fractoscope.specimen.build import MeasuredHeights, RoiRequest, ordered_rois, reconstruct_specimen
 from fractoscope.specimen.store import Specimen, SpecimenStore, validate_id
-from fractoscope.v1 import common_pb2, matching_pb2_grpc, meshing_pb2_grpc, tiles_pb2, tiles_pb2_grpc
+from fractoscope.stereo.pipeline import HeightMapResult
+from fractoscope.surface.filtering import FilterReport
+from fractoscope.v1 import common_pb2, matching_pb2, matching_pb2_grpc, meshing_pb2, meshing_pb2_grpc, tiles_pb2, tiles_pb2_grpc
 
 _log = logging.getLogger("fractoscope.tiles")
 GET_TILE_METHOD = "/fractoscope.v1.TileService/GetTile"
 
 
+class LocalMatching(Protocol):
+    """The matching service of this process, called in-process (see MatchingServicer)."""
+
+    def peak_bytes(self, request: matching_pb2.ComputeHeightMapRequest) -> int: ...
+
+    def height_map(
+        self, request: matching_pb2.ComputeHeightMapRequest, job: Job, progress: ProgressCallback
+    ) -> tuple[HeightMapResult, np.ndarray]: ...
+
+
+class LocalMeshing(Protocol):
+    """The meshing service of this process, called in-process (see MeshingServicer)."""
+
+    def mesh(self, request: meshing_pb2.BuildMeshRequest, progress: ProgressCallback) -> tuple[list[EncodedTile], FilterReport]: ...
+
+
 class TileServicer(tiles_pb2_grpc.TileServiceServicer):
-    """Thin wrappers over reconstruction, the specimen store and the analysis modules. Matching and
-    meshing run on the services at `matching_address` and `meshing_address` (gRPC targets; a
-    `dns:///` name of several replicas is balanced round-robin); None means this server, filled in
-    once it knows its port. Every call to them has a deadline of `call_timeout_s`.
+    """Thin wrappers over reconstruction, the specimen store and the analysis modules.
+
+    Reconstructions are `builds` jobs (see jobs), checked against the memory budget first.
+    Concurrent calls with one request id follow one job. Matching and meshing run in this process
+    when it serves them (`local_matching`, `local_meshing`), else on the services at
+    `matching_address` and `meshing_address` (gRPC targets; a `dns:///` name of several replicas
+    is balanced round-robin), each call with the deadline the build's callers still wait, at most
+    `call_timeout_s`, and cancelled with the build.
 
     GetTile is answered by `get_tile_serialized`, which the server routes there (SerializedGetTile);
     up to `tile_response_cache_bytes` of serialized tile responses are kept."""
 
     def __init__(
-        self, store: SpecimenStore, *, matching_address: str | None = None, meshing_address: str | None = None,
+        self, store: SpecimenStore, *, builds: JobRunner, memory: budget.MemoryBudget,
+        local_matching: LocalMatching | None = None, local_meshing: LocalMeshing | None = None,
+        matching_address: str | None = None, meshing_address: str | None = None,
         call_timeout_s: float = 1800.0, tile_response_cache_bytes: int = 256 * 1024 * 1024,
     ):
+        if (local_matching is None) == (matching_address is None) or (local_meshing is None) == (meshing_address is None):
+            raise ValueError("the tile service needs matching and meshing, each served by this process or given an address "
+                             "(--matching-address, --meshing-address)")
         self.store = store
+        self._builds, self._memory = builds, memory
+        self._local_matching, self._local_meshing = local_matching, local_meshing
         self.matching_address = matching_address
         self.meshing_address = meshing_address
         self.call_timeout_s = call_timeout_s
@@ -47,49 +82,79 @@ class TileServicer(tiles_pb2_grpc.TileServiceServicer):
     @abort_on_error
     def ReconstructSpecimen(self, request, context):
         specimen_id = validate_id(request.specimen_id, field="specimen_id")
-        if request.request_id:
-            existing = self._existing(specimen_id)
-            if existing is not None and existing.request_id == request.request_id:
-                yield tiles_pb2.ReconstructSpecimenResponse(specimen=rpc_tiles.specimen_message(existing))
-                return
-        rois = [rpc_tiles.roi_request(spec, index) for index, spec in enumerate(request.rois)]
-        for event in stream_progress(context, lambda progress: self._reconstruct(request, rois, progress)):
-            if isinstance(event, common_pb2.Progress):
-                yield tiles_pb2.ReconstructSpecimenResponse(progress=event)
-            else:
-                _log.info("specimen built", extra={"request_id": request.request_id})
-                yield tiles_pb2.ReconstructSpecimenResponse(specimen=rpc_tiles.specimen_message(event))
+        stored = self._stored(specimen_id, request.request_id)
+        if stored is None:
+            rois = [rpc_tiles.roi_request(spec, index) for index, spec in enumerate(request.rois)]
+            ordered_rois(rois)  # refused before it takes a place in the queue
+            height_requests = [_height_map_request(spec, request.request_id) for spec in request.rois]
+            estimate, shapes = self._estimate(height_requests)
+            rows, cols = max(shapes, key=lambda shape: shape[0] * shape[1])
+            self._memory.check(estimate, f"specimen {specimen_id!r} ({len(rois)} ROIs, the largest of {cols} x {rows} pixels)")
+            key = (specimen_id, request.request_id) if request.request_id else None
+            for event in self._builds.follow(context, lambda job: self._reconstruct(request, rois, height_requests, job), key=key):
+                if isinstance(event, common_pb2.Progress):
+                    yield tiles_pb2.ReconstructSpecimenResponse(progress=event)
+                else:
+                    stored = event
+                    _log.info("specimen built", extra={"request_id": request.request_id})
+        if stored is not None:
+            yield tiles_pb2.ReconstructSpecimenResponse(specimen=rpc_tiles.specimen_message(stored))
 
-    def _reconstruct(self, request: tiles_pb2.ReconstructSpecimenRequest, rois: list[RoiRequest], progress) -> Specimen:
-        """Builds the specimen with matching and meshing called on their services."""
-        specs = {spec.id: (index, spec) for index, spec in enumerate(request.rois)}
-        timeout_s = self.call_timeout_s
-        with open_channel(self.matching_address) as matching_channel, open_channel(self.meshing_address) as meshing_channel:
-            matching = matching_pb2_grpc.MatchingServiceStub(matching_channel)
-            meshing = meshing_pb2_grpc.MeshingServiceStub(meshing_channel)
+    def _estimate(self, height_requests: list[matching_pb2.ComputeHeightMapRequest]) -> tuple[int, list[tuple[int, int]]]:
+        """A reconstruction's estimated peak memory (see budget) and its ROIs' image shapes (rows,
+        cols); InvalidInputError names the ROI."""
+        shapes, matched_here = [], []
+        for index, height_request in enumerate(height_requests):
+            with _in_roi(index):
+                shapes.append(image_shape(height_request.images[0].image.content, field="images[0].image"))
+                if self._local_matching is not None:
+                    matched_here.append(self._local_matching.peak_bytes(height_request))
+        return budget.specimen_bytes(shapes, matched_here=matched_here), shapes
 
-            def measure(roi: RoiRequest, progress) -> MeasuredHeights:
-                index, spec = specs[roi.id]
-                return _measure(matching, spec, index, request_id=request.request_id, timeout_s=timeout_s, progress=progress)
+    def _reconstruct(
+        self, request: tiles_pb2.ReconstructSpecimenRequest, rois: list[RoiRequest],
+        height_requests: list[matching_pb2.ComputeHeightMapRequest], job: Job,
+    ) -> Specimen:
+        """Builds the specimen, unless an earlier job of its request id stored it meanwhile."""
+        stored = self._stored(request.specimen_id, request.request_id)
+        if stored is not None:
+            return stored
+        indices = {spec.id: index for index, spec in enumerate(request.rois)}
+        with contextlib.ExitStack() as channels:
+            matching = meshing = None
+            if self._local_matching is None:
+                matching = matching_pb2_grpc.MatchingServiceStub(channels.enter_context(open_channel(self.matching_address)))
+            if self._local_meshing is None:
+                meshing = meshing_pb2_grpc.MeshingServiceStub(channels.enter_context(open_channel(self.meshing_address)))
+
+            def measure(roi: RoiRequest, progress: ProgressCallback) -> MeasuredHeights:
+                index = indices[roi.id]
+                with _in_roi(index):
+                    if matching is None:
+                        result, texture = self._local_matching.height_map(height_requests[index], job, progress)
+                        return MeasuredHeights(result.z_um, texture, result.report["pixel_size_um"], result.report, result.sigma_um)
+                    with _calling("matching", self.matching_address):
+                        call = matching.ComputeHeightMap(height_requests[index], timeout=job.time_remaining_s(at_most_s=self.call_timeout_s))
+                        job.on_cancel(call.cancel)
+                        heights = calls.read_height_map(call, progress)
+                    return MeasuredHeights(heights.z_um, heights.texture, heights.pixel_size_um, heights.report, heights.sigma_um)
 
             def mesh_tile(tile: TileSamples) -> bytes:
                 mesh_request = calls.mesh_request(
                     tile.z_um, tile.texture, pixel_size_um=tile.cell_um, origin_um=tile.origin_um, level_count=1,
                     max_slope=tile.max_slope or 0.0, sigma_um=np.full(tile.z_um.shape, tile.noise_um, np.float32),
                 )
-                with raised_as_client_errors():
-                    tiles, _ = calls.read_mesh(meshing.BuildMesh(mesh_request, timeout=timeout_s), None)
+                if meshing is None:
+                    tiles, _ = self._local_meshing.mesh(mesh_request, silent)
+                    return tiles[0].glb
+                with _calling("meshing", self.meshing_address):
+                    tiles, _ = calls.read_mesh(meshing.BuildMesh(mesh_request, timeout=job.time_remaining_s(at_most_s=self.call_timeout_s)), None)
                 return tiles[0].glb
 
-            try:
-                return reconstruct_specimen(
-                    request.specimen_id, rois, measure=measure, mesh_tile=mesh_tile, store=self.store,
-                    request_id=request.request_id, progress=progress,
-                )
-            except ClientError as error:
-                if error.code in (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.DEADLINE_EXCEEDED):
-                    raise UnavailableError(f"a service the reconstruction needs failed ({error}); nothing was stored, retry") from None
-                raise
+            return reconstruct_specimen(
+                request.specimen_id, rois, measure=measure, mesh_tile=mesh_tile, store=self.store,
+                request_id=request.request_id, progress=job.progress,
+            )
 
     @abort_on_error
     def GetSpecimen(self, request, context):
@@ -156,11 +221,15 @@ class TileServicer(tiles_pb2_grpc.TileServiceServicer):
         )
         return wire.roughness_response(values)
 
-    def _existing(self, specimen_id: str) -> Specimen | None:
+    def _stored(self, specimen_id: str, request_id: str) -> Specimen | None:
+        """The stored specimen that a request with `request_id` built, if any."""
+        if not request_id:
+            return None
         try:
-            return self.store.load(specimen_id)
+            existing = self.store.load(specimen_id)
         except NotFoundError:
             return None
+        return existing if existing.request_id == request_id else None
 
 
 class SerializedGetTile(grpc.ServerInterceptor):
@@ -178,11 +247,10 @@ class SerializedGetTile(grpc.ServerInterceptor):
         return continuation(handler_call_details)
 
 
-def _measure(stub, spec: tiles_pb2.RoiSpec, index: int, *, request_id: str, timeout_s: float, progress) -> MeasuredHeights:
-    """One ROI's height map from the matching service, its progress passed on; its errors name the
-    ROI's fields."""
+def _height_map_request(spec: tiles_pb2.RoiSpec, request_id: str) -> matching_pb2.ComputeHeightMapRequest:
+    """The ComputeHeightMap of one ROI's pair."""
     tilts = [item.tilt_deg for item in spec.images] if all(item.HasField("tilt_deg") for item in spec.images) else None
-    request = calls.height_map_request(
+    return calls.height_map_request(
         [(item.image.content, "") for item in spec.images],
         tilt_deg=tilts,
         pixel_size_um=spec.pixel_size_um if spec.HasField("pixel_size_um") else None,
@@ -190,11 +258,35 @@ def _measure(stub, spec: tiles_pb2.RoiSpec, index: int, *, request_id: str, time
         parameters=spec.parameters,
         request_id=request_id,
     )
+
+
+@contextlib.contextmanager
+def _in_roi(index: int):
+    """Input errors about a height-map request, renamed as fields of `rois[index]`."""
+    try:
+        yield
+    except InvalidInputError as error:
+        raise InvalidInputError(f"rois[{index}].{error.field}", error.message) from None
+
+
+@contextlib.contextmanager
+def _calling(service: str, address: str):
+    """Turns the failure of a call to `service` into the error this build fails with."""
     try:
         with raised_as_client_errors():
-            result = calls.read_height_map(stub.ComputeHeightMap(request, timeout=timeout_s), progress)
+            yield
     except ClientError as error:
         if error.field:
-            raise InvalidInputError(f"rois[{index}].{error.field}", str(error).split(": ", 1)[-1]) from None
+            raise InvalidInputError(error.field, str(error).split(": ", 1)[-1]) from None
+        if error.code in (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.DEADLINE_EXCEEDED):
+            raise UnavailableError(f"the {service} service at {address} failed ({error.code.name}: {error}); nothing was stored, retry") from None
+        if error.code in (grpc.StatusCode.UNAUTHENTICATED, grpc.StatusCode.PERMISSION_DENIED):
+            raise UnauthenticatedError(
+                f"this server could not authenticate to the {service} service at {address} ({error.code.name}: {error}); "
+                "give it a write token of that service in FRACTO_TOKEN"
+            ) from None
+        if error.code == grpc.StatusCode.RESOURCE_EXHAUSTED:
+            raise ResourceExhaustedError(f"the {service} service at {address} is busy: {error}", retry_after_s=error.retry_after_s) from None
+        if error.code == grpc.StatusCode.CANCELLED:
+            raise CancelledError(str(error)) from None
         raise
-    return MeasuredHeights(result.z_um, result.texture, result.pixel_size_um, result.report, result.sigma_um)
