@@ -96,7 +96,7 @@ def run_demo(client: FractoscopeClient, data_dir: Path, *, shared_data: Path, co
                                     region["y_um"] - truth.roi_origin_px[1] * truth.overview_pixel_size_um) / truth.overview_pixel_size_um
                 check = f"found {error_px:.2f} px from the truth; fit residual {roi['alignment_residual_um']:.2f} µm"
             elif specimen_id == "synthetic":
-                check = f"true Sa {roughness.sa_um(truth.overview.z_seen_um):.3f}"
+                check = f"true Sa {roughness.height_parameters_after_plane(truth.overview.z_seen_um)['Sa']:.3f}"
             table.add_row(
                 specimen_id, roi["id"], f"{roi['pixel_size_um']:.4g}", f"{region['x_um']:.1f}, {region['y_um']:.1f}",
                 f"{values['Sz']:.2f}", f"{values['Sa']:.3f}", check,

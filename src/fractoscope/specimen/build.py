@@ -20,6 +20,8 @@ from fractoscope.specimen import registration
 from fractoscope.specimen.fusion import FusedSurface, PlacedRoi
 from fractoscope.specimen.quadtree import QuadtreeLayout, TileKey, TileRecord, build_tiles
 from fractoscope.specimen.store import RoiEntry, Specimen, SpecimenStore, validate_id, write_description, write_roi_arrays
+from fractoscope.stereo import geometry
+from fractoscope.stereo.pipeline import MatchingOptions
 from fractoscope.surface import filtering
 
 
@@ -36,13 +38,15 @@ class RoiRequest:
 
 @dataclass(frozen=True)
 class MeasuredHeights:
-    """What matching returns for an ROI: heights (rows, cols) µm, grey texture, pixel size µm and the
-    matching report (see MatchingReport)."""
+    """What matching returns for an ROI: heights (rows, cols) µm, grey texture, pixel size µm, the
+    matching report (see MatchingReport) and the heights' one-sigma uncertainty (µm, None: not
+    known), tilt part included."""
 
     z_um: np.ndarray
     texture: np.ndarray
     pixel_size_um: float
     report: dict
+    sigma_um: np.ndarray | None = None
 
 
 Measure = Callable[[RoiRequest], MeasuredHeights]
@@ -119,6 +123,7 @@ def _place(ordered: list[RoiRequest], measured: dict[str, MeasuredHeights]) -> t
         z_um = filtering.filter_heights(heights.z_um).z_um.astype(np.float32)
         texture = _grey8(heights.texture)
         entry = RoiEntry(roi.id, roi.parent, roi.magnification, heights.pixel_size_um, (0.0, 0.0), z_um.shape, matching=heights.report)
+        sigma_um = _matching_sigma(heights, z_um, entry)
         if roi.parent:
             parent = placed[roi.parent]
             entry.origin_um, entry.registration_score = _child_origin(roi, parent, texture, heights)
@@ -127,9 +132,26 @@ def _place(ordered: list[RoiRequest], measured: dict[str, MeasuredHeights]) -> t
             z_um = registration.apply_height_alignment(z_um, alignment, pixel_size_um=heights.pixel_size_um)
             texture = registration.match_texture(parent, unaligned)
             entry.alignment_residual_um = alignment.residual_um
-        placed[roi.id] = PlacedRoi(roi.id, roi.magnification, heights.pixel_size_um, entry.origin_um, z_um, texture)
+        placed[roi.id] = PlacedRoi(roi.id, roi.magnification, heights.pixel_size_um, entry.origin_um, z_um, texture, sigma_um)
         entries.append(entry)
     return placed, entries
+
+
+def _matching_sigma(heights: MeasuredHeights, z_um: np.ndarray, entry: RoiEntry) -> np.ndarray | None:
+    """The matching-noise part of the heights' sigma (float32 µm, NaN where z_um is; points the
+    filter filled get the median), with the relative tilt uncertainty it leaves out set on
+    `entry`: surface analysis propagates the two apart. The tilt uncertainty is the calibrated
+    tilts' where the report has it, else the matcher's default (as the pipeline's sigma)."""
+    tilts = heights.report.get("tilt_deg") or []
+    if heights.sigma_um is None or len(tilts) < 2:
+        return None
+    calibrated = [s for s in heights.report.get("tilt_sigma_deg") or [] if np.isfinite(s)]
+    tilt_uncertainty = max(calibrated) if calibrated else MatchingOptions().tilt_uncertainty_deg
+    entry.tilt_rel_uncertainty = geometry.series_relative_height_error(tilts, tilt_uncertainty_deg=tilt_uncertainty)
+    noise = geometry.matching_sigma_um(heights.z_um, heights.sigma_um, relative_height_error=entry.tilt_rel_uncertainty)
+    known = np.isfinite(noise)
+    fill = np.float32(np.median(noise[known])) if known.any() else np.float32(np.nan)
+    return np.where(np.isfinite(z_um), np.where(known, noise, fill), np.nan).astype(np.float32)
 
 
 def _write_tiles(staging, surface: FusedSurface, layout: QuadtreeLayout, mesh_tile: TileMesher, report) -> dict[TileKey, TileRecord]:

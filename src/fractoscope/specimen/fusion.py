@@ -26,6 +26,7 @@ class PlacedRoi:
     z_um: (rows, cols) float32 heights, µm, already aligned to its parent; NaN unknown.
     texture: (rows, cols) uint8 grey SEM image on the same grid.
     origin_um: (x, y) of pixel (0, 0) in the specimen frame, µm.
+    sigma_um: (rows, cols) float32 one-sigma matching noise of the heights, µm (None: not known).
     """
 
     id: str
@@ -34,6 +35,7 @@ class PlacedRoi:
     origin_um: tuple[float, float]
     z_um: np.ndarray
     texture: np.ndarray
+    sigma_um: np.ndarray | None = None
 
     @property
     def extent_um(self) -> tuple[float, float, float, float]:

@@ -33,6 +33,7 @@ Heights (rows, cols) µm, NaN unknown; the form should be removed first, and no 
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -297,9 +298,11 @@ def hurst_exponent(
 
 def _combined(method: str, per_band: np.ndarray) -> np.ndarray:
     """One curve from the bands' (near equal sized): mean squares for h(r), mean power for the PSD."""
-    if method == "hhc":
-        return np.sqrt(np.nanmean(per_band**2, axis=0))
-    return np.nanmean(per_band, axis=0)
+    with warnings.catch_warnings():  # a lag or wavelength no band has data at stays NaN
+        warnings.simplefilter("ignore", RuntimeWarning)
+        if method == "hhc":
+            return np.sqrt(np.nanmean(per_band**2, axis=0))
+        return np.nanmean(per_band, axis=0)
 
 
 def _power_law(method: str, log_scale: np.ndarray, log_value: np.ndarray, weights: np.ndarray) -> tuple[float, float]:
