@@ -19,7 +19,9 @@ The API, the command line, the HTTP endpoint and the viewer all call `analyse`. 
 
 from __future__ import annotations
 
+import contextlib
 import math
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -150,12 +152,14 @@ def analyse(
     sigma_um: np.ndarray | float | None = None,
     tilt_rel_uncertainty: float | None = None,
     features: bool = True,
+    timings: dict[str, float] | None = None,
 ) -> SurfaceAnalysis:
     """Run the chain on a (rows, cols) µm height map. ``levelling_region``: (rows, cols) bool, where
     the form is fitted; ``sigma_um``: the matching noise's one-sigma per pixel (µm, a map or one
     value; without it no uncertainty is computed); ``tilt_rel_uncertainty``: the relative
     uncertainty of the tilt difference (0.01 for 1 %; None: unknown, propagated as 0);
-    ``features=False`` leaves out Spd and Spc (NaN). Raises InvalidInputError naming what is wrong."""
+    ``features=False`` leaves out Spd and Spc (NaN); ``timings``, if given, receives each step's
+    wall-clock seconds (STEPS). Raises InvalidInputError naming what is wrong."""
     z = np.asarray(z_um, dtype=np.float64)
     if z.ndim != 2 or min(z.shape) < 16:
         raise InvalidInputError("region", f"needs at least 16 x 16 points, got {z.shape}")
@@ -163,44 +167,80 @@ def analyse(
         raise InvalidInputError("region", "holds fewer than 64 measured points")
     if chain.levelled_on_region != (levelling_region is not None):
         chain = SurfaceChain(**{**chain.__dict__, "levelled_on_region": levelling_region is not None})
-    if chain.form == "none":
-        residual, form_parameters = z, {}
-    else:
+    step = _Stopwatch(timings)
+    with step("form removal"):
+        if chain.form == "none":
+            residual, form_parameters = z, {}
+        else:
+            try:
+                fit = form_removal.remove_form(
+                    z, pixel_size_um=pixel_size_um, form=chain.form, region=levelling_region, robust=chain.robust_form
+                )
+            except ValueError as error:
+                raise InvalidInputError("levelling_region" if levelling_region is not None else "form", str(error)) from None
+            residual, form_parameters = fit.residual_um, fit.parameters
+    with step("S- and L-filters"):
         try:
-            fit = form_removal.remove_form(z, pixel_size_um=pixel_size_um, form=chain.form, region=levelling_region, robust=chain.robust_form)
+            surface = iso_filters.scale_limited_surface(
+                residual, pixel_size_um=pixel_size_um, lambda_s_um=chain.lambda_s_um or None, lambda_c_um=chain.lambda_c_um or None
+            )
         except ValueError as error:
-            raise InvalidInputError("levelling_region" if levelling_region is not None else "form", str(error)) from None
-        residual, form_parameters = fit.residual_um, fit.parameters
-    try:
-        surface = iso_filters.scale_limited_surface(
-            residual, pixel_size_um=pixel_size_um, lambda_s_um=chain.lambda_s_um or None, lambda_c_um=chain.lambda_c_um or None
-        )
-    except ValueError as error:
-        raise InvalidInputError("l_filter_um", str(error)) from None
+            raise InvalidInputError("l_filter_um", str(error)) from None
     sl = surface.z_um
-    max_lag_px = None
-    if chain.lambda_c_um:  # past lambda_c the S-L surface holds no correlation to resolve
-        max_lag_px = max(1, min(min(sl.shape) // 2, int(np.ceil(chain.lambda_c_um / pixel_size_um))))
-    parameters = areal_parameters.areal_parameters(sl, pixel_size_um=pixel_size_um, features=features, max_lag_px=max_lag_px)
-    if not features:
-        parameters |= {"Spd": float("nan"), "Spc": float("nan")}
+    with step("height and hybrid parameters"):
+        parameters = areal_parameters.height_parameters(sl) | areal_parameters.hybrid_parameters(sl, pixel_size_um=pixel_size_um)
+    with step("spatial parameters"):
+        max_lag_px = None
+        if chain.lambda_c_um:  # past lambda_c the S-L surface holds no correlation to resolve
+            max_lag_px = max(1, min(min(sl.shape) // 2, int(np.ceil(chain.lambda_c_um / pixel_size_um))))
+        parameters |= areal_parameters.spatial_parameters(sl, pixel_size_um=pixel_size_um, max_lag_px=max_lag_px)
+    with step("functional parameters"):
+        parameters |= areal_parameters.functional_parameters(sl)
+    with step("feature parameters"):
+        nan = float("nan")
+        parameters |= areal_parameters.feature_parameters(sl, pixel_size_um=pixel_size_um) if features else {"Spd": nan, "Spc": nan}
     parameters = {name: parameters[name] for name in areal_parameters.UNITS}
+    with step("Hurst exponents"):
+        hurst = _hurst(surface.sf_um, pixel_size_um, chain)
+    with step("areal PSD"):
+        q, c = scaling.radial_psd(surface.sf_um, pixel_size_um=pixel_size_um)
     u = None
-    if sigma_um is not None:
-        try:
-            u = uncertainty.areal_uncertainty(
-                sl, np.where(np.isfinite(sl), sigma_um, 0.0), pixel_size_um=pixel_size_um,
-                parameters={k: v for k, v in parameters.items() if np.isfinite(v)},
-                tilt_rel_uncertainty=tilt_rel_uncertainty or 0.0, correlation_px=chain.window_px,
-            )  # fmt: skip
-        except ValueError as error:
-            raise InvalidInputError("sigma_um", str(error)) from None
-    q, c = scaling.radial_psd(surface.sf_um, pixel_size_um=pixel_size_um)
+    with step("uncertainty"):
+        if sigma_um is not None:
+            try:
+                u = uncertainty.areal_uncertainty(
+                    sl, np.where(np.isfinite(sl), sigma_um, 0.0), pixel_size_um=pixel_size_um,
+                    parameters={k: v for k, v in parameters.items() if np.isfinite(v)},
+                    tilt_rel_uncertainty=tilt_rel_uncertainty or 0.0, correlation_px=chain.window_px,
+                )  # fmt: skip
+            except ValueError as error:
+                raise InvalidInputError("sigma_um", str(error)) from None
     return SurfaceAnalysis(
         chain=chain, pixel_size_um=float(pixel_size_um), parameters=parameters, uncertainty=u,
-        tilt_rel_uncertainty=tilt_rel_uncertainty, hurst=_hurst(surface.sf_um, pixel_size_um, chain),
-        psd_q_per_um=q, psd_um4=c, form_parameters=form_parameters,
+        tilt_rel_uncertainty=tilt_rel_uncertainty, hurst=hurst, psd_q_per_um=q, psd_um4=c, form_parameters=form_parameters,
     )  # fmt: skip
+
+
+STEPS = (
+    "form removal", "S- and L-filters", "height and hybrid parameters", "spatial parameters", "functional parameters",
+    "feature parameters", "Hurst exponents", "areal PSD", "uncertainty",
+)  # fmt: skip
+
+
+class _Stopwatch:
+    """``with step(name):`` adds the block's wall-clock seconds to timings[name] (nothing without)."""
+
+    def __init__(self, timings: dict[str, float] | None):
+        self.timings = timings
+
+    @contextlib.contextmanager
+    def __call__(self, name: str):
+        started = time.perf_counter()
+        try:
+            yield
+        finally:
+            if self.timings is not None:
+                self.timings[name] = self.timings.get(name, 0.0) + time.perf_counter() - started
 
 
 def _hurst(sf_um: np.ndarray, pixel_size_um: float, chain: SurfaceChain) -> HurstResult:
