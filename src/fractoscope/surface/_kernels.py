@@ -173,95 +173,85 @@ def class_block_sums(z, sigma, mean, class_heights, derivatives, block):
 
 
 @numba.njit(parallel=True, **_JIT)
-def slope_edge_derivatives(z, inverse_pixel, sdq_x_scale, sdq_y_scale, sdr_scale):
-    """dSdq/d(slope) and dSdr/d(slope) of every x edge (rows, cols - 1) and y edge (rows - 1, cols),
-    and d Sdr / d ln(s) for heights scaled by s. Sdq = sqrt(sum gx² / Nx + sum gy² / Ny), so
-    dSdq/dgx = gx · sdq_x_scale (= 1 / (Nx Sdq)); Sdr = sdr_scale · sum over complete cells of the
-    corner terms T = sqrt(gx² + gy² + 1) (sdr_scale = 100 / (4 N_cells)), dT/dgx = gx / T, and
-    dT/d ln(s) = (gx² + gy²) / T. Edges of unknown slope get 0."""
+def slope_block_sums(z, sigma, inverse_pixel, sdq_x_scale, sdq_y_scale, sdr_scale, block):
+    """Block sums of sigma · dSdq/dz and sigma · dSdr/dz, and d Sdr / d ln(s) for heights scaled by
+    s. Sdq = sqrt(sum gx² / Nx + sum gy² / Ny), so dSdq/dgx = gx · sdq_x_scale (= 1 / (Nx Sdq));
+    Sdr = sdr_scale · (sum over complete cells of the corner terms T = sqrt(gx² + gy² + 1)) (less
+    100), sdr_scale = 100 / (4 N_cells), dT/dgx = gx / T, dT/d ln(s) = (gx² + gy²) / T. A slope
+    (z_end - z_start) / pixel passes dP/d(slope) / pixel to the block of its end and minus that to
+    the block of its start, each times the pixel's sigma. Rows of blocks go in two interleaved
+    passes, so that no two threads add to the same block (a cell reaches into the next row)."""
     rows, cols = z.shape
-    dq_x = np.zeros((rows, cols - 1), dtype=np.float32)
-    dq_y = np.zeros((rows - 1, cols), dtype=np.float32)
-    dr_x = np.zeros((rows, cols - 1), dtype=np.float32)
-    dr_y = np.zeros((rows - 1, cols), dtype=np.float32)
+    out_rows, out_cols = (rows + block - 1) // block, (cols + block - 1) // block
+    dq = np.zeros((out_rows, out_cols))
+    dr = np.zeros((out_rows, out_cols))
     scale_terms = np.zeros(rows)
-    for r in numba.prange(rows):
-        for c in range(cols):
-            v = z[r, c]
-            if c + 1 < cols:
-                gx = (z[r, c + 1] - v) * inverse_pixel
-                if np.isfinite(gx):
-                    dq_x[r, c] = gx * sdq_x_scale
-            if r + 1 < rows:
-                gy = (z[r + 1, c] - v) * inverse_pixel
-                if np.isfinite(gy):
-                    dq_y[r, c] = gy * sdq_y_scale
-    # Rows of cells in two interleaved passes, so that no two threads write the same edge.
     for parity in range(2):
-        for r in numba.prange(rows):
-            if r % 2 != parity:
+        for br in numba.prange(out_rows):
+            if br % 2 != parity:
                 continue
-            total = 0.0
-            for c in range(cols):
-                v = z[r, c]
-                if r + 1 < rows and c + 1 < cols:
+            for r in range(br * block, min(rows, (br + 1) * block)):
+                below = (r + 1) // block
+                total = 0.0
+                for c in range(cols):
+                    v = z[r, c]
+                    here, right_block = c // block, (c + 1) // block
+                    if c + 1 < cols:
+                        gx = (z[r, c + 1] - v) * inverse_pixel
+                        if np.isfinite(gx):
+                            d = gx * sdq_x_scale * inverse_pixel
+                            dq[br, right_block] += d * sigma[r, c + 1]
+                            dq[br, here] -= d * sigma[r, c]
+                    if r + 1 >= rows:
+                        continue
+                    gy = (z[r + 1, c] - v) * inverse_pixel
+                    if np.isfinite(gy):
+                        d = gy * sdq_y_scale * inverse_pixel
+                        dq[below, here] += d * sigma[r + 1, c]
+                        dq[br, here] -= d * sigma[r, c]
+                    if c + 1 >= cols:
+                        continue
                     top = (z[r, c + 1] - v) * inverse_pixel
                     bottom = (z[r + 1, c + 1] - z[r + 1, c]) * inverse_pixel
-                    left = (z[r + 1, c] - v) * inverse_pixel
+                    left = gy
                     right = (z[r + 1, c + 1] - z[r, c + 1]) * inverse_pixel
-                    if np.isfinite(top) and np.isfinite(bottom) and np.isfinite(left) and np.isfinite(right):
-                        t_tl = 1.0 / np.sqrt(top * top + left * left + 1.0)
-                        t_tr = 1.0 / np.sqrt(top * top + right * right + 1.0)
-                        t_bl = 1.0 / np.sqrt(bottom * bottom + left * left + 1.0)
-                        t_br = 1.0 / np.sqrt(bottom * bottom + right * right + 1.0)
-                        dr_x[r, c] += sdr_scale * top * (t_tl + t_tr)
-                        dr_x[r + 1, c] += sdr_scale * bottom * (t_bl + t_br)
-                        dr_y[r, c] += sdr_scale * left * (t_tl + t_bl)
-                        dr_y[r, c + 1] += sdr_scale * right * (t_tr + t_br)
-                        total += (
-                            (top * top + left * left) * t_tl + (top * top + right * right) * t_tr
-                            + (bottom * bottom + left * left) * t_bl + (bottom * bottom + right * right) * t_br
-                        )  # fmt: skip
-            scale_terms[r] = total
-    return dq_x, dq_y, dr_x, dr_y, sdr_scale * scale_terms.sum()
-
-
-@numba.njit(parallel=True, **_JIT)
-def edge_block_sums(sigma, d_x, d_y, inverse_pixel, block):
-    """Block sums of sigma · dP/dz, where dP/dz of a pixel is the sum over its edges of dP/d(slope)
-    times d(slope)/dz = ±1 / pixel (+ at the edge's end, - at its start)."""
-    rows, cols = sigma.shape
-    out_rows, out_cols = (rows + block - 1) // block, (cols + block - 1) // block
-    sums = np.zeros((out_rows, out_cols))
-    for br in numba.prange(out_rows):
-        for r in range(br * block, min(rows, (br + 1) * block)):
-            for c in range(cols):
-                w = 0.0
-                if c > 0:
-                    w += d_x[r, c - 1]
-                if c + 1 < cols:
-                    w -= d_x[r, c]
-                if r > 0:
-                    w += d_y[r - 1, c]
-                if r + 1 < rows:
-                    w -= d_y[r, c]
-                sums[br, c // block] += sigma[r, c] * w * inverse_pixel
-    return sums
+                    if not (np.isfinite(top) and np.isfinite(bottom) and np.isfinite(left) and np.isfinite(right)):
+                        continue
+                    t_tl = 1.0 / np.sqrt(top * top + left * left + 1.0)
+                    t_tr = 1.0 / np.sqrt(top * top + right * right + 1.0)
+                    t_bl = 1.0 / np.sqrt(bottom * bottom + left * left + 1.0)
+                    t_br = 1.0 / np.sqrt(bottom * bottom + right * right + 1.0)
+                    scaled = sdr_scale * inverse_pixel
+                    d = scaled * top * (t_tl + t_tr)  # x edge (r, c) -> (r, c + 1)
+                    dr[br, right_block] += d * sigma[r, c + 1]
+                    dr[br, here] -= d * sigma[r, c]
+                    d = scaled * bottom * (t_bl + t_br)  # x edge (r + 1, c) -> (r + 1, c + 1)
+                    dr[below, right_block] += d * sigma[r + 1, c + 1]
+                    dr[below, here] -= d * sigma[r + 1, c]
+                    d = scaled * left * (t_tl + t_bl)  # y edge (r, c) -> (r + 1, c)
+                    dr[below, here] += d * sigma[r + 1, c]
+                    dr[br, here] -= d * sigma[r, c]
+                    d = scaled * right * (t_tr + t_br)  # y edge (r, c + 1) -> (r + 1, c + 1)
+                    dr[below, right_block] += d * sigma[r + 1, c + 1]
+                    dr[br, right_block] -= d * sigma[r, c + 1]
+                    total += (
+                        (top * top + left * left) * t_tl + (top * top + right * right) * t_tr
+                        + (bottom * bottom + left * left) * t_bl + (bottom * bottom + right * right) * t_br
+                    )  # fmt: skip
+                scale_terms[r] = total
+    return dq, dr, sdr_scale * scale_terms.sum()
 
 
 # Feature parameters: steepest-ascent watershed ######################################################
 
 
-@numba.njit(**_JIT)
-def ascent_labels(heights):
-    """Label each pixel 1..n with the local maximum (plateau: an 8-connected set of pixels none of
-    whose neighbours is higher) that steepest ascent reaches from it; the steepest neighbour is the
-    highest, the first in row-major neighbour order on ties. Returns (labels, flat index of the
-    last pixel, row-major, of each label's maximum; index 0 unused)."""
+@numba.njit(parallel=True, **_JIT)
+def _ascent_targets(heights):
+    """Each pixel's (flat) steepest-ascent neighbour: the highest of its eight, the first in
+    row-major order on ties; itself where none is higher."""
     rows, cols = heights.shape
-    n = rows * cols
-    target = np.empty(n, dtype=np.int64)
-    for r in range(rows):
+    target = np.empty(rows * cols, dtype=np.int64)
+    for r in numba.prange(rows):
         for c in range(cols):
             best = -np.inf
             chosen = r * cols + c
@@ -275,6 +265,18 @@ def ascent_labels(heights):
                         if best > heights[r, c]:
                             chosen = rr * cols + cc
             target[r * cols + c] = chosen if best > heights[r, c] else r * cols + c
+    return target
+
+
+@numba.njit(**_JIT)
+def ascent_labels(heights):
+    """Label each pixel 1..n with the local maximum (plateau: an 8-connected set of pixels none of
+    whose neighbours is higher) that steepest ascent reaches from it; the steepest neighbour is the
+    highest, the first in row-major neighbour order on ties. Returns (labels, flat index of the
+    last pixel, row-major, of each label's maximum; index 0 unused)."""
+    rows, cols = heights.shape
+    n = rows * cols
+    target = _ascent_targets(heights)
     labels = np.zeros(n, dtype=np.int64)
     # Plateaus (pixels that do not climb) are labelled by an 8-connected flood fill.
     stack = np.empty(n, dtype=np.int64)
@@ -455,3 +457,159 @@ def upsample_cubic(coarse, start, step, rows, cols, known):
             else:
                 out[r, c] = np.nan
     return out
+
+
+@numba.njit(**_JIT)
+def height_histogram(z, mean, low, width, bins):
+    """Counts of the finite heights h = z - mean in `bins` classes of `width` from `low` (the top
+    class closed)."""
+    counts = np.zeros(bins, dtype=np.int64)
+    flat = z.ravel()
+    for i in range(flat.size):
+        v = flat[i]
+        if np.isfinite(v):
+            counts[min(int((v - mean - low) / width), bins - 1)] += 1
+    return counts
+
+
+# Scaling ###########################################################################################
+
+
+@numba.njit(parallel=True, **_JIT)
+def bilinear_profiles(z, origin, across, along, offsets, positions):
+    """Bilinear samples of z at origin + across · offset + along · position (row, col vectors) for
+    each offset (a profile) and position (a sample): (offsets, positions); NaN off the map or where
+    a corner is unknown (scipy.ndimage.map_coordinates, order 1, cval NaN)."""
+    rows, cols = z.shape
+    out = np.empty((offsets.size, positions.size))
+    for i in numba.prange(offsets.size):
+        base_r = origin[0] + across[0] * offsets[i]
+        base_c = origin[1] + across[1] * offsets[i]
+        for j in range(positions.size):
+            r = base_r + along[0] * positions[j]
+            c = base_c + along[1] * positions[j]
+            r0, c0 = int(np.floor(r)), int(np.floor(c))
+            if r < 0 or c < 0 or r > rows - 1 or c > cols - 1:
+                out[i, j] = np.nan
+                continue
+            r1, c1 = min(r0 + 1, rows - 1), min(c0 + 1, cols - 1)
+            fr, fc = r - r0, c - c0
+            out[i, j] = (
+                (1 - fr) * ((1 - fc) * z[r0, c0] + fc * z[r0, c1]) + fr * ((1 - fc) * z[r1, c0] + fc * z[r1, c1])
+            )
+    return out
+
+
+@numba.njit(parallel=True, **_JIT)
+def difference_sums(profiles, lags, order, band_starts, segments):
+    """Sums and counts of the squared order-th differences of the profiles at each lag, per block:
+    bands of profiles (starting at band_starts) times `segments` near-equal stretches along them
+    (a difference counted in the stretch where it starts). Returns (bands, segments, lags) twice."""
+    count, length = profiles.shape
+    bands = band_starts.size
+    sums = np.zeros((bands, segments, lags.size))
+    counts = np.zeros((bands, segments, lags.size))
+    band_of = np.empty(count, dtype=np.int64)
+    for b in range(bands):
+        end = band_starts[b + 1] if b + 1 < bands else count
+        band_of[band_starts[b] : end] = b
+    for j in numba.prange(lags.size):
+        lag = lags[j]
+        span = order * lag
+        starts = length - span
+        for p in range(count):
+            b = band_of[p]
+            for i in range(starts):
+                if order == 1:
+                    d = profiles[p, i + lag] - profiles[p, i]
+                else:
+                    d = profiles[p, i + span] - 2.0 * profiles[p, i + lag] + profiles[p, i]
+                if np.isfinite(d):
+                    s = _segment(i, starts, segments)
+                    sums[b, s, j] += d * d
+                    counts[b, s, j] += 1.0
+    return sums, counts
+
+
+@numba.njit(**_JIT)
+def _segment(i, length, parts):
+    """Which of np.array_split(range(length), parts)'s pieces index i falls in."""
+    size, extra = length // parts, length % parts
+    # The first `extra` pieces hold size + 1 items.
+    boundary = extra * (size + 1)
+    if i < boundary:
+        return i // (size + 1)
+    return extra + (i - boundary) // size
+
+
+@numba.njit(**_JIT)
+def windowed_difference(z, axis, hann_rows, hann_cols):
+    """For the areal PSD: the differences along `axis` (1: columns, 0: rows) on the (rows - 1,
+    cols - 1) grid, less their mean over the finite ones, times the Hann windows; 0 where unknown.
+    float32."""
+    rows, cols = z.shape[0] - 1, z.shape[1] - 1
+    out = np.zeros((rows, cols), dtype=np.float32)
+    total, count = 0.0, 0.0
+    for r in range(rows):
+        for c in range(cols):
+            d = (z[r, c + 1] - z[r, c]) if axis == 1 else (z[r + 1, c] - z[r, c])
+            if np.isfinite(d):
+                total += d
+                count += 1.0
+    mean = total / count
+    for r in range(rows):
+        for c in range(cols):
+            d = (z[r, c + 1] - z[r, c]) if axis == 1 else (z[r + 1, c] - z[r, c])
+            if np.isfinite(d):
+                out[r, c] = (d - mean) * hann_rows[r] * hann_cols[c]
+    return out
+
+
+@numba.njit(**_JIT)
+def radial_bins(power, cols, scale, pixel_size_um, log_q_min, log_step, bins):
+    """Radial log-binning of the areal PSD of the gradient: power (rows, cols // 2 + 1), the rfft
+    half-plane of a (rows, cols) grid; each value divided by the differences' transfer
+    4 (sin² pi fx + sin² pi fy) and times `scale`, columns other than 0 and Nyquist counted twice
+    (they stand for two frequencies). Bin k holds q in [10^(log_q_min + k log_step), ...).
+    Returns (sums, counts)."""
+    rows, half = power.shape
+    sums = np.zeros(bins)
+    counts = np.zeros(bins)
+    for r in range(rows):
+        f_r = (r if r < (rows + 1) // 2 else r - rows) / rows
+        s_r = np.sin(np.pi * f_r) ** 2
+        for c in range(half):
+            if r == 0 and c == 0:
+                continue
+            f_c = c / cols
+            q = np.sqrt(f_r * f_r + f_c * f_c) / pixel_size_um
+            k = int(np.floor((np.log10(q) - log_q_min) / log_step))
+            if k < 0 or k >= bins:
+                continue
+            weight = 2.0 if 1 <= c < (cols + 1) // 2 else 1.0
+            transfer = 4.0 * (s_r + np.sin(np.pi * f_c) ** 2)
+            sums[k] += weight * power[r, c] * scale / transfer
+            counts[k] += weight
+    return sums, counts
+
+
+@numba.njit(parallel=True, **_JIT)
+def known_sigma(z, sigma):
+    """sigma where z is finite, 0 elsewhere (float64), whether it is finite and >= 0 wherever z is,
+    and its mean square there."""
+    rows, cols = z.shape
+    out = np.zeros((rows, cols))
+    bad = np.zeros(rows)
+    squares = np.zeros(rows)
+    counts = np.zeros(rows)
+    for r in numba.prange(rows):
+        for c in range(cols):
+            if np.isfinite(z[r, c]):
+                s = sigma[r, c]
+                if not (np.isfinite(s) and s >= 0):
+                    bad[r] = 1.0
+                    continue
+                out[r, c] = s
+                squares[r] += s * s
+                counts[r] += 1.0
+    return out, bad.sum() == 0, squares.sum() / max(counts.sum(), 1.0)

@@ -254,19 +254,18 @@ def material_ratio_curve(z_um: np.ndarray, *, classes: int = MATERIAL_RATIO_CLAS
     shape of ``z_um`` (a profile too); NaN left out."""
     if classes < 101:
         raise ValueError("classes must be at least 101")
-    z = np.asarray(z_um, dtype=np.float64)
-    if np.count_nonzero(np.isfinite(z)) < 9:
+    z = np.ascontiguousarray(z_um, dtype=np.float64).reshape(1, -1)
+    n, mean = _kernels.mean_height(z)
+    if n < 9:
         raise ValueError("z_um has fewer than 9 finite heights")
-    heights = _known_heights(z)
-    low, high = float(heights.min()), float(heights.max())
+    *_, high, low = _kernels.central_moments(z, mean)
     ratio = np.linspace(0.0, 100.0, classes)
     if high <= low:
         return MaterialRatioCurve(ratio, np.full(classes, low))
     width = (high - low) / _HISTOGRAM_BINS
-    index = np.minimum(((heights - low) / width).astype(np.int64), _HISTOGRAM_BINS - 1)
-    counts = np.bincount(index, minlength=_HISTOGRAM_BINS)
+    counts = _kernels.height_histogram(z, mean, low, width, _HISTOGRAM_BINS)
     # Share at or above each bin edge, from the top edge (0 %) down to the lowest (100 %).
-    above = np.concatenate([[0], np.cumsum(counts[::-1])]) * (100.0 / heights.size)
+    above = np.concatenate([[0], np.cumsum(counts[::-1])]) * (100.0 / n)
     edges = high - width * np.arange(_HISTOGRAM_BINS + 1)
     return MaterialRatioCurve(ratio, np.interp(ratio, above, edges))
 

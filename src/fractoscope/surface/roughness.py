@@ -209,7 +209,7 @@ def analyse(
         if sigma_um is not None:
             try:
                 u = uncertainty.areal_uncertainty(
-                    sl, np.where(np.isfinite(sl), sigma_um, 0.0), pixel_size_um=pixel_size_um,
+                    sl, sigma_um, pixel_size_um=pixel_size_um,
                     parameters={k: v for k, v in parameters.items() if np.isfinite(v)},
                     tilt_rel_uncertainty=tilt_rel_uncertainty or 0.0, correlation_px=chain.window_px,
                 )  # fmt: skip
@@ -250,13 +250,14 @@ def _hurst(sf_um: np.ndarray, pixel_size_um: float, chain: SurfaceChain) -> Hurs
     for min_windows in tried:
         try:
             fit_range = scaling.trustworthy_range_um(sf_um.shape, pixel_size_um=pixel_size_um, window_px=chain.window_px, min_windows=min_windows)
-            fits = {
-                method: scaling.anisotropic_hurst(
-                    sf_um, pixel_size_um=pixel_size_um, window_px=chain.window_px, direction_deg=chain.direction_deg,
-                    method=method, fit_range_um=fit_range,
+            sides = {
+                side: scaling.hurst_exponents(
+                    sf_um, pixel_size_um=pixel_size_um, window_px=chain.window_px, methods=HURST_METHODS,
+                    direction_deg=chain.direction_deg + (90.0 if side == "across" else 0.0), fit_range_um=fit_range,
                 )
-                for method in HURST_METHODS
+                for side in HURST_SIDES
             }  # fmt: skip
+            fits = {method: {side: sides[side][method] for side in HURST_SIDES} for method in HURST_METHODS}
         except ValueError as error:
             note = f"no Hurst exponent: {error}"
             continue

@@ -71,11 +71,11 @@ def areal_uncertainty(
     the per-pixel height sigma ``sigma_um`` ((rows, cols) µm, or one value for all) and the tilt's
     relative standard uncertainty ``tilt_rel_uncertainty`` (0.01 for 1 %)."""
     z = np.ascontiguousarray(z_um, dtype=np.float64)
-    sigma = np.broadcast_to(np.asarray(sigma_um, dtype=np.float64), z.shape)
     if z.ndim != 2:
         raise ValueError("z_um must be a (rows, cols) array")
-    known = np.isfinite(z)
-    if not np.all(np.isfinite(sigma[known]) & (sigma[known] >= 0)):
+    sigma = np.broadcast_to(np.asarray(sigma_um, dtype=np.float64), z.shape)
+    sigma_known, sigma_ok, mean_variance = _kernels.known_sigma(z, sigma)
+    if not sigma_ok:
         raise ValueError("sigma_um must be finite and non-negative wherever z_um is known")
     if not (np.isfinite(tilt_rel_uncertainty) and tilt_rel_uncertainty >= 0):
         raise ValueError("tilt_rel_uncertainty must be non-negative")
@@ -90,7 +90,6 @@ def areal_uncertainty(
     wanted = set(parameters)
     width = max(1, int(round(correlation_px)))
     block = _block_px(width)
-    sigma_known = np.ascontiguousarray(np.where(known, sigma, 0.0))
     n, mean = _kernels.mean_height(z)
     u_noise = _extremes_noise(z, sigma, correlation_px)
     sdr_scale_derivative = 0.0
@@ -117,7 +116,6 @@ def areal_uncertainty(
     u_noise = {name: u_noise.get(name, float("nan")) for name in parameters}
     u_total = {name: float(np.hypot(u_tilt[name], u_noise[name])) for name in parameters}
 
-    mean_variance = float(np.mean(sigma[known] ** 2))
     bias, corrected = {}, {}
     if "Sq" in parameters:
         sq = parameters["Sq"]
@@ -223,14 +221,13 @@ def _block_sums(z: np.ndarray, sigma: np.ndarray, mean: float, n: float, pixel_s
         inverse = 1.0 / pixel_size_um
         sx, nx, sy, ny, _, cells = _kernels.slope_sums(z, inverse)
         sdq = np.sqrt(sx / nx + sy / ny)
-        dq_x, dq_y, dr_x, dr_y, scale_derivative = _kernels.slope_edge_derivatives(
-            z, inverse, 1.0 / (nx * sdq), 1.0 / (ny * sdq), 100.0 * 0.25 / cells
+        dq, dr, scale_derivative = _kernels.slope_block_sums(
+            z, sigma, inverse, 1.0 / (nx * sdq), 1.0 / (ny * sdq), 100.0 * 0.25 / cells, block
         )
         if "Sdq" in wanted:
-            yield "Sdq", _kernels.edge_block_sums(sigma, dq_x, dq_y, inverse, block)
-        del dq_x, dq_y
+            yield "Sdq", dq
         if "Sdr" in wanted:
-            yield "Sdr", _kernels.edge_block_sums(sigma, dr_x, dr_y, inverse, block)
+            yield "Sdr", dr
         yield "Sdr scale", scale_derivative
     if wanted & set(MATERIAL_RATIO_FAMILY):
         yield from _material_ratio_sums(z, sigma, mean, wanted, block)
