@@ -417,15 +417,23 @@ def block_sums_and_counts(z, block, pad):
 
 
 @numba.njit(**_JIT)
-def _cubic_weights(t):
-    """Keys' cubic convolution (a = -0.5) weights of the four samples around a point t in [0, 1)."""
+def _cubic_taps(start, step, count):
+    """For positions start + i * step (i < count): the first of the four samples around each, and
+    Keys' cubic convolution weights (a = -0.5) of the four."""
+    first = np.empty(count, dtype=np.int64)
+    weights = np.empty((count, 4))
     a = -0.5
-    w0 = ((a * (t + 1) - 5 * a) * (t + 1) + 8 * a) * (t + 1) - 4 * a
-    w1 = ((a + 2) * t - (a + 3)) * t * t + 1
-    u = 1 - t
-    w2 = ((a + 2) * u - (a + 3)) * u * u + 1
-    w3 = 1.0 - w0 - w1 - w2
-    return w0, w1, w2, w3
+    for i in range(count):
+        x = start + i * step
+        base = int(np.floor(x))
+        t = x - base
+        u = 1.0 - t
+        weights[i, 0] = ((a * (t + 1) - 5 * a) * (t + 1) + 8 * a) * (t + 1) - 4 * a
+        weights[i, 1] = ((a + 2) * t - (a + 3)) * t * t + 1
+        weights[i, 2] = ((a + 2) * u - (a + 3)) * u * u + 1
+        weights[i, 3] = 1.0 - weights[i, 0] - weights[i, 1] - weights[i, 2]
+        first[i] = base - 1
+    return first, weights
 
 
 @numba.njit(parallel=True, **_JIT)
@@ -433,43 +441,22 @@ def upsample_cubic(coarse, start, step, rows, cols, known):
     """Separable cubic convolution of a coarse grid at the fine pixels: fine pixel i sits at coarse
     coordinate start + i * step along each axis (every fine pixel at least one coarse sample from
     the coarse grid's edges). NaN where `known` is false."""
-    coarse_rows, coarse_cols = coarse.shape
-    along_cols = np.empty((coarse_rows, cols))
+    coarse_rows = coarse.shape[0]
+    first_c, weights_c = _cubic_taps(start, step, cols)
+    first_r, weights_r = _cubic_taps(start, step, rows)
+    along_cols = np.zeros((coarse_rows, cols))
     for c in numba.prange(cols):
-        x = start + c * step
-        base = int(np.floor(x))
-        w0, w1, w2, w3 = _cubic_weights(x - base)
-        for r in range(coarse_rows):
-            along_cols[r, c] = (
-                w0 * coarse[r, base - 1] + w1 * coarse[r, base] + w2 * coarse[r, base + 1] + w3 * coarse[r, base + 2]
-            )
-    out = np.empty((rows, cols))
+        for t in range(4):
+            along_cols[:, c] += weights_c[c, t] * coarse[:, first_c[c] + t]
+    out = np.full((rows, cols), np.nan)
     for r in numba.prange(rows):
-        y = start + r * step
-        base = int(np.floor(y))
-        w0, w1, w2, w3 = _cubic_weights(y - base)
+        blended = np.zeros(cols)
+        for t in range(4):
+            blended += weights_r[r, t] * along_cols[first_r[r] + t]
         for c in range(cols):
             if known[r, c]:
-                out[r, c] = (
-                    w0 * along_cols[base - 1, c] + w1 * along_cols[base, c]
-                    + w2 * along_cols[base + 1, c] + w3 * along_cols[base + 2, c]
-                )  # fmt: skip
-            else:
-                out[r, c] = np.nan
+                out[r, c] = blended[c]
     return out
-
-
-@numba.njit(**_JIT)
-def height_histogram(z, mean, low, width, bins):
-    """Counts of the finite heights h = z - mean in `bins` classes of `width` from `low` (the top
-    class closed)."""
-    counts = np.zeros(bins, dtype=np.int64)
-    flat = z.ravel()
-    for i in range(flat.size):
-        v = flat[i]
-        if np.isfinite(v):
-            counts[min(int((v - mean - low) / width), bins - 1)] += 1
-    return counts
 
 
 # Scaling ###########################################################################################
@@ -613,3 +600,16 @@ def known_sigma(z, sigma):
                 squares[r] += s * s
                 counts[r] += 1.0
     return out, bad.sum() == 0, squares.sum() / max(counts.sum(), 1.0)
+
+
+@numba.njit(**_JIT)
+def height_histogram(z, mean, low, width, bins):
+    """Counts of the finite heights h = z - mean in `bins` classes of `width` from `low` (the top
+    class closed)."""
+    counts = np.zeros(bins, dtype=np.int64)
+    flat = z.ravel()
+    for i in range(flat.size):
+        v = flat[i]
+        if np.isfinite(v):
+            counts[min(int((v - mean - low) / width), bins - 1)] += 1
+    return counts
