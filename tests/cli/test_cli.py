@@ -11,7 +11,9 @@ import pytest
 import tifffile
 
 from conftest import fracture_pair
-from fractoscope.formats.height_npz import read_height_npz
+from fractoscope import synthetic
+from fractoscope.formats.calibration import Calibration
+from fractoscope.formats.height_npz import read_height_npz, write_height_npz
 
 FRACTO = str(Path(sys.executable).with_name("fracto"))
 
@@ -296,3 +298,59 @@ def test_the_real_pair_meshes_with_its_stored_calibration(pollen_series, tmp_pat
     assert finest["tiles"] < 63  # 7 x 9 tiles of 254 cells; those with no measured point are skipped
     assert all(level["tiles"] > 0 for level in summary["levels"]) and finest["wall_triangles"] > 1000
     assert len(list((tmp_path / "tiles").rglob("*.glb"))) == sum(level["tiles"] for level in summary["levels"])
+
+
+def _textured_form(form: str) -> tuple[np.ndarray, np.ndarray]:
+    """(heights µm, texture µm): a known form at 0.2 µm/px carrying a known self-affine texture."""
+    texture = synthetic.self_affine_surface((384, 384), hurst=0.7, rms_um=0.4, seed=5, max_wavelength_px=30)
+    rows, cols = np.indices(texture.shape) * 0.2
+    shapes = {"poly2": 0.004 * cols**2 - 0.002 * cols * rows + 0.05 * rows, "sphere": np.sqrt(300.0**2 - (cols - 38) ** 2 - (rows - 38) ** 2)}
+    return shapes[form] + texture, texture
+
+
+def _sa(z: np.ndarray) -> float:
+    return float(np.mean(np.abs(z - z.mean())))
+
+
+def test_roughness_of_an_npz_height_map(tmp_path):
+    z, texture = _textured_form("poly2")
+    with_size = tmp_path / "map.npz"
+    calibration = Calibration((-5.0, 5.0), ("metadata", "metadata"), (0.5, 0.5), 0.2, "argument")
+    sigma_um = np.full(z.shape, 0.01, np.float32)
+    write_height_npz(with_size, z_um=z, sigma_um=sigma_um, confidence=np.ones_like(sigma_um), local_sigma_um=sigma_um,
+                     calibration=calibration, record={"report": {"tilt_uncertainty_deg": 0.5}})
+    done = _run("roughness", with_size, "--form", "poly2", "--direction-deg", "90", "--json")
+    assert done.returncode == 0, done.stderr
+    values = json.loads(done.stdout)
+    assert values["Sa"] == pytest.approx(_sa(texture), rel=0.01)
+    assert values["chain"]["form"] == "poly2" and values["chain"]["direction_deg"] == 90.0 and values["pixel_size_um"] == 0.2
+    assert values["uncertainty"]["Sa"]["u_noise"] > 0 and values["noise_bias"]["Sq"] > 0
+    assert values["tilt_rel_uncertainty"] == pytest.approx(0.1, rel=0.01)  # epsilon_z = 0.5 deg / tan 5 deg, as the file records
+    bare = tmp_path / "bare.npz"
+    np.savez(bare, z_um=z.astype(np.float32))
+    refused = _run("roughness", bare, "--json")
+    assert refused.returncode == 2 and "--pixel-size-um" in refused.stderr and refused.stderr.count("\n") == 1
+    given = _run("roughness", bare, "--pixel-size-um", "0.2", "--form", "poly2", "--l-filter-um", "8")
+    assert given.returncode == 0, given.stderr
+    assert "form poly2" in given.stdout and "λc 8 µm" in given.stdout and "Sa" in given.stdout
+    wrong = _run("roughness", with_size, "--roi", "overview")
+    assert wrong.returncode == 2 and "--roi" in wrong.stderr
+
+
+def test_roughness_of_an_x3p_file(tmp_path):
+    from fractoscope.formats.x3p import write_x3p
+
+    z, texture = _textured_form("sphere")
+    path = tmp_path / "dome.x3p"
+    write_x3p(path, z, pixel_size_um=0.2)
+    done = _run("roughness", path, "--form", "sphere", "--json")
+    assert done.returncode == 0, done.stderr
+    values = json.loads(done.stdout)
+    assert values["Sa"] == pytest.approx(_sa(texture), rel=0.01)
+    assert values["chain"]["form"] == "sphere" and values["chain"]["window_px"] == 1.0
+    assert values["uncertainty"]["Sa"]["u_total"] is None  # an X3P file carries no sigma map
+    assert {fit["method"] for fit in values["hurst"]} == {"hhc", "psd"}
+    filtered = json.loads(_run("roughness", path, "--form", "sphere", "--s-filter-um", "0.5", "--l-filter-um", "10", "--json").stdout)
+    assert (filtered["chain"]["s_filter_um"], filtered["chain"]["l_filter_um"]) == (0.5, 10.0) and filtered["Sa"] < values["Sa"]
+    bad = _run("roughness", path, "--s-filter-um", "20", "--l-filter-um", "10")
+    assert bad.returncode == 2 and "s_filter_um" in bad.stderr

@@ -58,15 +58,30 @@ def test_regions_zoom_kinds_roughness_and_profile_parameters_round_trip():
     assert [wire.zoom_name(wire.ZOOM_KINDS[name]) for name in ("optical", "digital")] == ["optical", "digital"]
     assert wire.zoom_name(tiles_pb2.ZOOM_KIND_UNSPECIFIED) == "unknown"
     values = {"Sa": 1.0, "Sq": 1.25, "Ssk": -0.5, "Sku": 3.0, "Sp": 4.0, "Sv": 3.5, "Sz": 7.5, "Sdq": 0.75, "Sdr": 12.5,
-              "hurst_exponent": 0.8, "fractal_dimension": 2.2}
+              "hurst_exponent": 0.8, "hurst_fit_min_um": 1.0, "hurst_fit_max_um": 9.0, "fractal_dimension": 2.2}
     response = wire.roughness_response(values)
     assert response.sa_um == 1.0 and response.sdr_percent == 12.5 and response.hurst_exponent == 0.8
+    response.parameters.add(name="Str", value=float("nan"), unit="1", u_total=float("nan"), u_tilt=0.0, u_noise=float("nan"))
     back = wire.response_to_roughness(response)
     assert {key: back[key] for key in values} == values
-    parameters = {"Ra": 0.5, "Rq": 0.75, "Rz": 3.0, "Rsk": 0.25, "Rku": 2.5}
+    assert back["Str"] is None and back["uncertainty"]["Str"] == {"u_total": None, "u_tilt": 0.0, "u_noise": None}
+    parameters = {"Ra": 0.5, "Rq": 0.75, "Rz": 3.0, "Rsk": 0.25, "Rku": 2.5, "Rp": 1.5, "Rv": 1.5, "Rt": 3.5, "Rdq": 0.1,
+                  "RSm": 12.0, "Rk": 1.0, "Rpk": 0.25, "Rvk": 0.5, "Rmr1": 10.0, "Rmr2": 90.0}
     message = wire.profile_parameters_message(parameters)
-    assert message.ra_um == 0.5 and message.rku == 2.5
+    assert message.ra_um == 0.5 and message.rku == 2.5 and message.rmr2_percent == 90.0
     assert wire.message_to_profile_parameters(message) == parameters
+
+
+def test_the_surface_chain_round_trips_with_its_defaults_left_out():
+    message = wire.chain_message(form="poly3", l_filter_um=80.0, levelling_region_um=(0.0, 0.0, 5.0, 5.0))
+    assert message.form == tiles_pb2.FORM_POLY3 and not message.HasField("s_filter_um")
+    back = wire.chain_to_dict(message)
+    assert back["form"] == "poly3" and back["l_filter_um"] == 80.0 and back["s_filter_um"] is None
+    assert back["levelling_region_um"] == [0.0, 0.0, 5.0, 5.0]
+    assert wire.chain_to_dict(tiles_pb2.SurfaceChain())["form"] == "plane"  # unspecified means a plane
+    assert set(wire.FORMS) == {"none", "plane", "poly2", "poly3", "poly4", "poly5", "poly6", "sphere", "cylinder"}
+    with pytest.raises(InvalidInputError, match="chain.form"):
+        wire.chain_message(form="poly7")
 
 
 def test_matching_parameters_left_empty_mean_the_defaults():

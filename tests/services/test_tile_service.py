@@ -62,7 +62,7 @@ def test_profile_follows_the_true_surface_across_magnifications(built):
     difference -= difference.mean()  # heights are relative
     height_range = np.ptp(expected)
     assert np.sqrt(np.mean(difference**2)) < 0.02 * height_range
-    assert set(profile.parameters) == {"Ra", "Rq", "Rz", "Rsk", "Rku"}
+    assert set(profile.parameters) >= {"Ra", "Rq", "Rz", "Rsk", "Rku"}
     assert profile.parameters["Rz"] > profile.parameters["Rq"] > profile.parameters["Ra"] > 0
 
 

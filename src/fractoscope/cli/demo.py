@@ -95,7 +95,7 @@ def run_demo(client: FractoscopeClient, data_dir: Path, *, shared_data: Path, co
                 checks.append(f"{specimen_id}/{roi['id']}: found {error_px:.2f} px from the truth; fit residual "
                               f"{roi['alignment_residual_um']:.2f} µm")
             elif specimen_id == "synthetic":
-                checks.append(f"{specimen_id}/{roi['id']}: Sa {values['Sa']:.3f} µm, true Sa {roughness.sa_um(truth.overview.z_seen_um):.3f} µm")
+                checks.append(f"{specimen_id}/{roi['id']}: Sa {values['Sa']:.3f} µm, true Sa {roughness.height_parameters_after_plane(truth.overview.z_seen_um)['Sa']:.3f} µm")
             if roi["level"]:
                 checks.append(f"{specimen_id}/{roi['id']}: heights from the {roi['level']} (zero there)")
             rows.append((specimen_id, roi["id"], f"{roi['magnification']:g}x" if roi["magnification"] else "-",

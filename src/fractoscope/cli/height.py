@@ -109,8 +109,9 @@ def command_height(args) -> int:
         print(f"warning: {warning}", file=sys.stderr)
     out = Path(args.output)
     report = result.report
-    local_sigma_um = geometry.local_height_sigma_um(
-        result.sigma_um, result.z_um, tilt_deg=report["tilt_deg"], tilt_uncertainty_deg=report["tilt_uncertainty_deg"]
+    local_sigma_um = geometry.matching_sigma_um(
+        result.z_um, result.sigma_um,
+        relative_height_error=geometry.series_relative_height_error(report["tilt_deg"], tilt_uncertainty_deg=report["tilt_uncertainty_deg"]),
     )
     levelled = None
     if args.level is not None:

@@ -9,9 +9,12 @@ from pathlib import Path
 
 import numpy as np
 
-from fractoscope.cli.common import SERVER_HELP, connected, err, progress_bar
+from fractoscope.cli.common import SERVER_HELP, UsageError, connected, err, existing_file, progress_bar
 from fractoscope.client.manifest import load_manifest
 from fractoscope.formats.tileset import content_uris
+from fractoscope.rpc import wire
+
+FORMS = tuple(wire.FORMS)
 
 
 def add_parsers(commands) -> None:
@@ -27,20 +30,39 @@ def add_parsers(commands) -> None:
     reconstruct.add_argument("manifest", help="specimen manifest (JSON; image paths relative to it)")
     reconstruct.add_argument("--request-id", help="repeat-safe id: a second request with it returns the first one's specimen")
 
-    profile = specimen_command("profile", "surface profile along a line, with Ra/Rq/Rz/Rsk/Rku", command_profile)
+    profile = specimen_command("profile", "surface profile along a line and its ISO 21920 roughness parameters", command_profile)
     profile.add_argument("specimen")
     profile.add_argument("--from", dest="start", type=_pair, required=True, metavar="X,Y", help="start, µm in the specimen frame")
     profile.add_argument("--to", dest="end", type=_pair, required=True, metavar="X,Y", help="end, µm")
     profile.add_argument("--magnification", type=float, default=0.0, help="sample at this magnification (default: finest data)")
     profile.add_argument("--spacing-um", type=float, default=0.0, help="sample spacing (default: the pixel size used)")
+    profile.add_argument("--form", choices=FORMS, help="form removed before the filters (default plane: the least-squares line)")
+    profile.add_argument("--s-filter-um", type=float, help="S-filter cut-off lambda_s, µm (default: ISO 21920-3 for the length; 0: none)")
+    profile.add_argument("--l-filter-um", type=float, help="L-filter cut-off lambda_c, µm (default: ISO 21920-3 for the length; 0: none)")
     profile.add_argument("-o", "--output", required=True, help="CSV with distance_um,z_um,source")
     profile.add_argument("--plot", help="also write a PNG plot of the profile")
 
-    rough = specimen_command("roughness", "ISO 25178 roughness and fracture metrics of an ROI or region", command_roughness)
-    rough.add_argument("specimen")
+    rough = specimen_command(
+        "roughness", "ISO 25178 roughness (form removal, S- and L-filters, parameters with uncertainties) and fracture metrics "
+        "of a specimen's ROI or region, an npz height map (fracto height) or an X3P file", command_roughness,
+    )  # fmt: skip
+    rough.add_argument("source", metavar="SOURCE", help="specimen id, or a .npz height map, or a .x3p file")
     area = rough.add_mutually_exclusive_group()
-    area.add_argument("--roi", help="ROI id (default: the overview)")
-    area.add_argument("--region", type=_region, metavar="X0,Y0,X1,Y1", help="region of the fused surface, µm")
+    area.add_argument("--roi", help="ROI id (default: the overview; specimens only)")
+    area.add_argument("--region", type=_region, metavar="X0,Y0,X1,Y1", help="region of the fused surface, µm (specimens only)")
+    rough.add_argument("--form", choices=FORMS, help="form removed first (default plane)")
+    rough.add_argument("--s-filter-um", type=float, help="S-filter cut-off lambda_s, µm (default: none)")
+    rough.add_argument("--l-filter-um", type=float, help="L-filter cut-off lambda_c, µm (default: none)")
+    rough.add_argument("--direction-deg", type=float, help="direction of the 'along' Hurst exponents, degrees "
+                                                            "counter-clockwise from +x (default 0); 'across' is 90 more")
+    rough.add_argument("--levelling-region", type=_region, metavar="X0,Y0,X1,Y1",
+                       help="fit the form on this region only, µm (specimen frame; for files x = column, y = row times the pixel size)")
+    rough.add_argument("--window-px", type=float, help="matcher's smoothing width in pixels of the map (default: the matching "
+                                                        "window for specimens and npz maps, 1 for X3P files)")
+    rough.add_argument("--min-windows", type=float, help="the Hurst fit starts this many windows up (default 4)")
+    rough.add_argument("--robust-form", action="store_true", default=None,
+                       help="fit the form robustly, so that outliers (dust, spikes) do not pull it (default: least squares)")
+    rough.add_argument("--pixel-size-um", type=float, help="pixel size of an npz map that does not record it, µm")
 
     zoom = specimen_command("zoom", "tiles that show a region at a magnification, optical or digital", command_zoom)
     zoom.add_argument("specimen")
@@ -88,7 +110,10 @@ def _region(text: str) -> tuple[float, float, float, float]:
 
 def command_profile(args) -> int:
     with connected(args.server, args.data) as client:
-        result = client.profile(args.specimen, [args.start, args.end], spacing_um=args.spacing_um, magnification=args.magnification)
+        result = client.profile(
+            args.specimen, [args.start, args.end], spacing_um=args.spacing_um, magnification=args.magnification,
+            form=args.form, s_filter_um=args.s_filter_um, l_filter_um=args.l_filter_um,
+        )  # fmt: skip
     out = Path(args.output)
     out.parent.mkdir(parents=True, exist_ok=True)
     with out.open("w") as csv:
@@ -98,10 +123,12 @@ def command_profile(args) -> int:
     if args.plot:
         plot_profile(result, Path(args.plot), title=f"{args.specimen}: {args.start} to {args.end} µm")
     if args.json:
-        print(json.dumps({"output": str(out), "samples": len(result.z_um), **result.parameters}))
+        print(json.dumps({"output": str(out), "samples": len(result.z_um), **result.parameters, "chain": result.chain}))
     else:
-        figures = ", ".join(f"{k} {v:.4g}" for k, v in result.parameters.items())
-        print(f"wrote {out}: {len(result.z_um)} samples; {figures}")
+        figures = ", ".join(f"{k} {v:.4g}" for k, v in result.parameters.items() if v is not None)
+        chain = result.chain
+        used = f" (form {chain['form']}, λs {chain['s_filter_um']:g} µm, λc {chain['l_filter_um']:g} µm)" if chain else ""
+        print(f"wrote {out}: {len(result.z_um)} samples; {figures}{used}")
     return 0
 
 
@@ -127,17 +154,79 @@ def plot_profile(result, path: Path, *, title: str) -> None:
 
 
 def command_roughness(args) -> int:
-    with connected(args.server, args.data) as client:
-        values = client.roughness(args.specimen, roi=args.roi, region_um=args.region)
+    chain = {
+        "form": args.form, "s_filter_um": args.s_filter_um, "l_filter_um": args.l_filter_um, "direction_deg": args.direction_deg,
+        "levelling_region_um": args.levelling_region, "window_px": args.window_px, "min_windows": args.min_windows,
+        "robust_form": args.robust_form,
+    }  # fmt: skip
+    if Path(args.source).suffix.lower() in (".npz", ".x3p"):
+        if args.roi or args.region:
+            raise UsageError("--roi and --region are for specimens; a file is analysed whole")
+        values = roughness_of_file(existing_file(args.source), chain, pixel_size_um=args.pixel_size_um)
+    else:
+        with connected(args.server, args.data) as client:
+            values = client.roughness(args.source, roi=args.roi, region_um=args.region, **chain)
     if args.json:
         print(json.dumps(values))
-    else:
-        for key in ("Sa", "Sq", "Sp", "Sv", "Sz"):
-            print(f"{key:4} {values[key]:.4g} µm")
-        print(f"Ssk  {values['Ssk']:.4g}\nSku  {values['Sku']:.4g}\nSdq  {values['Sdq']:.4g}\nSdr  {values['Sdr']:.4g} %")
-        print(f"Hurst exponent {values['hurst_exponent']:.3f} (fit {values['hurst_fit_min_um']:.3g} to "
-              f"{values['hurst_fit_max_um']:.3g} µm), fractal dimension {values['fractal_dimension']:.3f}")
+        return 0
+    used = values["chain"]
+    filters = ", ".join(f"{name} {used[key]:g} µm" for name, key in (("λs", "s_filter_um"), ("λc", "l_filter_um")) if used[key]) or "no filters"
+    print(f"chain: form {used['form']}{' (levelled on a region)' if used['levelling_region_um'] else ''}, {filters}; "
+          f"{values['pixel_size_um']:.4g} µm/px")
+    for name, unit in values["units"].items():
+        value, u = values[name], values["uncertainty"][name]["u_total"]
+        shown = "n/a" if value is None else f"{value:.4g}" + ("" if u is None else f" ± {u:.2g}")
+        print(f"{name:5} {shown} {'' if unit == '1' else unit}")
+    bias = values["noise_bias"]
+    if bias["Sq"] is not None:
+        print(f"matching noise inflates Sa by {bias['Sa']:.3g} µm and Sq by {bias['Sq']:.3g} µm")
+    for fit in values["hurst"]:
+        print(f"Hurst {fit['method']} {fit['side']:6} ({fit['direction_deg']:g}°): {fit['hurst']:.3f} ± {fit['hurst_stderr']:.3f} "
+              f"(fit {fit['fit_min_um']:.3g} to {fit['fit_max_um']:.3g} µm)")
+    if values["hurst_note"]:
+        print(values["hurst_note"])
     return 0
+
+
+def roughness_of_file(path: Path, chain: dict, *, pixel_size_um: float | None) -> dict:
+    """The chain on an npz height map of `fracto height` (formats.height_npz: its local sigma and
+    calibration where it records them) or an X3P file, as GetRoughness would answer it."""
+    from fractoscope.formats.height_npz import read_height_npz
+    from fractoscope.formats.x3p import read_x3p
+    from fractoscope.rpc.tiles import roughness_response
+    from fractoscope.specimen.queries import ChainRequest, roughness_of_map
+    from fractoscope.stereo import geometry
+    from fractoscope.stereo.matching import DEFAULT_WINDOW_PX
+    from fractoscope.stereo.pipeline import MatchingOptions
+
+    sigma_um, tilt_rel, origin_um = None, None, (0.0, 0.0)
+    if path.suffix.lower() == ".x3p":
+        surface = read_x3p(path)
+        if not np.isclose(surface.step_x_um, surface.step_y_um, rtol=1e-6):
+            raise UsageError(f"{path}: pixels of {surface.step_x_um:g} x {surface.step_y_um:g} µm are not square")
+        z_um, file_pixel_um, origin_um, window_px = surface.z_um, surface.step_x_um, surface.origin_um, 1.0
+    else:
+        stored = read_height_npz(path, field=str(path))
+        z_um, file_pixel_um, window_px = stored.z_um.astype(np.float64), stored.pixel_size_um, DEFAULT_WINDOW_PX
+        # The matching noise alone: the chain propagates the tilt part (which scales all heights together) apart.
+        sigma_um = stored.local_sigma_um if stored.local_sigma_um is not None else stored.sigma_um
+        if stored.calibration is not None and stored.local_sigma_um is not None:
+            tilt_uncertainty = stored.record.get("report", {}).get("tilt_uncertainty_deg", MatchingOptions().tilt_uncertainty_deg)
+            tilt_rel = geometry.series_relative_height_error(stored.calibration.tilt_deg, tilt_uncertainty_deg=tilt_uncertainty)
+        if sigma_um is not None:
+            known = np.isfinite(sigma_um) & np.isfinite(z_um)
+            sigma_um = np.where(known, sigma_um, np.median(sigma_um[known]) if known.any() else 0.0)
+    if pixel_size_um is None and file_pixel_um is None:
+        raise UsageError(f"{path} does not record its pixel size: give --pixel-size-um")
+    pixel_um = pixel_size_um or file_pixel_um
+    if not (np.isfinite(pixel_um) and pixel_um > 0):
+        raise UsageError(f"--pixel-size-um must be positive, got {pixel_um}")
+    request = ChainRequest(**chain)
+    analysis = roughness_of_map(
+        z_um, pixel_size_um=pixel_um, origin_um=origin_um, sigma_um=sigma_um, tilt_rel_uncertainty=tilt_rel, chain=request,
+        default_window_px=window_px,
+    )  # fmt: skip
+    return wire.response_to_roughness(roughness_response(analysis, request))
 
 
 def command_zoom(args) -> int:

@@ -21,7 +21,7 @@ import os
 os.environ.setdefault("GRPC_VERBOSITY", "ERROR")
 import json
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -41,12 +41,17 @@ __all__ = ["ClientError", "FractoscopeClient", "HeightMap", "Profile"]
 @dataclass(frozen=True)
 class Profile:
     """A profile: (n,) distance along the line µm, height µm (NaN unknown), source ROI per sample,
-    and its ISO 21920-2 parameters (Ra, Rq, Rz in µm, Rsk, Rku; empty if too few heights)."""
+    the ISO 21920-2 parameters of its roughness profile (Ra ... Rmr2 by ISO name, µm where
+    dimensional; empty if too few heights), the roughness profile (n,) µm (NaN where unknown), and
+    the chain that made it: {"form", "s_filter_um", "l_filter_um", ...,
+    "cutoffs_from_iso_table", "spacing_within_iso"} (0: filter not applied)."""
 
     distance_um: np.ndarray
     z_um: np.ndarray
     source: list[str]
     parameters: dict
+    roughness_um: np.ndarray | None = None
+    chain: dict = field(default_factory=dict)
 
 
 class FractoscopeClient(ChannelOwner):
@@ -193,27 +198,48 @@ class FractoscopeClient(ChannelOwner):
         ]
 
     def profile(
-        self, specimen_id: str, points_um: Sequence[tuple[float, float]], *, spacing_um: float = 0.0, magnification: float = 0.0
+        self,
+        specimen_id: str,
+        points_um: Sequence[tuple[float, float]],
+        *,
+        spacing_um: float = 0.0,
+        magnification: float = 0.0,
+        form: str | None = None,
+        s_filter_um: float | None = None,
+        l_filter_um: float | None = None,
     ) -> Profile:
         """Heights along a polyline of (x, y) µm points in the specimen frame; finest data unless a
-        magnification is given."""
+        magnification is given. The roughness profile: `form` removed ("plane", the default, is
+        the least-squares line; "none", "poly2" ... "poly6", "sphere", "cylinder"), then the S- and
+        L-filters (cut-offs µm; None: the ISO 21920-3 defaults for the length, 0: none)."""
         request = tiles_pb2.GetProfileRequest(
             specimen_id=specimen_id, points=[common_pb2.PointUm(x_um=x, y_um=y) for x, y in points_um],
             spacing_um=spacing_um, magnification=magnification,
+            chain=wire.chain_message(form=form, s_filter_um=s_filter_um, l_filter_um=l_filter_um),
         )
         with raised_as_client_errors():
             response = self._tiles.GetProfile(request, timeout=self._timeout_s)
         parameters = wire.message_to_profile_parameters(response.parameters) if response.HasField("parameters") else {}
         names = list(response.sources) + [""]  # index -1: no data
+        chain = {}
+        if response.HasField("chain"):
+            chain = {**wire.chain_to_dict(response.chain), "cutoffs_from_iso_table": response.cutoffs_from_iso_table,
+                     "spacing_within_iso": response.spacing_within_iso}  # fmt: skip
         return Profile(
-            np.array(response.distance_um), np.array(response.z_um), [names[i] for i in response.source_index], parameters
-        )
+            np.array(response.distance_um), np.array(response.z_um), [names[i] for i in response.source_index], parameters,
+            np.array(response.roughness_um) if len(response.roughness_um) else None, chain,
+        )  # fmt: skip
 
-    def roughness(self, specimen_id: str, *, roi: str | None = None, region_um: Region | None = None) -> dict:
-        """ISO 25178-2 parameters by their ISO names (Sa ... Sz in µm, Sdr in %) and fracture
-        metrics (hurst_exponent, its fit range in µm, fractal_dimension, the height-height curve)
-        of an ROI or a region of the fused surface (default: the overview ROI)."""
-        request = tiles_pb2.GetRoughnessRequest(specimen_id=specimen_id)
+    def roughness(self, specimen_id: str, *, roi: str | None = None, region_um: Region | None = None, **chain) -> dict:
+        """The ISO 25178 chain on an ROI or a region of the fused surface (default: the overview
+        ROI), set by `chain`, the keywords of `wire.chain_message` (None: the default): `form`
+        removed (default "plane", by least squares, or robustly with `robust_form`; levelled on
+        `levelling_region_um` if given), the S- and L-filters `s_filter_um`, `l_filter_um`
+        (cut-offs µm; None or 0: none); then every ISO 25178-2 parameter by ISO name with its
+        uncertainty, the Hurst exponent by both methods along and across `direction_deg`
+        (fitted from `min_windows` matching windows of `window_px` up), the PSD, and the chain as
+        run (see `wire.response_to_roughness` for the keys)."""
+        request = tiles_pb2.GetRoughnessRequest(specimen_id=specimen_id, chain=wire.chain_message(**chain))
         if region_um is not None:
             request.region.CopyFrom(wire.region_message(region_um))
         elif roi is not None:

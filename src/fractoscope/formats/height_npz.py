@@ -4,7 +4,7 @@ Arrays, on the reference image's grid (rows, cols), float32:
 - `z_um` heights (NaN unknown), `sigma_um` their one-sigma uncertainty, `confidence` the peak
   correlation (as in the HeightMap message);
 - `local_sigma_um`, the part of sigma_um that neighbouring heights do not share (the tilt error,
-  which scales all heights together, left out; see stereo.geometry.local_height_sigma_um);
+  which scales all heights together, left out; see stereo.geometry.matching_sigma_um);
 - `pixel_size_um` (a scalar) and `tilt_deg` (one per view), readable without this module;
 - `tilt_deg_estimated` when the tilts were calibrated.
 

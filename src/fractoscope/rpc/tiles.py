@@ -1,8 +1,9 @@
 """The tile service's messages to and from the specimen package's types: stored specimens and
-their tiles, ROI specs, checked regions."""
+their tiles, ROI specs, checked regions, and the analysis chain's requests and results."""
 
 from __future__ import annotations
 
+import contextlib
 import math
 
 from fractoscope.errors import InvalidInputError
@@ -10,10 +11,12 @@ from fractoscope.rpc import wire
 from fractoscope.sem.image import nominal_magnification
 from fractoscope.specimen.build import RoiRequest
 from fractoscope.specimen.quadtree import TileRecord
-from fractoscope.specimen.queries import checked_region
+from fractoscope.specimen.queries import ChainRequest, SpecimenProfile, checked_region
 from fractoscope.specimen.store import Specimen
 from fractoscope.stereo.geometry import validate_pixel_size_um
 from fractoscope.surface.datum import LEVELS
+from fractoscope.surface.areal_parameters import UNITS
+from fractoscope.surface.roughness import SurfaceAnalysis, SurfaceChain
 from fractoscope.units import METRES_PER_UM
 from fractoscope.v1 import tiles_pb2
 
@@ -77,3 +80,85 @@ def roi_request(spec: tiles_pb2.RoiSpec, index: int) -> RoiRequest:
 def region(message: tiles_pb2.RegionUm, field: str) -> tuple[float, float, float, float]:
     """A RegionUm as (x_min, y_min, x_max, y_max) µm, checked."""
     return checked_region(wire.message_to_region(message), field)
+
+
+CHAIN_FIELDS = ("form", "s_filter_um", "l_filter_um", "direction_deg", "levelling_region", "window_px", "min_windows", "robust_form")
+
+
+@contextlib.contextmanager
+def chain_fields(field: str = "chain"):
+    """Errors the queries raise about the chain's settings, named as the request's fields
+    (``chain.s_filter_um``)."""
+    try:
+        yield
+    except InvalidInputError as error:
+        if error.field in CHAIN_FIELDS:
+            raise InvalidInputError(f"{field}.{error.field}", error.message) from None
+        raise
+
+
+def chain_request(message: tiles_pb2.SurfaceChain, field: str = "chain") -> ChainRequest:
+    """A request's SurfaceChain as the queries take it (absent fields None: the defaults)."""
+
+    def number(name: str) -> float | None:
+        return getattr(message, name) if message.HasField(name) else None
+
+    if message.form not in wire.FORMS.values() and message.form != tiles_pb2.FORM_UNSPECIFIED:
+        raise InvalidInputError(f"{field}.form", f"unknown form {message.form}")
+    return ChainRequest(
+        form=wire.form_name(message.form) if message.form else None,
+        s_filter_um=number("s_filter_um"), l_filter_um=number("l_filter_um"), direction_deg=number("direction_deg"),
+        levelling_region_um=region(message.levelling_region, f"{field}.levelling_region") if message.HasField("levelling_region") else None,
+        window_px=number("window_px"), min_windows=number("min_windows"),
+        robust_form=message.robust_form if message.HasField("robust_form") else None,
+    )  # fmt: skip
+
+
+def _used_chain(chain: SurfaceChain, levelling_region_um) -> tiles_pb2.SurfaceChain:
+    return wire.chain_message(
+        form=chain.form, s_filter_um=chain.lambda_s_um, l_filter_um=chain.lambda_c_um, direction_deg=chain.direction_deg,
+        levelling_region_um=levelling_region_um, window_px=chain.window_px, min_windows=chain.min_windows,
+        robust_form=chain.robust_form,
+    )  # fmt: skip
+
+
+def roughness_response(analysis: SurfaceAnalysis, request: ChainRequest) -> tiles_pb2.GetRoughnessResponse:
+    """Everything the chain found, with the chain as run (NaN for what is unknown)."""
+    nan = float("nan")
+    response = wire.roughness_response(analysis.legacy())
+    response.chain.CopyFrom(_used_chain(analysis.chain, request.levelling_region_um))
+    response.pixel_size_um = analysis.pixel_size_um
+    u = analysis.uncertainty
+    for name, value in analysis.parameters.items():
+        parts = (u.u_total.get(name, nan), u.u_tilt.get(name, nan), u.u_noise.get(name, nan)) if u else (nan, nan, nan)
+        response.parameters.add(name=name, value=value, unit=UNITS[name], u_total=parts[0], u_tilt=parts[1], u_noise=parts[2])
+    response.sa_noise_bias_um = u.noise_bias.get("Sa", nan) if u else nan
+    response.sq_noise_bias_um = u.noise_bias.get("Sq", nan) if u else nan
+    response.tilt_rel_uncertainty = nan if analysis.tilt_rel_uncertainty is None else analysis.tilt_rel_uncertainty
+    for method, fits in analysis.hurst.fits.items():
+        for side, fit in fits.items():
+            response.hurst_fits.add(
+                method=wire.HURST_METHODS[method], direction_deg=fit.direction_deg % 360.0, across=side == "across",
+                hurst=fit.hurst, hurst_stderr=fit.hurst_stderr, fit_min_um=fit.fit_min_um, fit_max_um=fit.fit_max_um,
+                fit_min_windows=analysis.hurst.min_windows, scale_um=fit.scale_um, value=fit.value, in_fit=fit.in_fit.tolist(),
+            )  # fmt: skip
+    response.hurst_note = analysis.hurst.note
+    response.psd_q_per_um.extend(analysis.psd_q_per_um)
+    response.psd_um4.extend(analysis.psd_um4)
+    return response
+
+
+def profile_response(found: SpecimenProfile) -> tiles_pb2.GetProfileResponse:
+    """A profile's samples, its roughness profile and parameters, and the chain that made them."""
+    response = tiles_pb2.GetProfileResponse(
+        distance_um=found.distance_um, z_um=found.z_um, source_index=found.source_index, sources=found.sources
+    )
+    if found.parameters:
+        response.parameters.CopyFrom(wire.profile_parameters_message(found.parameters))
+    if found.roughness is not None:
+        made = found.roughness
+        response.roughness_um.extend(found.r_um)
+        response.chain.CopyFrom(wire.chain_message(form=made.form, s_filter_um=made.lambda_s_um, l_filter_um=made.lambda_c_um))
+        response.cutoffs_from_iso_table = made.cutoffs.from_iso_table
+        response.spacing_within_iso = made.cutoffs.sampling_ok
+    return response

@@ -86,30 +86,118 @@ def zoom_name(kind: int) -> str:
     return _ZOOM_NAMES.get(kind, "unknown")
 
 
+# The forms of SurfaceChain by the names the analysis modules use ("none", "plane", "poly2", ...).
+FORMS = {name[len("FORM_"):].lower(): value for name, value in tiles_pb2.Form.items() if value != tiles_pb2.FORM_UNSPECIFIED}
+_FORM_NAMES = {value: name for name, value in FORMS.items()} | {tiles_pb2.FORM_UNSPECIFIED: "plane"}
+HURST_METHODS = {"hhc": tiles_pb2.HURST_METHOD_HEIGHT_HEIGHT_CORRELATION, "psd": tiles_pb2.HURST_METHOD_POWER_SPECTRUM}
+_HURST_METHOD_NAMES = {value: name for name, value in HURST_METHODS.items()}
+_CHAIN_NUMBERS = ("s_filter_um", "l_filter_um", "direction_deg", "window_px", "min_windows")
+
+
+def chain_message(
+    *,
+    form: str | None = None,
+    s_filter_um: float | None = None,
+    l_filter_um: float | None = None,
+    direction_deg: float | None = None,
+    levelling_region_um: Region | None = None,
+    window_px: float | None = None,
+    min_windows: float | None = None,
+    robust_form: bool | None = None,
+) -> tiles_pb2.SurfaceChain:
+    """A SurfaceChain with the given settings (None: left at the default)."""
+    if form is not None and form not in FORMS:
+        raise InvalidInputError("chain.form", f"must be one of {', '.join(FORMS)}, not {form!r}")
+    message = tiles_pb2.SurfaceChain(form=FORMS[form] if form else tiles_pb2.FORM_UNSPECIFIED)
+    for name, value in zip(_CHAIN_NUMBERS, (s_filter_um, l_filter_um, direction_deg, window_px, min_windows)):
+        if value is not None:
+            setattr(message, name, value)
+    if levelling_region_um is not None:
+        message.levelling_region.CopyFrom(region_message(levelling_region_um))
+    if robust_form is not None:
+        message.robust_form = robust_form
+    return message
+
+
+def form_name(kind: int) -> str:
+    return _FORM_NAMES.get(kind, "unknown")
+
+
+def chain_to_dict(message: tiles_pb2.SurfaceChain) -> dict:
+    """A response's SurfaceChain as {"form": name, each number or None, "levelling_region_um":
+    [x0, y0, x1, y1] or None, "robust_form"}."""
+    values = {"form": form_name(message.form)}
+    values |= {name: getattr(message, name) if message.HasField(name) else None for name in _CHAIN_NUMBERS}
+    values["levelling_region_um"] = list(message_to_region(message.levelling_region)) if message.HasField("levelling_region") else None
+    values["robust_form"] = message.robust_form
+    return values
+
+
+def _number(value: float) -> float | None:
+    """NaN (unknown) as None, which JSON can carry."""
+    return None if value != value else value
+
+
 # ISO names of the parameters (as the analysis modules return them) and their message fields.
 _ROUGHNESS_FIELDS = {
     "Sa": "sa_um", "Sq": "sq_um", "Ssk": "ssk", "Sku": "sku", "Sp": "sp_um", "Sv": "sv_um", "Sz": "sz_um",
     "Sdq": "sdq", "Sdr": "sdr_percent",
 }
-_ROUGHNESS_NAMES = {field: name for name, field in _ROUGHNESS_FIELDS.items()}
-_PROFILE_FIELDS = {"Ra": "ra_um", "Rq": "rq_um", "Rz": "rz_um", "Rsk": "rsk", "Rku": "rku"}
+_HURST_FIELDS = ("hurst_exponent", "hurst_fit_min_um", "hurst_fit_max_um", "fractal_dimension")
+_PROFILE_FIELDS = {
+    "Ra": "ra_um", "Rq": "rq_um", "Rz": "rz_um", "Rsk": "rsk", "Rku": "rku", "Rp": "rp_um", "Rv": "rv_um", "Rt": "rt_um",
+    "Rdq": "rdq", "RSm": "rsm_um", "Rk": "rk_um", "Rpk": "rpk_um", "Rvk": "rvk_um", "Rmr1": "rmr1_percent", "Rmr2": "rmr2_percent",
+}
 
 
 def roughness_response(values: dict) -> tiles_pb2.GetRoughnessResponse:
-    """Areal parameters by ISO name (Sa ... Sdr) and fracture metrics to their response."""
-    return tiles_pb2.GetRoughnessResponse(**{_ROUGHNESS_FIELDS.get(key, key): value for key, value in values.items()})
+    """The legacy scalars (Sa ... Sdr by ISO name, the Hurst fields) and the height-height curve
+    of a roughness result into a response; the rest is filled by its builder (rpc.tiles)."""
+    response = tiles_pb2.GetRoughnessResponse(**{_ROUGHNESS_FIELDS[name]: values[name] for name in _ROUGHNESS_FIELDS})
+    for name in _HURST_FIELDS:
+        setattr(response, name, values[name])
+    response.hhc_lag_um.extend(values.get("hhc_lag_um", []))
+    response.hhc_rms_um.extend(values.get("hhc_rms_um", []))
+    return response
 
 
 def response_to_roughness(response: tiles_pb2.GetRoughnessResponse) -> dict:
-    """A GetRoughnessResponse to a dict keyed by ISO names (every field, set or not)."""
-    values = json_format.MessageToDict(response, preserving_proto_field_name=True, always_print_fields_with_no_presence=True)
-    return {_ROUGHNESS_NAMES.get(key, key): value for key, value in values.items()}
+    """A GetRoughnessResponse as plain values: every areal parameter by ISO name (its unit in
+    "units", its uncertainty in "uncertainty": {name: {"u_total", "u_tilt", "u_noise"}}), the
+    legacy Hurst keys, "chain", "pixel_size_um", "noise_bias" {"Sa", "Sq"}, "tilt_rel_uncertainty",
+    "hurst" (one dict per fit: method "hhc" or "psd", side "along" or "across", direction_deg,
+    hurst, hurst_stderr, fit_min_um, fit_max_um, fit_min_windows, scale_um, value, in_fit),
+    "hurst_note" and "psd" {"q_per_um", "c_um4"}. Unknown numbers are None."""
+    values = {name: _number(getattr(response, field)) for name, field in _ROUGHNESS_FIELDS.items()}
+    values |= {parameter.name: _number(parameter.value) for parameter in response.parameters}
+    values |= {name: _number(getattr(response, name)) for name in _HURST_FIELDS}
+    values["hhc_lag_um"], values["hhc_rms_um"] = list(response.hhc_lag_um), list(response.hhc_rms_um)
+    values["units"] = {parameter.name: parameter.unit for parameter in response.parameters}
+    values["uncertainty"] = {
+        p.name: {"u_total": _number(p.u_total), "u_tilt": _number(p.u_tilt), "u_noise": _number(p.u_noise)} for p in response.parameters
+    }
+    values["chain"] = chain_to_dict(response.chain)
+    values["pixel_size_um"] = response.pixel_size_um
+    values["noise_bias"] = {"Sa": _number(response.sa_noise_bias_um), "Sq": _number(response.sq_noise_bias_um)}
+    values["tilt_rel_uncertainty"] = _number(response.tilt_rel_uncertainty)
+    values["hurst"] = [
+        {
+            "method": _HURST_METHOD_NAMES.get(fit.method, "unknown"), "side": "across" if fit.across else "along",
+            "direction_deg": fit.direction_deg, "hurst": fit.hurst, "hurst_stderr": fit.hurst_stderr,
+            "fit_min_um": fit.fit_min_um, "fit_max_um": fit.fit_max_um, "fit_min_windows": fit.fit_min_windows,
+            "scale_um": list(fit.scale_um), "value": [_number(v) for v in fit.value], "in_fit": list(fit.in_fit),
+        }
+        for fit in response.hurst_fits
+    ]  # fmt: skip
+    values["hurst_note"] = response.hurst_note
+    values["psd"] = {"q_per_um": list(response.psd_q_per_um), "c_um4": [_number(v) for v in response.psd_um4]}
+    return values
 
 
 def profile_parameters_message(values: dict) -> tiles_pb2.ProfileParameters:
-    """Ra, Rq, Rz (µm), Rsk and Rku by ISO name to their message."""
+    """ISO 21920-2 profile parameters by ISO name (Ra ... Rmr2) to their message."""
     return tiles_pb2.ProfileParameters(**{field: values[name] for name, field in _PROFILE_FIELDS.items()})
 
 
 def message_to_profile_parameters(message: tiles_pb2.ProfileParameters) -> dict:
-    return {name: getattr(message, field) for name, field in _PROFILE_FIELDS.items()}
+    return {name: _number(getattr(message, field)) for name, field in _PROFILE_FIELDS.items()}

@@ -21,6 +21,7 @@ from fractoscope.specimen.fusion import FusedSurface, PlacedRoi
 from fractoscope.specimen.quadtree import QuadtreeLayout, TileKey, TileRecord, TileSamples, build_tiles
 from fractoscope.specimen.store import RoiEntry, Specimen, SpecimenStore, validate_id, write_description, write_roi_arrays
 from fractoscope.stereo import geometry
+from fractoscope.stereo.pipeline import MatchingOptions
 from fractoscope.surface import datum, filtering
 
 
@@ -40,7 +41,8 @@ class RoiRequest:
 @dataclass(frozen=True)
 class MeasuredHeights:
     """What matching returns for an ROI: heights (rows, cols) µm, grey texture, pixel size µm, the
-    matching report (see MatchingReport) and the heights' sigma µm (None: not known)."""
+    matching report (see MatchingReport) and the heights' one-sigma uncertainty (µm, None: not
+    known), tilt part included."""
 
     z_um: np.ndarray
     texture: np.ndarray
@@ -133,8 +135,9 @@ def _place(
         heights = measured[roi.id]
         z_um = filtering.filter_heights(heights.z_um).z_um.astype(np.float32)
         texture = _grey8(heights.texture)
-        walls = _wall_settings(heights)
         entry = RoiEntry(roi.id, roi.parent, roi.magnification, heights.pixel_size_um, (0.0, 0.0), z_um.shape, matching=heights.report)
+        sigma_um = _matching_sigma(heights, z_um, entry)
+        walls = _wall_settings(heights, sigma_um)
         if roi.level:
             try:
                 z_um, levelled = datum.level_heights(z_um, pixel_size_um=heights.pixel_size_um, level=roi.level)
@@ -152,9 +155,25 @@ def _place(
             z_um = registration.apply_height_alignment(z_um, alignment, pixel_size_um=heights.pixel_size_um)
             texture = registration.match_texture(parent, unaligned)
             entry.alignment_residual_um = alignment.residual_um
-        placed[roi.id] = PlacedRoi(roi.id, roi.magnification, heights.pixel_size_um, entry.origin_um, z_um, texture, **walls)
+        placed[roi.id] = PlacedRoi(roi.id, roi.magnification, heights.pixel_size_um, entry.origin_um, z_um, texture, sigma_um=sigma_um, **walls)
         entries.append(entry)
     return placed, entries
+
+
+def _matching_sigma(heights: MeasuredHeights, z_um: np.ndarray, entry: RoiEntry) -> np.ndarray | None:
+    """The matching-noise part of the heights' sigma (float32 µm, NaN where z_um is; points the
+    filter filled get the median), with the relative tilt uncertainty it leaves out set on
+    `entry`: surface analysis propagates the two apart. The tilt uncertainty is the one the
+    pipeline's sigma used (the report's tilt_uncertainty_deg)."""
+    tilts = heights.report.get("tilt_deg") or []
+    if heights.sigma_um is None or len(tilts) < 2:
+        return None
+    tilt_uncertainty = heights.report.get("tilt_uncertainty_deg", MatchingOptions().tilt_uncertainty_deg)
+    entry.tilt_rel_uncertainty = geometry.series_relative_height_error(tilts, tilt_uncertainty_deg=tilt_uncertainty)
+    noise = geometry.matching_sigma_um(heights.z_um, heights.sigma_um, relative_height_error=entry.tilt_rel_uncertainty)
+    known = np.isfinite(noise)
+    fill = np.float32(np.median(noise[known])) if known.any() else np.float32(np.nan)
+    return np.where(np.isfinite(z_um), np.where(known, noise, fill), np.nan).astype(np.float32)
 
 
 def _write_tiles(staging, surface: FusedSurface, layout: QuadtreeLayout, mesh_tile: TileMesher, report) -> dict[TileKey, TileRecord]:
@@ -182,18 +201,15 @@ def _write_tiles(staging, surface: FusedSurface, layout: QuadtreeLayout, mesh_ti
     return records
 
 
-def _wall_settings(heights: MeasuredHeights) -> dict:
-    """PlacedRoi's max_slope and noise_um from the pair's tilts and its heights' local sigma."""
+def _wall_settings(heights: MeasuredHeights, sigma_um: np.ndarray | None) -> dict:
+    """PlacedRoi's max_slope from the pair's tilts and noise_um, the median of its heights'
+    matching sigma (`_matching_sigma`)."""
     tilts = heights.report.get("tilt_deg") or []
     if len(tilts) < 2:
         return {}
     settings = {"max_slope": geometry.max_measurable_slope(tilts)}
-    if heights.sigma_um is not None:
-        local = geometry.local_height_sigma_um(
-            heights.sigma_um, heights.z_um, tilt_deg=tilts, tilt_uncertainty_deg=heights.report.get("tilt_uncertainty_deg", 0.0)
-        )
-        if np.isfinite(local).any():
-            settings["noise_um"] = float(np.nanmedian(local))
+    if sigma_um is not None and np.isfinite(sigma_um).any():
+        settings["noise_um"] = float(np.nanmedian(sigma_um))
     return settings
 
 

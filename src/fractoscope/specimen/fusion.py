@@ -28,6 +28,7 @@ class PlacedRoi:
     z_um: (rows, cols) float32 heights, µm, already aligned to its parent; NaN unknown.
     texture: (rows, cols) uint8 grey SEM image on the same grid.
     origin_um: (x, y) of pixel (0, 0) in the specimen frame, µm.
+    sigma_um: (rows, cols) float32 one-sigma matching noise of the heights, µm (None: not known).
     max_slope: the steepest slope its pair could measure (mesh.walls; None: unknown, no walls).
     noise_um: the typical local uncertainty of its heights, µm (median of their local sigma).
     """
@@ -38,6 +39,7 @@ class PlacedRoi:
     origin_um: tuple[float, float]
     z_um: np.ndarray
     texture: np.ndarray
+    sigma_um: np.ndarray | None = None
     max_slope: float | None = None
     noise_um: float = 0.0
 

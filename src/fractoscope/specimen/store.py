@@ -54,6 +54,7 @@ class RoiEntry:
     registration_score: float = 0.0
     matching: dict = field(default_factory=dict)
     datum: dict | None = None
+    tilt_rel_uncertainty: float | None = None  # relative height error a tilt error makes (None: not known)
 
     @property
     def region_um(self) -> tuple[float, float, float, float]:
@@ -100,7 +101,8 @@ class Specimen:
         placed = []
         for roi in self.rois:
             with np.load(self.directory / "rois" / f"{roi.id}.npz") as arrays:
-                placed.append(PlacedRoi(roi.id, roi.magnification, roi.pixel_size_um, roi.origin_um, arrays["z_um"], arrays["texture"]))
+                sigma_um = arrays["sigma_um"] if "sigma_um" in arrays else None  # specimens built before it was kept have none
+                placed.append(PlacedRoi(roi.id, roi.magnification, roi.pixel_size_um, roi.origin_um, arrays["z_um"], arrays["texture"], sigma_um))
         return FusedSurface(placed)
 
     @cached_property
@@ -229,4 +231,5 @@ def write_description(directory: Path, *, specimen_id: str, request_id: str, roi
 
 def write_roi_arrays(directory: Path, roi: PlacedRoi) -> None:
     (directory / "rois").mkdir(exist_ok=True)
-    np.savez_compressed(directory / "rois" / f"{roi.id}.npz", z_um=roi.z_um, texture=roi.texture)
+    extra = {} if roi.sigma_um is None else {"sigma_um": roi.sigma_um}
+    np.savez_compressed(directory / "rois" / f"{roi.id}.npz", z_um=roi.z_um, texture=roi.texture, **extra)

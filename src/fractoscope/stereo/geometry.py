@@ -57,8 +57,7 @@ def height_sigma_um(
     Each view's disparity error becomes a height error through its height per pixel of
     disparity (p cos t_r / sin(t_i - t_r): 0.0287 µm at 0.005 µm/px and 5.74 µm at 1 µm/px for
     ±5°); the views combine by their information. The tilt error adds ε_z |z - z_ref| for the
-    widest pair (`relative_height_error_from_tilt`): a tilt error scales heights about a reference
-    level, the median height (of every 4th row and column, which tell it well enough)."""
+    widest pair (`series_relative_height_error`) about a reference level (`_tilt_sigma_um`)."""
     _, b = tilt_series.coefficients(tilt_deg)
     with np.errstate(invalid="ignore", divide="ignore"):
         # Information on the height from each view's disparity, 1/px² (none where unmatched).
@@ -66,29 +65,32 @@ def height_sigma_um(
             np.where(np.isfinite(sigma), (np.float32(b[index + 1]) / sigma) ** 2, np.float32(0)) for index, sigma in enumerate(disparity_sigma_px)
         )
         disparity_sigma_um = np.float32(pixel_size_um) / np.sqrt(information)
-    sigma_um = np.hypot(disparity_sigma_um, _tilt_part_um(z_um, tilt_deg=tilt_deg, tilt_uncertainty_deg=tilt_uncertainty_deg))
+    relative = series_relative_height_error(tilt_deg, tilt_uncertainty_deg=tilt_uncertainty_deg)
+    sigma_um = np.hypot(disparity_sigma_um, _tilt_sigma_um(z_um, relative))
     sigma_um[~np.isfinite(z_um)] = np.nan
     return sigma_um
 
 
-def local_height_sigma_um(sigma_um: np.ndarray, z_um: np.ndarray, *, tilt_deg: Sequence[float], tilt_uncertainty_deg: float) -> np.ndarray:
-    """The part of `height_sigma_um` that neighbouring pixels do not share: the disparity
-    noise, without the tilt error, which scales all heights about one level together and so
-    moves a height difference by only ε_z times that difference. (rows, cols) float32 µm, NaN
-    where z_um is NaN; arguments as `height_sigma_um` got them."""
-    tilt_part = _tilt_part_um(z_um, tilt_deg=tilt_deg, tilt_uncertainty_deg=tilt_uncertainty_deg)
-    with np.errstate(invalid="ignore"):
-        local = np.sqrt(np.maximum(np.square(sigma_um, dtype=np.float32) - np.square(tilt_part), 0)).astype(np.float32)
-    local[~np.isfinite(z_um)] = np.nan
-    return local
-
-
-def _tilt_part_um(z_um: np.ndarray, *, tilt_deg: Sequence[float], tilt_uncertainty_deg: float) -> np.ndarray:
-    """ε_z |z - z_ref| for the widest pair, about the median height (of every 4th row and column,
-    which tell it well enough), float32 µm."""
+def series_relative_height_error(tilt_deg: Sequence[float], *, tilt_uncertainty_deg: float) -> float:
+    """ε_z of a tilt series: that of its widest pair with the reference view (tilt_deg[0])."""
     _, b = tilt_series.coefficients(tilt_deg)
     widest = (float(tilt_deg[0]), float(tilt_deg[np.argmax(np.abs(b))]))
-    relative = relative_height_error_from_tilt(tilt_deg=widest, tilt_uncertainty_deg=tilt_uncertainty_deg)
+    return relative_height_error_from_tilt(tilt_deg=widest, tilt_uncertainty_deg=tilt_uncertainty_deg)
+
+
+def matching_sigma_um(z_um: np.ndarray, sigma_um: np.ndarray, *, relative_height_error: float) -> np.ndarray:
+    """The disparity (matching noise) part of `height_sigma_um`'s sigma, µm float32: the tilt part
+    ε_z |z - z_ref| taken out again (NaN where either is NaN). Surface analysis propagates the two
+    apart: the tilt part scales every height together, the matching part varies from window to
+    window."""
+    tilt = _tilt_sigma_um(np.asarray(z_um, np.float32), relative_height_error)
+    sigma = np.asarray(sigma_um, np.float32)
+    return np.sqrt(np.maximum(sigma * sigma - tilt * tilt, np.float32(0)))
+
+
+def _tilt_sigma_um(z_um: np.ndarray, relative: float) -> np.ndarray:
+    """ε_z |z - z_ref|: a tilt error scales heights about a reference level, the median height (of
+    every 4th row and column, which tell it well enough)."""
     sample = z_um[::4, ::4]
     sample = sample[np.isfinite(sample)]
     reference_um = np.float32(np.median(sample)) if sample.size else np.float32(0)

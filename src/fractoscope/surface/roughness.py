@@ -1,102 +1,281 @@
-"""Areal surface texture parameters (ISO 25178-2) of height maps after least-squares de-tilting."""
+"""Roughness of a height map as the product measures it: the surface texture chain of ISO 25178-3
+run end to end, and reported with the settings it ran with.
+
+1. Form removal (`form_removal`, robust least squares; optionally levelled on a region).
+2. S- and L-filters (`iso_filters`, ISO 16610-61 Gaussians): the S-F surface, and the S-L surface
+   when an L-filter is given.
+3. Every ISO 25178-2 areal parameter of that surface (`areal_parameters`).
+4. The Hurst exponent by the height-height correlation and by the profile PSD, along and across a
+   direction (`scaling`), of the S-F surface (an L-filter would remove exactly the scales it is
+   fitted over), over lags from `min_windows` matching windows to a tenth of the field; and the
+   radially averaged areal PSD.
+5. Each parameter's uncertainty from the matching noise (a per-pixel sigma map, correlated over
+   the matching window) and the relative tilt uncertainty, and the bias noise adds to Sa and Sq
+   (`uncertainty`).
+
+The API, the command line, the HTTP endpoint and the viewer all call `analyse`. Heights are
+(rows, cols) float arrays in µm on a square grid, NaN unknown.
+"""
 
 from __future__ import annotations
 
+import contextlib
+import math
+import time
+from dataclasses import dataclass, field
+
 import numpy as np
 
+from fractoscope.errors import InvalidInputError
+from fractoscope.surface import areal_parameters, form_removal, iso_filters, scaling, uncertainty
 
-def detilted_heights_um(z_um: np.ndarray) -> np.ndarray:
-    """Heights (rows, cols) minus their least-squares plane; NaN stays NaN and is ignored in the fit."""
-    valid = np.isfinite(z_um)
-    if valid.sum() < 3:
-        raise ValueError("at least three finite heights are needed to fit a plane")
-    rows, cols = np.nonzero(valid)
-    design = np.column_stack([rows, cols, np.ones_like(rows)]).astype(np.float64)
-    coefficients, *_ = np.linalg.lstsq(design, z_um[valid].astype(np.float64), rcond=None)
-    all_rows, all_cols = np.indices(z_um.shape)
-    return z_um - (coefficients[0] * all_rows + coefficients[1] * all_cols + coefficients[2])
+FORMS = ("none", *form_removal.FORMS)
+HURST_METHODS = ("hhc", "psd")
+HURST_SIDES = ("along", "across")
+FALLBACK_MIN_WINDOWS = 2.0  # the issue's "about two matching windows", when the field is too small for more
 
 
-def sa_um(z_um: np.ndarray) -> float:
-    """Arithmetic mean height Sa = mean |z| after plane de-tilting, µm (NaN ignored)."""
-    return float(np.nanmean(np.abs(detilted_heights_um(z_um))))
+@dataclass(frozen=True)
+class SurfaceChain:
+    """The chain's operators and settings.
+
+    form: one of FORMS ("none": heights as they are, about their mean).
+    lambda_s_um, lambda_c_um: S- and L-filter cut-offs, µm; 0 = that filter is not applied.
+    direction_deg: direction of the "along" Hurst exponents, degrees counter-clockwise from the
+        column axis (+x) with y up the map; "across" is 90° more.
+    window_px: the smoothing width of the matcher that made the map, in its pixels (1: none, as from
+        a profilometer); it also correlates the matching noise.
+    min_windows: the Hurst fit range starts this many windows up (scaling.TRUSTWORTHY_WINDOWS).
+    levelled_on_region: whether the form was fitted on a region only.
+    robust_form: whether the form was fitted robustly (form_removal's IRLS) instead of by least
+        squares, ISO 25178-3's F-operator.
+    """
+
+    form: str = "plane"
+    lambda_s_um: float = 0.0
+    lambda_c_um: float = 0.0
+    direction_deg: float = 0.0
+    window_px: float = 1.0
+    min_windows: float = scaling.TRUSTWORTHY_WINDOWS
+    levelled_on_region: bool = False
+    robust_form: bool = False
 
 
-def sq_um(z_um: np.ndarray) -> float:
-    """Root mean square height Sq after plane de-tilting, µm (NaN ignored)."""
-    return float(np.sqrt(np.nanmean(detilted_heights_um(z_um) ** 2)))
+def surface_chain(
+    *,
+    form: str = "plane",
+    lambda_s_um: float = 0.0,
+    lambda_c_um: float = 0.0,
+    direction_deg: float = 0.0,
+    window_px: float = 1.0,
+    min_windows: float = scaling.TRUSTWORTHY_WINDOWS,
+    levelled_on_region: bool = False,
+    robust_form: bool = False,
+) -> SurfaceChain:
+    """A SurfaceChain, checked: InvalidInputError names the API's field (form, s_filter_um,
+    l_filter_um, direction_deg, window_px, min_windows)."""
+    if form not in FORMS:
+        raise InvalidInputError("form", f"must be one of {', '.join(FORMS)}, not {form!r}")
+    for name, value in (("s_filter_um", lambda_s_um), ("l_filter_um", lambda_c_um)):
+        if not (math.isfinite(value) and value >= 0):
+            raise InvalidInputError(name, f"must be a cut-off in µm >= 0 (0: no filter), got {value}")
+    if lambda_s_um and lambda_c_um and not lambda_s_um < lambda_c_um:
+        raise InvalidInputError("s_filter_um", f"must be below l_filter_um ({lambda_c_um} µm), got {lambda_s_um}")
+    if not math.isfinite(direction_deg):
+        raise InvalidInputError("direction_deg", f"must be finite, got {direction_deg}")
+    if not (math.isfinite(window_px) and 1 <= window_px <= 1000):
+        raise InvalidInputError("window_px", f"must be 1 to 1000 pixels, got {window_px}")
+    if not (math.isfinite(min_windows) and 0.5 <= min_windows <= 100):
+        raise InvalidInputError("min_windows", f"must be 0.5 to 100, got {min_windows}")
+    return SurfaceChain(
+        form=form, lambda_s_um=float(lambda_s_um), lambda_c_um=float(lambda_c_um), direction_deg=float(direction_deg) % 360.0,
+        window_px=float(window_px), min_windows=float(min_windows), levelled_on_region=levelled_on_region, robust_form=bool(robust_form),
+    )  # fmt: skip
 
 
-def areal_parameters(z_um: np.ndarray, *, pixel_size_um: float) -> dict[str, float]:
-    """ISO 25178-2 parameters of a height map (rows, cols) µm with square pixels after plane
-    de-tilting; NaN points are left out (gradients and areas use only complete cells).
-    Keys: Sa, Sq, Sp, Sv, Sz (µm), Ssk, Sku, Sdq (dimensionless), Sdr (percent)."""
-    z = detilted_heights_um(np.asarray(z_um, np.float64))
-    heights = z[np.isfinite(z)]
-    sq = float(np.sqrt(np.mean(heights**2)))
-    sp, sv = float(heights.max()), float(-heights.min())
-    slope_x = np.diff(z, axis=1) / pixel_size_um
-    slope_y = np.diff(z, axis=0) / pixel_size_um
-    return {
-        "Sa": float(np.mean(np.abs(heights))),
-        "Sq": sq,
-        "Ssk": float(np.mean(heights**3) / sq**3) if sq > 0 else 0.0,
-        "Sku": float(np.mean(heights**4) / sq**4) if sq > 0 else 0.0,
-        "Sp": sp,
-        "Sv": sv,
-        "Sz": sp + sv,
-        "Sdq": float(np.sqrt(np.nanmean(slope_x**2) + np.nanmean(slope_y**2))),
-        "Sdr": _developed_area_ratio_percent(z, pixel_size_um),
-    }
+@dataclass(frozen=True)
+class HurstResult:
+    """The Hurst fits: ``fits[method][side]`` (methods "hhc", "psd"; sides "along", "across"), and
+    the windows the fit range started at (``min_windows`` of the chain, or FALLBACK_MIN_WINDOWS on a
+    field too small for it). Empty fits with a ``note`` when even that does not fit."""
+
+    fits: dict[str, dict[str, scaling.ScalingFit]]
+    min_windows: float
+    note: str = ""
 
 
-def _developed_area_ratio_percent(z_um: np.ndarray, pixel_size_um: float) -> float:
-    """Sdr from ISO 25178-2 (2021) D.3: each cell's area is the mean of its two triangulations,
-    i.e. half the summed areas of its four corner triangles; complete cells only."""
-    step = pixel_size_um
-    dz_x = np.diff(z_um, axis=1)
-    dz_y = np.diff(z_um, axis=0)
-    edges_x = ((step * dz_x[:-1, :]) ** 2, (step * dz_x[1:, :]) ** 2)  # bottom, top edge of each cell
-    edges_y = ((step * dz_y[:, :-1]) ** 2, (step * dz_y[:, 1:]) ** 2)  # left, right edge
-    flat = step**4
-    corners = sum(np.sqrt(ex + ey + flat) for ex in edges_x for ey in edges_y)
-    cell_area = 0.25 * corners
-    complete = np.isfinite(cell_area)
-    return float((cell_area[complete].sum() / (complete.sum() * step**2) - 1.0) * 100.0)
+@dataclass(frozen=True)
+class SurfaceAnalysis:
+    """What `analyse` found, and how.
+
+    chain: the settings used; pixel_size_um: of the analysed map, µm.
+    parameters: areal_parameters' values by ISO name (units in areal_parameters.UNITS).
+    uncertainty: their standard uncertainties, noise bias of Sa and Sq (None without a sigma map).
+    tilt_rel_uncertainty: the relative tilt uncertainty propagated (None: not known).
+    hurst: the Hurst fits.
+    psd_q_per_um, psd_um4: the radially averaged areal PSD of the S-F surface (cycles/µm, µm⁴).
+    form_parameters: the fitted form's geometry (form_removal.FormFit.parameters).
+    """
+
+    chain: SurfaceChain
+    pixel_size_um: float
+    parameters: dict[str, float]
+    uncertainty: uncertainty.ArealUncertainty | None
+    tilt_rel_uncertainty: float | None
+    hurst: HurstResult
+    psd_q_per_um: np.ndarray
+    psd_um4: np.ndarray
+    form_parameters: dict = field(default_factory=dict)
+
+    def legacy(self) -> dict:
+        """The keys Fractoscope reported before the chain: Sa ... Sdr, and the Hurst exponent by
+        h(r) along the direction with its fit range (µm), fractal dimension 3 - H and curve (NaN
+        and empty without a fit)."""
+        values = {name: self.parameters[name] for name in ("Sa", "Sq", "Ssk", "Sku", "Sp", "Sv", "Sz", "Sdq", "Sdr")}
+        fit = self.hurst.fits.get("hhc", {}).get("along")
+        if fit is None:
+            nan = float("nan")
+            return values | {"hurst_exponent": nan, "hurst_fit_min_um": nan, "hurst_fit_max_um": nan,
+                             "fractal_dimension": nan, "hhc_lag_um": [], "hhc_rms_um": []}  # fmt: skip
+        return values | {
+            "hurst_exponent": fit.hurst, "hurst_fit_min_um": fit.fit_min_um, "hurst_fit_max_um": fit.fit_max_um,
+            "fractal_dimension": 3.0 - fit.hurst, "hhc_lag_um": fit.scale_um.tolist(), "hhc_rms_um": fit.value.tolist(),
+        }  # fmt: skip
 
 
-def height_height_correlation(z_um: np.ndarray, *, pixel_size_um: float, lag_count: int = 24) -> tuple[np.ndarray, np.ndarray]:
-    """Height-height correlation h(r) = sqrt(<(z(x + r) - z(x))²>) along rows and columns together,
-    for about `lag_count` lags spaced logarithmically from 1 pixel to a quarter of the shorter side.
-    Returns (lags µm, h µm); NaN pairs are skipped."""
-    z = np.asarray(z_um, np.float64)
-    lags_px = np.unique(np.geomspace(1, max(min(z.shape) // 4, 2), lag_count).astype(int))
-    rms = []
-    for lag in lags_px:
-        along_rows = (z[:, lag:] - z[:, :-lag]) ** 2
-        along_cols = (z[lag:, :] - z[:-lag, :]) ** 2
-        total = np.nansum(along_rows) + np.nansum(along_cols)
-        count = np.isfinite(along_rows).sum() + np.isfinite(along_cols).sum()
-        rms.append(np.sqrt(total / count) if count else np.nan)
-    return lags_px * pixel_size_um, np.array(rms)
+def analyse(
+    z_um: np.ndarray,
+    *,
+    pixel_size_um: float,
+    chain: SurfaceChain = SurfaceChain(),
+    levelling_region: np.ndarray | None = None,
+    sigma_um: np.ndarray | float | None = None,
+    tilt_rel_uncertainty: float | None = None,
+    features: bool = True,
+    timings: dict[str, float] | None = None,
+) -> SurfaceAnalysis:
+    """Run the chain on a (rows, cols) µm height map. ``levelling_region``: (rows, cols) bool, where
+    the form is fitted; ``sigma_um``: the matching noise's one-sigma per pixel (µm, a map or one
+    value; without it no uncertainty is computed); ``tilt_rel_uncertainty``: the relative
+    uncertainty of the tilt difference (0.01 for 1 %; None: unknown, propagated as 0);
+    ``features=False`` leaves out Spd and Spc (NaN); ``timings``, if given, receives each step's
+    wall-clock seconds (STEPS). Raises InvalidInputError naming what is wrong."""
+    z = np.asarray(z_um, dtype=np.float64)
+    if z.ndim != 2 or min(z.shape) < 16:
+        raise InvalidInputError("region", f"needs at least 16 x 16 points, got {z.shape}")
+    if np.count_nonzero(np.isfinite(z)) < 64:
+        raise InvalidInputError("region", "holds fewer than 64 measured points")
+    if chain.levelled_on_region != (levelling_region is not None):
+        chain = SurfaceChain(**{**chain.__dict__, "levelled_on_region": levelling_region is not None})
+    step = _Stopwatch(timings)
+    with step("form removal"):
+        if chain.form == "none":
+            residual, form_parameters = z, {}
+        else:
+            try:
+                fit = form_removal.remove_form(
+                    z, pixel_size_um=pixel_size_um, form=chain.form, region=levelling_region, robust=chain.robust_form
+                )
+            except ValueError as error:
+                raise InvalidInputError("levelling_region" if levelling_region is not None else "form", str(error)) from None
+            residual, form_parameters = fit.residual_um, fit.parameters
+    with step("S- and L-filters"):
+        try:
+            surface = iso_filters.scale_limited_surface(
+                residual, pixel_size_um=pixel_size_um, lambda_s_um=chain.lambda_s_um or None, lambda_c_um=chain.lambda_c_um or None
+            )
+        except ValueError as error:
+            raise InvalidInputError("l_filter_um", str(error)) from None
+    sl = surface.z_um
+    with step("height and hybrid parameters"):
+        parameters = areal_parameters.height_parameters(sl) | areal_parameters.hybrid_parameters(sl, pixel_size_um=pixel_size_um)
+    with step("spatial parameters"):
+        max_lag_px = None
+        if chain.lambda_c_um:  # past lambda_c the S-L surface holds no correlation to resolve
+            max_lag_px = max(1, min(min(sl.shape) // 2, int(np.ceil(chain.lambda_c_um / pixel_size_um))))
+        parameters |= areal_parameters.spatial_parameters(sl, pixel_size_um=pixel_size_um, max_lag_px=max_lag_px)
+    with step("functional parameters"):
+        parameters |= areal_parameters.functional_parameters(sl)
+    with step("feature parameters"):
+        nan = float("nan")
+        parameters |= areal_parameters.feature_parameters(sl, pixel_size_um=pixel_size_um) if features else {"Spd": nan, "Spc": nan}
+    parameters = {name: parameters[name] for name in areal_parameters.UNITS}
+    with step("Hurst exponents"):
+        hurst = _hurst(surface.sf_um, pixel_size_um, chain)
+    with step("areal PSD"):
+        q, c = scaling.radial_psd(surface.sf_um, pixel_size_um=pixel_size_um)
+    u = None
+    with step("uncertainty"):
+        if sigma_um is not None:
+            try:
+                u = uncertainty.areal_uncertainty(
+                    sl, sigma_um, pixel_size_um=pixel_size_um,
+                    parameters={k: v for k, v in parameters.items() if np.isfinite(v)},
+                    tilt_rel_uncertainty=tilt_rel_uncertainty or 0.0, correlation_px=chain.window_px,
+                )  # fmt: skip
+            except ValueError as error:
+                raise InvalidInputError("sigma_um", str(error)) from None
+    return SurfaceAnalysis(
+        chain=chain, pixel_size_um=float(pixel_size_um), parameters=parameters, uncertainty=u,
+        tilt_rel_uncertainty=tilt_rel_uncertainty, hurst=hurst, psd_q_per_um=q, psd_um4=c, form_parameters=form_parameters,
+    )  # fmt: skip
 
 
-def fracture_metrics(z_um: np.ndarray, *, pixel_size_um: float, fit_px: tuple[float, float] | None = None) -> dict:
-    """Hurst exponent H as the slope of log h(r) against log r over the fit range (default 4 pixels
-    to a tenth of the shorter side, where SEM surfaces are self-affine between the probe's blur and
-    the correlation length), and the fractal dimension 3 - H of the surface. Returns the fit range
-    (µm) and the curve it was fitted to."""
-    lags_um, rms_um = height_height_correlation(detilted_heights_um(np.asarray(z_um, np.float64)), pixel_size_um=pixel_size_um)
-    low_px, high_px = fit_px or (4.0, max(min(z_um.shape) / 10.0, 8.0))
-    fit = (lags_um >= low_px * pixel_size_um) & (lags_um <= high_px * pixel_size_um) & (rms_um > 0)
-    if fit.sum() < 3:
-        raise ValueError("the area is too small to fit a Hurst exponent (needs lags over at least 3 steps)")
-    hurst = float(np.polyfit(np.log(lags_um[fit]), np.log(rms_um[fit]), 1)[0])
-    return {
-        "hurst_exponent": hurst,
-        "hurst_fit_min_um": float(lags_um[fit].min()),
-        "hurst_fit_max_um": float(lags_um[fit].max()),
-        "fractal_dimension": 3.0 - hurst,
-        "hhc_lag_um": lags_um.tolist(),
-        "hhc_rms_um": rms_um.tolist(),
-    }
+STEPS = (
+    "form removal", "S- and L-filters", "height and hybrid parameters", "spatial parameters", "functional parameters",
+    "feature parameters", "Hurst exponents", "areal PSD", "uncertainty",
+)  # fmt: skip
+
+
+class _Stopwatch:
+    """``with step(name):`` adds the block's wall-clock seconds to timings[name] (nothing without)."""
+
+    def __init__(self, timings: dict[str, float] | None):
+        self.timings = timings
+
+    @contextlib.contextmanager
+    def __call__(self, name: str):
+        started = time.perf_counter()
+        try:
+            yield
+        finally:
+            if self.timings is not None:
+                self.timings[name] = self.timings.get(name, 0.0) + time.perf_counter() - started
+
+
+def _hurst(sf_um: np.ndarray, pixel_size_um: float, chain: SurfaceChain) -> HurstResult:
+    """Both methods along and across the direction, from min_windows windows up, or from two on a
+    field too small for that (said in the note), or none."""
+    tried = [chain.min_windows] + ([FALLBACK_MIN_WINDOWS] if chain.min_windows > FALLBACK_MIN_WINDOWS else [])
+    for min_windows in tried:
+        try:
+            fit_range = scaling.trustworthy_range_um(sf_um.shape, pixel_size_um=pixel_size_um, window_px=chain.window_px, min_windows=min_windows)
+            sides = {
+                side: scaling.hurst_exponents(
+                    sf_um, pixel_size_um=pixel_size_um, window_px=chain.window_px, methods=HURST_METHODS,
+                    direction_deg=chain.direction_deg + (90.0 if side == "across" else 0.0), fit_range_um=fit_range,
+                )
+                for side in HURST_SIDES
+            }  # fmt: skip
+            fits = {method: {side: sides[side][method] for side in HURST_SIDES} for method in HURST_METHODS}
+        except ValueError as error:
+            note = f"no Hurst exponent: {error}"
+            continue
+        if min_windows != chain.min_windows:
+            note = (
+                f"the field ({min(sf_um.shape)} px) is too small for a fit from {chain.min_windows:g} windows of "
+                f"{chain.window_px:g} px: fitted from {min_windows:g}, where a matcher's smoothing can raise H by up to 0.07"
+            )
+        else:
+            note = ""
+        return HurstResult(fits, min_windows, note)
+    return HurstResult({}, chain.min_windows, note)
+
+
+def height_parameters_after_plane(z_um: np.ndarray) -> dict[str, float]:
+    """Sa, Sq, Ssk, Sku, Sp, Sv, Sz (µm where dimensional) after removing the least-squares plane
+    (by plain least squares over every known point: what comparisons of a measured map with its
+    truth use)."""
+    z = np.asarray(z_um)
+    residual = form_removal.remove_form(z, pixel_size_um=1.0, form="plane", robust=False, max_fit_points=max(z.size, 16)).residual_um
+    return areal_parameters.height_parameters(residual)

@@ -33,11 +33,13 @@ Heights (rows, cols) µm, NaN unknown; the form should be removed first, and no 
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
 import scipy.fft
-from scipy import ndimage
+
+from fractoscope.surface import _kernels
 
 JACKKNIFE_BANDS = 4  # jackknife blocks: bands of profiles across the direction (8 for the PSD) ...
 JACKKNIFE_SEGMENTS = 4  # ... times segments along it for h(r) (spectra need whole profiles)
@@ -110,12 +112,7 @@ def directional_profiles(z_um: np.ndarray, *, direction_deg: float, spacing_px: 
     half = np.hypot(*z.shape) / 2.0
     offsets = np.arange(-half, half + 1e-9, spacing_px)
     positions = np.arange(-half, half + 1e-9, 1.0)
-    coords = (
-        centre[:, None, None]
-        + across[:, None, None] * offsets[None, :, None]
-        + along[:, None, None] * positions[None, None, :]
-    )
-    profiles = ndimage.map_coordinates(z, coords, order=1, mode="constant", cval=np.nan)
+    profiles = _kernels.bilinear_profiles(np.ascontiguousarray(z), centre, across, along, offsets, positions)
     keep_rows = np.isfinite(profiles).sum(axis=1) >= 8
     profiles = profiles[keep_rows]
     keep_cols = np.isfinite(profiles).any(axis=0)
@@ -142,20 +139,8 @@ def height_height_correlation(
     if lags.ndim != 1 or lags.size == 0 or lags.min() < 1 or order * lags.max() >= length - segments:
         raise ValueError("lags_px must be integers from 1 to below the profiles' length / order")
     band_starts = _split_starts(profiles_um.shape[0], bands)
-    sums = np.zeros((bands, segments, lags.size))
-    counts = np.zeros((bands, segments, lags.size))
-    for j, lag in enumerate(lags):
-        span = order * lag
-        if order == 1:
-            squared = profiles_um[:, lag:] - profiles_um[:, :-lag]
-        else:
-            squared = profiles_um[:, span:] - 2.0 * profiles_um[:, lag:-lag] + profiles_um[:, :-span]
-        squared *= squared
-        finite = np.isfinite(squared)
-        column_starts = _split_starts(length - span, segments)
-        for total, part in ((sums, np.where(finite, squared, 0.0)), (counts, finite)):
-            per_band = np.add.reduceat(part, band_starts, axis=0)
-            total[:, :, j] = np.add.reduceat(per_band, column_starts, axis=1)
+    profiles = np.ascontiguousarray(profiles_um, dtype=np.float64)
+    sums, counts = _kernels.difference_sums(profiles, lags, order, band_starts.astype(np.int64), segments)
     with np.errstate(invalid="ignore", divide="ignore"):
         return lags * pixel_size_um, np.sqrt(sums / counts).reshape(bands * segments, lags.size)
 
@@ -236,16 +221,39 @@ def hurst_exponent(
     ``fit_range_um`` (default ``trustworthy_range_um`` for the matcher's window ``window_px``; the
     PSD is fitted over wavelengths twice those). Profiles are ``spacing_px`` apart (default half a
     window: closer ones are nearly the same profile after the matcher's smoothing)."""
+    return hurst_exponents(
+        z_um, pixel_size_um=pixel_size_um, window_px=window_px, methods=(method,), direction_deg=direction_deg,
+        fit_range_um=fit_range_um, spacing_px=spacing_px,
+    )[method]  # fmt: skip
+
+
+def hurst_exponents(
+    z_um: np.ndarray,
+    *,
+    pixel_size_um: float,
+    window_px: float,
+    methods: tuple[str, ...] = ("hhc", "psd"),
+    direction_deg: float = 0.0,
+    fit_range_um: tuple[float, float] | None = None,
+    spacing_px: float | None = None,
+) -> dict[str, ScalingFit]:
+    """``hurst_exponent`` by each of ``methods``, from one set of profiles: {method: fit}."""
     z = np.asarray(z_um, dtype=np.float64)
     if z.ndim != 2:
         raise ValueError("z_um must be a (rows, cols) array")
-    if method not in ("hhc", "psd"):
-        raise ValueError(f"method must be 'hhc' or 'psd', not {method!r}")
+    for method in methods:
+        if method not in ("hhc", "psd"):
+            raise ValueError(f"method must be 'hhc' or 'psd', not {method!r}")
     low, high = fit_range_um or trustworthy_range_um(z.shape, pixel_size_um=pixel_size_um, window_px=window_px)
     if not 0 < low < high:
         raise ValueError("fit_range_um must be (low, high) with 0 < low < high")
     spacing = max(1.0, window_px / 2.0) if spacing_px is None else spacing_px
     profiles = directional_profiles(z, direction_deg=direction_deg, spacing_px=spacing)
+    return {method: _fit(profiles, method, pixel_size_um, low, high, direction_deg) for method in methods}
+
+
+def _fit(profiles: np.ndarray, method: str, pixel_size_um: float, low: float, high: float, direction_deg: float) -> ScalingFit:
+    """One method's power-law fit of the profiles over lags [low, high] µm, with its jackknife."""
     bands = min(JACKKNIFE_BANDS, profiles.shape[0])
     if bands < 2:
         raise ValueError("spacing_px: fewer than two profiles across the field")
@@ -297,9 +305,11 @@ def hurst_exponent(
 
 def _combined(method: str, per_band: np.ndarray) -> np.ndarray:
     """One curve from the bands' (near equal sized): mean squares for h(r), mean power for the PSD."""
-    if method == "hhc":
-        return np.sqrt(np.nanmean(per_band**2, axis=0))
-    return np.nanmean(per_band, axis=0)
+    with warnings.catch_warnings():  # a lag or wavelength no band has data at stays NaN
+        warnings.simplefilter("ignore", RuntimeWarning)
+        if method == "hhc":
+            return np.sqrt(np.nanmean(per_band**2, axis=0))
+        return np.nanmean(per_band, axis=0)
 
 
 def _power_law(method: str, log_scale: np.ndarray, log_value: np.ndarray, weights: np.ndarray) -> tuple[float, float]:
@@ -337,27 +347,19 @@ def radial_psd(z_um: np.ndarray, *, pixel_size_um: float, bins_per_decade: int =
     if not pixel_size_um > 0:
         raise ValueError("pixel_size_um must be positive")
     shape = (z.shape[0] - 1, z.shape[1] - 1)
-    window = np.outer(np.hanning(shape[0]), np.hanning(shape[1]))
-    power = np.zeros((shape[0], shape[1] // 2 + 1))
-    for difference in (np.diff(z, axis=1)[:-1, :], np.diff(z, axis=0)[:, :-1]):
-        known = np.isfinite(difference)
-        centred = np.where(known, difference - difference[known].mean(), 0.0)
-        power += np.abs(scipy.fft.rfft2(centred * window, workers=-1)) ** 2
-    f_rows = scipy.fft.fftfreq(shape[0])[:, None]
-    f_cols = scipy.fft.rfftfreq(shape[1])[None, :]
-    transfer = 4.0 * (np.sin(np.pi * f_rows) ** 2 + np.sin(np.pi * f_cols) ** 2)
-    transfer[0, 0] = np.inf
-    power *= pixel_size_um**2 / (np.sum(window**2) * np.isfinite(z).mean()) / transfer
-    q = np.hypot(f_rows, f_cols) / pixel_size_um
+    hann_rows, hann_cols = np.hanning(shape[0]), np.hanning(shape[1])
+    power = np.zeros((shape[0], shape[1] // 2 + 1), dtype=np.float32)
+    zc = np.ascontiguousarray(z)
+    # Single precision for the transforms: a spectrum is needed to a part in 1e4 at most.
+    for axis in (1, 0):
+        spectrum = scipy.fft.rfft2(_kernels.windowed_difference(zc, axis, hann_rows, hann_cols), workers=-1)
+        power += spectrum.real**2 + spectrum.imag**2
+        del spectrum
+    scale = pixel_size_um**2 / (np.sum(hann_rows**2) * np.sum(hann_cols**2) * np.isfinite(z).mean())
     q_min, q_max = 1.0 / (min(shape) * pixel_size_um), 0.5 / pixel_size_um
     edges = np.logspace(np.log10(q_min), np.log10(q_max), int(np.log10(q_max / q_min) * bins_per_decade) + 1)
-    index = np.digitize(q.ravel(), edges) - 1
-    valid = (index >= 0) & (index < edges.size - 1)
-    # Both halves of the rfft plane: columns other than 0 and Nyquist stand for two frequencies.
-    weight = np.ones(power.shape)
-    weight[:, 1 : (shape[1] + 1) // 2] = 2.0
-    totals = np.bincount(index[valid], weights=(power * weight).ravel()[valid], minlength=edges.size - 1)
-    counts = np.bincount(index[valid], weights=weight.ravel()[valid], minlength=edges.size - 1)
+    log_step = (np.log10(q_max) - np.log10(q_min)) / (edges.size - 1)
+    totals, counts = _kernels.radial_bins(power, shape[1], scale, pixel_size_um, np.log10(q_min), log_step, edges.size - 1)
     with np.errstate(invalid="ignore", divide="ignore"):
         c = totals / counts
     centres = np.sqrt(edges[:-1] * edges[1:])

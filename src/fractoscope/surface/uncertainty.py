@@ -10,7 +10,8 @@ Str, Std, Smr1, Smr2, Spd: the pruning threshold is a share of Sz) do not change
 Matching noise. First-order propagation, u² = sum_ij (dP/dz_i) (dP/dz_j) cov_ij, for errors that
 are white noise averaged over a ``correlation_px`` box B (a matcher's window): cov_ij = sigma_i
 sigma_j rho(i - j), rho = width² B^T B the box's triangular autocorrelation, so that u² =
-width² |B (sigma dP/dz)|², one box filter per parameter. The derivatives are analytic for the
+width² |B (sigma dP/dz)|², computed from block sums of sigma dP/dz that one compiled pass over the
+map gives for a whole family of parameters (`_propagated`). The derivatives are analytic for the
 height family, Sdq and Sdr; for the material-ratio family they are taken on the material ratio
 curve (a pixel's error moves the curve at its rank: 100 one-percent classes, each moved in turn,
 the class's derivative shared among its pixels). Against Monte Carlo at a noise of 4 % of Sq the
@@ -32,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from fractoscope.surface import areal_parameters
+from fractoscope.surface import _kernels, areal_parameters
 
 SCALES_WITH_HEIGHT = ("Sa", "Sq", "Sp", "Sv", "Sz", "Sdq", "Sk", "Spk", "Svk", "Vmp", "Vmc", "Vvc", "Vvv", "Spc")
 SCALE_INVARIANT = ("Ssk", "Sku", "Sal", "Str", "Std", "Smr1", "Smr2", "Spd")
@@ -69,12 +70,12 @@ def areal_uncertainty(
     """Uncertainty of ``parameters`` (areal_parameters' dict for this ``z_um``, (rows, cols) µm) from
     the per-pixel height sigma ``sigma_um`` ((rows, cols) µm, or one value for all) and the tilt's
     relative standard uncertainty ``tilt_rel_uncertainty`` (0.01 for 1 %)."""
-    z = np.asarray(z_um, dtype=np.float64)
-    sigma = np.broadcast_to(np.asarray(sigma_um, dtype=np.float64), z.shape)
+    z = np.ascontiguousarray(z_um, dtype=np.float64)
     if z.ndim != 2:
         raise ValueError("z_um must be a (rows, cols) array")
-    known = np.isfinite(z)
-    if not np.all(np.isfinite(sigma[known]) & (sigma[known] >= 0)):
+    sigma = np.broadcast_to(np.asarray(sigma_um, dtype=np.float64), z.shape)
+    sigma_known, sigma_ok, mean_variance = _kernels.known_sigma(z, sigma)
+    if not sigma_ok:
         raise ValueError("sigma_um must be finite and non-negative wherever z_um is known")
     if not (np.isfinite(tilt_rel_uncertainty) and tilt_rel_uncertainty >= 0):
         raise ValueError("tilt_rel_uncertainty must be non-negative")
@@ -87,24 +88,24 @@ def areal_uncertainty(
         raise ValueError(f"parameters: not areal parameters: {', '.join(unknown)}")
 
     wanted = set(parameters)
-    # Derivatives in single precision: they only scale uncertainties, and at 4096² the maps are
-    # memory-bound.
-    z32 = z.astype(np.float32)
-    slopes = _slope_terms(z32, pixel_size_um, wanted) if wanted & {"Sdq", "Sdr"} else None
+    width = max(1, int(round(correlation_px)))
+    block = _block_px(width)
+    n, mean = _kernels.mean_height(z)
+    u_noise = _extremes_noise(z, sigma, correlation_px)
+    sdr_scale_derivative = 0.0
+    for name, sums in _block_sums(z, sigma_known, mean, n, pixel_size_um, wanted, block):
+        if name == "Sdr scale":
+            sdr_scale_derivative = sums
+        else:
+            u_noise[name] = _propagated(sums, block, width)
     u_tilt = {}
     for name, value in parameters.items():
         if name == "Sdr":
-            u_tilt[name] = abs(slopes.sdr_scale_derivative) * tilt_rel_uncertainty
+            u_tilt[name] = abs(sdr_scale_derivative) * tilt_rel_uncertainty
         elif name in SCALES_WITH_HEIGHT:
             u_tilt[name] = abs(value) * tilt_rel_uncertainty
         else:
             u_tilt[name] = 0.0
-
-    sigma_known = np.where(known, sigma, 0.0).astype(np.float32)
-    u_noise = _extremes_noise(z, sigma, correlation_px)
-    # One derivative map at a time: at 4096² each is 128 MB.
-    for name, weights in _derivative_maps(z32, wanted, slopes):
-        u_noise[name] = _propagated(weights, sigma_known, correlation_px)
     if monte_carlo_samples > 0:
         wanted = [name for name in NOT_DIFFERENTIABLE if name in parameters]
         if wanted:
@@ -115,7 +116,6 @@ def areal_uncertainty(
     u_noise = {name: u_noise.get(name, float("nan")) for name in parameters}
     u_total = {name: float(np.hypot(u_tilt[name], u_noise[name])) for name in parameters}
 
-    mean_variance = float(np.mean(sigma[known] ** 2))
     bias, corrected = {}, {}
     if "Sq" in parameters:
         sq = parameters["Sq"]
@@ -162,16 +162,25 @@ def _spatial_and_features(z: np.ndarray, pixel_size_um: float, wanted: list[str]
     return {name: values[name] for name in wanted}
 
 
-def _propagated(weights: np.ndarray, sigma: np.ndarray, correlation_px: float) -> float:
-    """sqrt(sum_ij a_i a_j rho(i - j)), a = sigma dP/dz (sigma 0 at unknown points, single
-    precision: this is an uncertainty), rho the autocorrelation of a box B of
-    ``correlation_px``: rho = width² B^T B, so the sum is width² |B a|², one box filter over a
-    padded a."""
-    a = sigma * weights.astype(np.float32, copy=False)
-    width = max(1, int(round(correlation_px)))
-    if width > 1:
-        a = ndimage.uniform_filter(np.pad(a, width), size=width, mode="constant")
-    return float(width * np.sqrt(np.sum(a.astype(np.float64) ** 2)))
+def _block_px(width: int) -> int:
+    """The block size the noise propagation sums over: the largest divisor of the window up to a
+    third of it (1, i.e. every pixel, for windows such as 5 or 7 that have none)."""
+    return next((d for d in range(width // 3, 1, -1) if width % d == 0), 1)
+
+
+def _propagated(sums: np.ndarray, block: int, width: int) -> float:
+    """sqrt(sum_ij a_i a_j rho(i - j)) from the block sums of a = sigma dP/dz: rho = width² B^T B
+    for the window's box B, so the sum is width² |B a|² over every position of the window (the map
+    padded with zeros). With block = width / m, the window's sums at block-aligned positions are
+    sums of m x m blocks; each stands for block² positions, which is exact on average over the
+    positions and, for a window of 15 in blocks of 5 on a 2048² map, within 0.5 % of the sum over
+    every position."""
+    m = width // block
+    padded = np.pad(sums, m - 1)
+    integral = np.zeros((padded.shape[0] + 1, padded.shape[1] + 1))
+    integral[1:, 1:] = padded.cumsum(axis=0).cumsum(axis=1)
+    windows = integral[m:, m:] - integral[:-m, m:] - integral[m:, :-m] + integral[:-m, :-m]
+    return float(block / width * np.sqrt(np.sum(windows * windows)))
 
 
 def _correlation(offset: np.ndarray, correlation_px: float) -> float:
@@ -190,104 +199,58 @@ def _extremes_noise(z: np.ndarray, sigma: np.ndarray, correlation_px: float) -> 
     return {"Sp": sp, "Sv": sv, "Sz": float(np.sqrt(max(sp**2 + sv**2 - 2 * rho * sp * sv, 0.0)))}
 
 
-def _derivative_maps(z: np.ndarray, wanted: set[str], slopes: _SlopeTerms | None):
-    """(name, dP/dz as a (rows, cols) map, 0 at unknown points) for each wanted parameter that has
-    an analytic derivative, one at a time."""
-    known = np.isfinite(z)
-    n = np.count_nonzero(known)
-    h = np.where(known, z - z[known].mean(), 0.0)
-    h2 = h * h
-    m2, m3, m4 = (float(np.sum(moment, dtype=np.float64)) / n for moment in (h2, h2 * h, h2 * h2))
-    sq = np.sqrt(m2)
-    if "Sa" in wanted:
-        sign = np.sign(h)
-        yield "Sa", np.where(known, sign - sign.sum() / n, 0.0) / n
-    if "Sq" in wanted:
-        yield "Sq", h / (n * sq)
-    # Derivatives of the central moments include the shift of the mean: d m3 / dz_i = 3 (h_i² - m2) / n.
-    if "Ssk" in wanted:
-        yield "Ssk", np.where(known, 3.0 / n * ((h2 - m2) / sq**3 - m3 / sq**3 * h / sq**2), 0.0)
-    if "Sku" in wanted:
-        yield "Sku", np.where(known, 4.0 / n * ((h2 * h - m3) / sq**4 - m4 / m2**2 * h / sq**2), 0.0)
-    del h, h2
-    if slopes is not None:
-        yield from slopes.weights.items()
+def _block_sums(z: np.ndarray, sigma: np.ndarray, mean: float, n: float, pixel_size_um: float, wanted: set[str], block: int):
+    """(name, block sums of sigma dP/dz) for each wanted parameter with an analytic derivative, and
+    ("Sdr scale", d Sdr / d ln(s)) for heights scaled by s. Derivatives of the central moments include
+    the shift of the mean: d m3 / dz_i = 3 (h_i² - m2) / n."""
+    if wanted & {"Sa", "Sq", "Ssk", "Sku"}:
+        _, squares, cubes, fourths, signs, _, _ = _kernels.central_moments(z, mean)
+        m2, m3, m4 = squares / n, cubes / n, fourths / n
+        sq = np.sqrt(m2)
+        b0, bh, bh2, bh3, bsign = _kernels.height_block_sums(z, sigma, mean, block)
+        derivatives = {
+            "Sa": lambda: (bsign - signs / n * b0) / n,
+            "Sq": lambda: bh / (n * sq),
+            "Ssk": lambda: 3.0 / n * ((bh2 - m2 * b0) / sq**3 - m3 / sq**5 * bh),
+            "Sku": lambda: 4.0 / n * ((bh3 - m3 * b0) / sq**4 - m4 / m2**2 * bh / sq**2),
+        }
+        for name, derivative in derivatives.items():
+            if name in wanted:
+                yield name, derivative()
+    if wanted & {"Sdq", "Sdr"}:
+        inverse = 1.0 / pixel_size_um
+        sx, nx, sy, ny, _, cells = _kernels.slope_sums(z, inverse)
+        sdq = np.sqrt(sx / nx + sy / ny)
+        dq, dr, scale_derivative = _kernels.slope_block_sums(
+            z, sigma, inverse, 1.0 / (nx * sdq), 1.0 / (ny * sdq), 100.0 * 0.25 / cells, block
+        )
+        if "Sdq" in wanted:
+            yield "Sdq", dq
+        if "Sdr" in wanted:
+            yield "Sdr", dr
+        yield "Sdr scale", scale_derivative
     if wanted & set(MATERIAL_RATIO_FAMILY):
-        yield from _material_ratio_weights(z, wanted)
+        yield from _material_ratio_sums(z, sigma, mean, wanted, block)
 
 
-@dataclass(frozen=True)
-class _SlopeTerms:
-    """dP/dz maps of Sdq and Sdr, and d Sdr / d ln(s) for all heights scaled by s."""
-
-    weights: dict[str, np.ndarray]
-    sdr_scale_derivative: float
-
-
-def _slope_terms(z: np.ndarray, pixel_size_um: float, wanted: set[str]) -> _SlopeTerms:
-    """Sdq and Sdr differentiated with respect to each edge's slope, carried to the pixels at its
-    ends. Sdr = 100 (mean over cells of a quarter of the summed corner terms T = sqrt(gx² + gy² + 1))
-    - 100, each cell having a top and a bottom x edge and a left and a right y edge: dT/dgx = gx / T,
-    and for heights scaled by s, dT/d ln(s) = (gx² + gy²) / T."""
-    gx = np.diff(z, axis=1) / pixel_size_um  # (rows, cols - 1)
-    gy = np.diff(z, axis=0) / pixel_size_um  # (rows - 1, cols)
-    known_x, known_y = np.isfinite(gx), np.isfinite(gy)
-    gx[~known_x] = 0.0
-    gy[~known_y] = 0.0
-    sdq = np.sqrt(np.sum(gx * gx, dtype=np.float64) / known_x.sum() + np.sum(gy * gy, dtype=np.float64) / known_y.sum())
-    dsdq_x, dsdq_y = gx / (known_x.sum() * sdq), gy / (known_y.sum() * sdq)
-    complete = known_x[:-1, :] & known_x[1:, :] & known_y[:, :-1] & known_y[:, 1:]
-    scale = 100.0 * 0.25 / complete.sum()
-    dsdr_x, dsdr_y = np.zeros_like(gx), np.zeros_like(gy)
-    scale_derivative = 0.0
-    for x_edge in (np.s_[:-1, :], np.s_[1:, :]):  # top, bottom
-        for y_edge in (np.s_[:, :-1], np.s_[:, 1:]):  # left, right
-            ex, ey = gx[x_edge], gy[y_edge]
-            squares = ex * ex + ey * ey
-            inverse = np.where(complete, 1.0 / np.sqrt(squares + 1.0, dtype=np.float32), np.float32(0.0))
-            dsdr_x[x_edge] += scale * ex * inverse
-            dsdr_y[y_edge] += scale * ey * inverse
-            scale_derivative += scale * float(np.sum(squares * inverse, dtype=np.float64))
-    maps = {"Sdq": (dsdq_x, dsdq_y), "Sdr": (dsdr_x, dsdr_y)}
-    weights = {name: _edge_to_pixel(*maps[name], pixel_size_um) for name in maps if name in wanted}
-    return _SlopeTerms(weights=weights, sdr_scale_derivative=scale_derivative)
-
-
-def _edge_to_pixel(d_x: np.ndarray, d_y: np.ndarray, pixel_size_um: float) -> np.ndarray:
-    """dP/dz from dP/d(slope) of each edge: slope = (z[end] - z[start]) / pixel_size_um."""
-    rows, cols = d_x.shape[0], d_y.shape[1]
-    weights = np.zeros((rows, cols), dtype=d_x.dtype)
-    weights[:, 1:] += d_x
-    weights[:, :-1] -= d_x
-    weights[1:, :] += d_y
-    weights[:-1, :] -= d_y
-    return weights / pixel_size_um
-
-
-def _material_ratio_weights(z: np.ndarray, wanted: set[str]):
-    """(name, dP/dz map) for the material-ratio family: moving every pixel of a 1 % class of the
+def _material_ratio_sums(z: np.ndarray, sigma: np.ndarray, mean: float, wanted: set[str], block: int):
+    """(name, block sums) for the material-ratio family: moving every pixel of a 1 % class of the
     curve by d moves that class of the curve by d; the parameters' derivative with respect to each
     class, from central differences with the class moved up and down, is shared equally among its
     pixels."""
     curve = areal_parameters.material_ratio_curve(z)
     ratio, height = curve.material_ratio_percent, curve.height_um
-    known = np.isfinite(z)
-    # Each pixel's material ratio, from its height on the (decreasing) curve.
-    pixel_ratio = np.interp(z[known] - z[known].mean(), height[::-1], ratio[::-1])
     width = 100.0 / _CLASSES
-    classes = np.minimum((pixel_ratio / width).astype(np.int64), _CLASSES - 1)
-    del pixel_ratio
-    counts = np.bincount(classes, minlength=_CLASSES)
+    edges = np.interp(np.arange(_CLASSES + 1) * width, ratio, height)
+    counts = _kernels.class_counts(z, mean, edges)
     step = float(np.ptp(height)) * 1e-6 or 1e-12
     names = [name for name in areal_parameters.functional_parameters_of_curve(curve) if name in wanted]
-    derivative = {name: np.zeros(_CLASSES) for name in names}
+    derivative = np.zeros((_CLASSES, len(names)))
     for k in np.flatnonzero(counts):
         shift = step * ((ratio >= k * width) & (ratio < (k + 1) * width))
         up = areal_parameters.functional_parameters_of_curve(areal_parameters.MaterialRatioCurve(ratio, height + shift))
         down = areal_parameters.functional_parameters_of_curve(areal_parameters.MaterialRatioCurve(ratio, height - shift))
-        for name in names:
-            derivative[name][k] = (up[name] - down[name]) / (2 * step) / counts[k]
-    for name in names:
-        weights = np.zeros(z.shape, dtype=np.float32)
-        weights[known] = derivative[name][classes]
-        yield name, weights
+        derivative[k] = [(up[name] - down[name]) / (2 * step) / counts[k] for name in names]
+    sums = _kernels.class_block_sums(z, sigma, mean, edges, derivative, block)
+    for index, name in enumerate(names):
+        yield name, sums[index]

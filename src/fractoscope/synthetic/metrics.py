@@ -31,6 +31,6 @@ def height_errors(z_um: np.ndarray, truth_um: np.ndarray, *, border_px: int = 16
     error = z_um[valid] - truth_um[valid]
     error = error - error.mean()
     span = np.ptp(truth_um[inner])
-    sa_measured = roughness.sa_um(np.where(valid, z_um, np.nan))
-    sa_true = roughness.sa_um(np.where(valid, truth_um, np.nan))
+    sa_measured = roughness.height_parameters_after_plane(np.where(valid, z_um, np.nan))["Sa"]
+    sa_true = roughness.height_parameters_after_plane(np.where(valid, truth_um, np.nan))["Sa"]
     return HeightErrors(float(valid[inner].mean()), float(np.sqrt(np.mean(error**2)) / span), float(sa_measured / sa_true - 1.0))

@@ -22,7 +22,7 @@ from fractoscope.services import budget
 from fractoscope.services.jobs import Job, JobRunner
 from fractoscope.services.matching.peers import PeerStripMatcher, StripPeers
 from fractoscope.stereo.matching import DEFAULT_STRIP_PIXELS, match_strip
-from fractoscope.stereo.pipeline import DEFAULT_TILT_AXIS_DEG, HeightMapResult, compute_series_height_map, validate_options
+from fractoscope.stereo.pipeline import DEFAULT_TILT_AXIS_DEG, HeightMapResult, compute_series_height_map, validate_options, validate_tilt_axis_deg
 from fractoscope.v1 import common_pb2, matching_pb2, matching_pb2_grpc
 
 _log = logging.getLogger("fractoscope.matching")
@@ -70,6 +70,7 @@ class MatchingServicer(matching_pb2_grpc.MatchingServiceServicer):
         shape = image_shape(request.images[0].image.content, field="images[0].image")
         options = rpc_matching.options_from_message(request.parameters)
         validate_options(options, image_cols=shape[1])
+        validate_tilt_axis_deg(_tilt_axis_deg(request))
         estimate = budget.height_map_bytes(
             shape, len(request.images), tilt_axis_deg=_tilt_axis_deg(request), window_px=options.window_px,
             max_disparity_px=options.max_disparity_px, strip_pixels=self.strip_pixels,

@@ -6,9 +6,14 @@
   (the gzip one has its own) and 304 when If-None-Match holds it (weak comparison, RFC 9110).
 - `/viewer/` the web viewer (this package's data folder `web/`) and `/vendor/` the three.js and
   3DTilesRendererJS modules it imports (installed by `make install` into node_modules).
-- `/api/specimens[/{id}[/profile|/roughness|/heights]]` JSON for the viewer: summaries, profiles
-  (`?from=X,Y&to=X,Y[&magnification=M]`), roughness (`?roi=ID` or `?region=X0,Y0,X1,Y1`) and the
-  statistics of the heights in a region (`?region=X0,Y0,X1,Y1`), µm.
+- `/api/specimens[/{id}[/profile|/roughness]]` JSON for the viewer: summaries, profiles
+  (`?from=X,Y&to=X,Y[&magnification=M]`) and roughness (`?roi=ID` or `?region=X0,Y0,X1,Y1`), µm.
+  Both take the surface texture chain's settings: `form` (none, plane, poly2 ... poly6, sphere,
+  cylinder), `s_filter_um`, `l_filter_um` (0: no filter), and for roughness `direction_deg`,
+  `levelling_region=X0,Y0,X1,Y1`, `window_px`, `min_windows`, `robust_form`; roughness answers as
+  `rpc.wire.response_to_roughness` (the same JSON as `fracto roughness --json`). A bad parameter
+  gets 400 with {"error", "field"}.
+- `/api/specimens/{id}/heights?region=X0,Y0,X1,Y1`: the statistics of the heights in a region, µm.
 """
 
 from __future__ import annotations
@@ -28,6 +33,8 @@ from aiohttp import web
 from google.protobuf import json_format
 
 from fractoscope.errors import FractoscopeError, InvalidInputError, NotFoundError
+from fractoscope.rpc import tiles as rpc_tiles
+from fractoscope.rpc import wire
 from fractoscope.rpc.tiles import specimen_message
 from fractoscope.services.auth import TokenTable
 from fractoscope.services.caches import BoundedCache
@@ -133,24 +140,30 @@ class _TileApp:
                 return HTTPStatus.OK, [_summary(self.store.load(i)) for i in self.store.ids()]
             if query is None:
                 return HTTPStatus.OK, _summary(self.store.load(specimen_id))
+            chain = _chain(arguments)
             if query == "profile":
                 found = specimen_queries.profile_along(
                     self.store.load(specimen_id), [_numbers(arguments, "from", 2), _numbers(arguments, "to", 2)],
-                    magnification=_numbers(arguments, "magnification", 1, default=[0.0])[0],
+                    magnification=_numbers(arguments, "magnification", 1, default=[0.0])[0], chain=chain,
                 )
                 names = found.sources + [""]
+                response = rpc_tiles.profile_response(found)
                 return HTTPStatus.OK, {
                     "distance_um": found.distance_um.tolist(),
-                    "z_um": [None if math.isnan(z) else z for z in found.z_um.tolist()],
+                    "z_um": _nullable(found.z_um),
                     "source": [names[i] for i in found.source_index.tolist()],
-                    "parameters": found.parameters,
-                }
+                    "parameters": wire.message_to_profile_parameters(response.parameters) if found.parameters else None,
+                    "roughness_um": _nullable(found.r_um) if found.r_um is not None else None,
+                    "chain": {**wire.chain_to_dict(response.chain), "cutoffs_from_iso_table": response.cutoffs_from_iso_table,
+                              "spacing_within_iso": response.spacing_within_iso} if found.roughness else None,
+                }  # fmt: skip
             if query == "heights":
                 return HTTPStatus.OK, specimen_queries.height_statistics(self.store.load(specimen_id), _numbers(arguments, "region", 4))
             region = _numbers(arguments, "region", 4) if "region" in arguments else None
             roi = arguments.get("roi", [None])[0]
             specimen = self.store.load(specimen_id)
-            return HTTPStatus.OK, specimen_queries.roughness_of(specimen, roi=roi or (None if region else specimen.rois[0].id), region_um=region)
+            analysis = specimen_queries.roughness_of(specimen, roi=roi or (None if region else specimen.rois[0].id), region_um=region, chain=chain)
+            return HTTPStatus.OK, wire.response_to_roughness(rpc_tiles.roughness_response(analysis, chain))
         except NotFoundError as error:
             return HTTPStatus.NOT_FOUND, {"error": str(error)}
         except FractoscopeError as error:
@@ -212,6 +225,37 @@ def _plain(status: HTTPStatus, text: str, **headers: str) -> web.Response:
 
 def _summary(specimen) -> dict:
     return json_format.MessageToDict(specimen_message(specimen), preserving_proto_field_name=True, always_print_fields_with_no_presence=True)
+
+
+def _nullable(values) -> list[float | None]:
+    return [None if math.isnan(v) else v for v in values.tolist()]
+
+
+def _chain(arguments: dict) -> specimen_queries.ChainRequest:
+    """The chain's query parameters (form, s_filter_um, l_filter_um, direction_deg,
+    levelling_region=X0,Y0,X1,Y1, window_px, min_windows, robust_form=true|false); absent ones are
+    left at the defaults."""
+
+    def number(name: str) -> float | None:
+        return _numbers(arguments, name, 1)[0] if name in arguments else None
+
+    form = arguments["form"][0] if "form" in arguments else None
+    if form is not None and form not in wire.FORMS:
+        raise InvalidInputError("form", f"must be one of {', '.join(wire.FORMS)}, not {form!r}")
+    return specimen_queries.ChainRequest(
+        form=form, s_filter_um=number("s_filter_um"), l_filter_um=number("l_filter_um"), direction_deg=number("direction_deg"),
+        levelling_region_um=tuple(_numbers(arguments, "levelling_region", 4)) if "levelling_region" in arguments else None,
+        window_px=number("window_px"), min_windows=number("min_windows"), robust_form=_flag(arguments, "robust_form"),
+    )  # fmt: skip
+
+
+def _flag(arguments: dict, name: str) -> bool | None:
+    if name not in arguments:
+        return None
+    value = arguments[name][0].lower()
+    if value not in ("true", "false", "1", "0"):
+        raise InvalidInputError(name, f"must be true or false, got {value!r}")
+    return value in ("true", "1")
 
 
 def _numbers(arguments: dict, name: str, count: int, default: list[float] | None = None) -> list[float]:

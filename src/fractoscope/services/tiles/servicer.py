@@ -201,25 +201,24 @@ class TileServicer(tiles_pb2_grpc.TileServiceServicer):
     @abort_on_error
     def GetProfile(self, request, context):
         specimen = self.store.load(request.specimen_id)
-        found = specimen_queries.profile_along(
-            specimen, [[p.x_um, p.y_um] for p in request.points], spacing_um=request.spacing_um, magnification=request.magnification,
-        )
-        response = tiles_pb2.GetProfileResponse(
-            distance_um=found.distance_um, z_um=found.z_um, source_index=found.source_index, sources=found.sources
-        )
-        if found.parameters:
-            response.parameters.CopyFrom(wire.profile_parameters_message(found.parameters))
-        return response
+        with rpc_tiles.chain_fields():
+            found = specimen_queries.profile_along(
+                specimen, [[p.x_um, p.y_um] for p in request.points], spacing_um=request.spacing_um, magnification=request.magnification,
+                chain=rpc_tiles.chain_request(request.chain),
+            )
+        return rpc_tiles.profile_response(found)
 
     @abort_on_error
     def GetRoughness(self, request, context):
         specimen = self.store.load(request.specimen_id)
         area = request.WhichOneof("area")
-        values = specimen_queries.roughness_of(
-            specimen, roi=request.roi if area == "roi" else None,
-            region_um=rpc_tiles.region(request.region, "region") if area == "region" else None,
-        )
-        return wire.roughness_response(values)
+        chain = rpc_tiles.chain_request(request.chain)
+        with rpc_tiles.chain_fields():
+            analysis = specimen_queries.roughness_of(
+                specimen, roi=request.roi if area == "roi" else None,
+                region_um=rpc_tiles.region(request.region, "region") if area == "region" else None, chain=chain,
+            )
+        return rpc_tiles.roughness_response(analysis, chain)
 
     def _stored(self, specimen_id: str, request_id: str) -> Specimen | None:
         """The stored specimen that a request with `request_id` built, if any."""

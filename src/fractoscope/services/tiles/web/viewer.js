@@ -296,12 +296,31 @@ async function measureRoughness() {
   const halfWidth = halfHeight * camera.aspect;
   const [cx, cy] = [controls.target.x / METRES_PER_UM, -controls.target.y / METRES_PER_UM];
   const [hx, hy] = [halfWidth / METRES_PER_UM, halfHeight / METRES_PER_UM];
-  const response = await api(`/api/specimens/${specimen.id}/roughness?region=${cx - hx},${cy - hy},${cx + hx},${cy + hy}`);
+  const form = $("roughness-form").value;
+  const response = await api(`/api/specimens/${specimen.id}/roughness?region=${cx - hx},${cy - hy},${cx + hx},${cy + hy}&form=${form}`);
   const result = await response.json();
   window.viewer.roughness = result;
-  $("roughness-stats").textContent = response.ok
-    ? `Sa ${result.Sa.toFixed(3)} µm, Sq ${result.Sq.toFixed(3)} µm, Sdr ${result.Sdr.toFixed(2)} %, Hurst ${result.hurst_exponent.toFixed(2)}`
-    : result.error;
+  $("roughness-stats").textContent = response.ok ? describeRoughness(result) : result.error;
+}
+
+function describeRoughness(result) {
+  // Each value with its standard uncertainty where known, then the chain that produced them.
+  const withUncertainty = (name, digits, unit) => {
+    const u = result.uncertainty[name]?.u_total;
+    return `${name} ${result[name].toFixed(digits)}${u == null ? "" : ` ± ${u.toPrecision(2)}`} ${unit}`;
+  };
+  const chain = result.chain;
+  const filters = [["λs", chain.s_filter_um], ["λc", chain.l_filter_um]].filter(([, v]) => v).map(([n, v]) => `${n} ${v} µm`);
+  const hurst = result.hurst.find((fit) => fit.method === "hhc" && fit.side === "along");
+  const lines = [
+    `${withUncertainty("Sa", 3, "µm")}, ${withUncertainty("Sq", 3, "µm")}, ${withUncertainty("Sdr", 2, "%")}`,
+    hurst
+      ? `Hurst ${hurst.hurst.toFixed(2)} ± ${hurst.hurst_stderr.toFixed(2)} (h(r), ${hurst.fit_min_um.toPrecision(2)}–${hurst.fit_max_um.toPrecision(2)} µm)`
+      : result.hurst_note,
+    `chain: form ${chain.form}, ${filters.length ? filters.join(", ") : "no filters"}, ${result.pixel_size_um.toPrecision(3)} µm/px`,
+  ];
+  if (result.noise_bias.Sq != null) lines.push(`noise adds ${result.noise_bias.Sq.toPrecision(2)} µm to Sq`);
+  return lines.join("\n");
 }
 
 // Runs `work` with `button` disabled and a spinner with the seconds it has taken so far.

@@ -1,0 +1,615 @@
+"""Compiled inner loops of the surface analysis (numba): one pass over a height map where numpy
+would make several map-sized temporaries, which on a 4096² map cost more than the arithmetic.
+Each kernel computes exactly what the numpy definition in its calling module states; rows are
+split across threads (prange) and reduced in float64."""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+_JIT = {"cache": True, "nogil": True, "fastmath": False}
+
+
+@numba.njit(parallel=True, **_JIT)
+def mean_height(z):
+    """(count of finite heights, their mean)."""
+    rows, cols = z.shape
+    sums = np.zeros(rows)
+    counts = np.zeros(rows)
+    for r in numba.prange(rows):
+        total, count = 0.0, 0.0
+        for c in range(cols):
+            v = z[r, c]
+            if np.isfinite(v):
+                total += v
+                count += 1.0
+        sums[r], counts[r] = total, count
+    n = counts.sum()
+    return n, sums.sum() / n
+
+
+@numba.njit(parallel=True, **_JIT)
+def central_moments(z, mean):
+    """Sums over the finite heights h = z - mean of |h|, h², h³, h⁴ and sign h, and max h, min h."""
+    rows, cols = z.shape
+    partial = np.zeros((rows, 5))
+    highest = np.full(rows, -np.inf)
+    lowest = np.full(rows, np.inf)
+    for r in numba.prange(rows):
+        a1 = a2 = a3 = a4 = signs = 0.0
+        hi, lo = -np.inf, np.inf
+        for c in range(cols):
+            v = z[r, c]
+            if np.isfinite(v):
+                h = v - mean
+                h2 = h * h
+                a1 += abs(h)
+                a2 += h2
+                a3 += h2 * h
+                a4 += h2 * h2
+                signs += 1.0 if h > 0 else (-1.0 if h < 0 else 0.0)
+                hi = max(hi, h)
+                lo = min(lo, h)
+        partial[r, 0], partial[r, 1], partial[r, 2], partial[r, 3], partial[r, 4] = a1, a2, a3, a4, signs
+        highest[r], lowest[r] = hi, lo
+    sums = partial.sum(axis=0)
+    return sums[0], sums[1], sums[2], sums[3], sums[4], highest.max(), lowest.min()
+
+
+@numba.njit(parallel=True, **_JIT)
+def slope_sums(z, inverse_pixel):
+    """For Sdq and Sdr: sums and counts of the squared finite-difference slopes along x (each
+    row's neighbours) and y, and the sum and count over complete cells of the four corner terms
+    sqrt(gx² + gy² + 1) (top and bottom x edge with left and right y edge)."""
+    rows, cols = z.shape
+    partial = np.zeros((rows, 6))
+    for r in numba.prange(rows):
+        sx = nx = sy = ny = cell = ncell = 0.0
+        for c in range(cols):
+            v = z[r, c]
+            if c + 1 < cols:
+                gx = (z[r, c + 1] - v) * inverse_pixel
+                if np.isfinite(gx):
+                    sx += gx * gx
+                    nx += 1.0
+            if r + 1 < rows:
+                gy = (z[r + 1, c] - v) * inverse_pixel
+                if np.isfinite(gy):
+                    sy += gy * gy
+                    ny += 1.0
+                if c + 1 < cols:
+                    top = (z[r, c + 1] - v) * inverse_pixel
+                    bottom = (z[r + 1, c + 1] - z[r + 1, c]) * inverse_pixel
+                    left = (z[r + 1, c] - v) * inverse_pixel
+                    right = (z[r + 1, c + 1] - z[r, c + 1]) * inverse_pixel
+                    corners = (
+                        np.sqrt(top * top + left * left + 1.0) + np.sqrt(top * top + right * right + 1.0)
+                        + np.sqrt(bottom * bottom + left * left + 1.0) + np.sqrt(bottom * bottom + right * right + 1.0)
+                    )  # fmt: skip
+                    if np.isfinite(corners):
+                        cell += corners
+                        ncell += 1.0
+        partial[r, 0], partial[r, 1], partial[r, 2] = sx, nx, sy
+        partial[r, 3], partial[r, 4], partial[r, 5] = ny, cell, ncell
+    sums = partial.sum(axis=0)
+    return sums[0], sums[1], sums[2], sums[3], sums[4], sums[5]
+
+
+# Uncertainty: block sums of sigma times a parameter's derivative ##################################
+
+
+@numba.njit(parallel=True, **_JIT)
+def height_block_sums(z, sigma, mean, block):
+    """Block sums (block x block pixels; the last blocks partial) of sigma·{1, h, h², h³, sign h}
+    over the finite heights, h = z - mean: (5, block rows, block cols)."""
+    rows, cols = z.shape
+    out_rows, out_cols = (rows + block - 1) // block, (cols + block - 1) // block
+    sums = np.zeros((5, out_rows, out_cols))
+    for br in numba.prange(out_rows):
+        for r in range(br * block, min(rows, (br + 1) * block)):
+            for c in range(cols):
+                v = z[r, c]
+                if np.isfinite(v):
+                    s = sigma[r, c]
+                    h = v - mean
+                    bc = c // block
+                    sums[0, br, bc] += s
+                    sums[1, br, bc] += s * h
+                    sums[2, br, bc] += s * h * h
+                    sums[3, br, bc] += s * h * h * h
+                    sums[4, br, bc] += s * (1.0 if h > 0 else (-1.0 if h < 0 else 0.0))
+    return sums
+
+
+@numba.njit(**_JIT)
+def _material_class(h, class_heights):
+    """The material-ratio class k of a height: class_heights (K + 1,) are the curve's heights at
+    the classes' edges, decreasing, and class k holds heights in (class_heights[k + 1],
+    class_heights[k]] (the last class also what lies lower)."""
+    classes = class_heights.size - 1
+    low, high = 0, classes
+    while low < high:
+        middle = (low + high) // 2
+        if class_heights[middle + 1] >= h:
+            low = middle + 1
+        else:
+            high = middle
+    return min(low, classes - 1)
+
+
+@numba.njit(**_JIT)
+def class_counts(z, mean, class_heights):
+    """How many finite heights (h = z - mean) fall in each material-ratio class."""
+    rows, cols = z.shape
+    counts = np.zeros(class_heights.size - 1)
+    for r in range(rows):
+        for c in range(cols):
+            v = z[r, c]
+            if np.isfinite(v):
+                counts[_material_class(v - mean, class_heights)] += 1.0
+    return counts
+
+
+@numba.njit(parallel=True, **_JIT)
+def class_block_sums(z, sigma, mean, class_heights, derivatives, block):
+    """Block sums of sigma · derivatives[class, p] over the finite heights (h = z - mean), each in
+    its material-ratio class (`_material_class`). Returns (P, block rows, block cols)."""
+    rows, cols = z.shape
+    parameters = derivatives.shape[1]
+    out_rows, out_cols = (rows + block - 1) // block, (cols + block - 1) // block
+    sums = np.zeros((parameters, out_rows, out_cols))
+    for br in numba.prange(out_rows):
+        for r in range(br * block, min(rows, (br + 1) * block)):
+            for c in range(cols):
+                v = z[r, c]
+                if np.isfinite(v):
+                    k = _material_class(v - mean, class_heights)
+                    s = sigma[r, c]
+                    bc = c // block
+                    for p in range(parameters):
+                        sums[p, br, bc] += s * derivatives[k, p]
+    return sums
+
+
+@numba.njit(parallel=True, **_JIT)
+def slope_block_sums(z, sigma, inverse_pixel, sdq_x_scale, sdq_y_scale, sdr_scale, block):
+    """Block sums of sigma · dSdq/dz and sigma · dSdr/dz, and d Sdr / d ln(s) for heights scaled by
+    s. Sdq = sqrt(sum gx² / Nx + sum gy² / Ny), so dSdq/dgx = gx · sdq_x_scale (= 1 / (Nx Sdq));
+    Sdr = sdr_scale · (sum over complete cells of the corner terms T = sqrt(gx² + gy² + 1)) (less
+    100), sdr_scale = 100 / (4 N_cells), dT/dgx = gx / T, dT/d ln(s) = (gx² + gy²) / T. A slope
+    (z_end - z_start) / pixel passes dP/d(slope) / pixel to the block of its end and minus that to
+    the block of its start, each times the pixel's sigma. Rows of blocks go in two interleaved
+    passes, so that no two threads add to the same block (a cell reaches into the next row)."""
+    rows, cols = z.shape
+    out_rows, out_cols = (rows + block - 1) // block, (cols + block - 1) // block
+    dq = np.zeros((out_rows, out_cols))
+    dr = np.zeros((out_rows, out_cols))
+    scale_terms = np.zeros(rows)
+    for parity in range(2):
+        for br in numba.prange(out_rows):
+            if br % 2 != parity:
+                continue
+            for r in range(br * block, min(rows, (br + 1) * block)):
+                below = (r + 1) // block
+                total = 0.0
+                for c in range(cols):
+                    v = z[r, c]
+                    here, right_block = c // block, (c + 1) // block
+                    if c + 1 < cols:
+                        gx = (z[r, c + 1] - v) * inverse_pixel
+                        if np.isfinite(gx):
+                            d = gx * sdq_x_scale * inverse_pixel
+                            dq[br, right_block] += d * sigma[r, c + 1]
+                            dq[br, here] -= d * sigma[r, c]
+                    if r + 1 >= rows:
+                        continue
+                    gy = (z[r + 1, c] - v) * inverse_pixel
+                    if np.isfinite(gy):
+                        d = gy * sdq_y_scale * inverse_pixel
+                        dq[below, here] += d * sigma[r + 1, c]
+                        dq[br, here] -= d * sigma[r, c]
+                    if c + 1 >= cols:
+                        continue
+                    top = (z[r, c + 1] - v) * inverse_pixel
+                    bottom = (z[r + 1, c + 1] - z[r + 1, c]) * inverse_pixel
+                    left = gy
+                    right = (z[r + 1, c + 1] - z[r, c + 1]) * inverse_pixel
+                    if not (np.isfinite(top) and np.isfinite(bottom) and np.isfinite(left) and np.isfinite(right)):
+                        continue
+                    t_tl = 1.0 / np.sqrt(top * top + left * left + 1.0)
+                    t_tr = 1.0 / np.sqrt(top * top + right * right + 1.0)
+                    t_bl = 1.0 / np.sqrt(bottom * bottom + left * left + 1.0)
+                    t_br = 1.0 / np.sqrt(bottom * bottom + right * right + 1.0)
+                    scaled = sdr_scale * inverse_pixel
+                    d = scaled * top * (t_tl + t_tr)  # x edge (r, c) -> (r, c + 1)
+                    dr[br, right_block] += d * sigma[r, c + 1]
+                    dr[br, here] -= d * sigma[r, c]
+                    d = scaled * bottom * (t_bl + t_br)  # x edge (r + 1, c) -> (r + 1, c + 1)
+                    dr[below, right_block] += d * sigma[r + 1, c + 1]
+                    dr[below, here] -= d * sigma[r + 1, c]
+                    d = scaled * left * (t_tl + t_bl)  # y edge (r, c) -> (r + 1, c)
+                    dr[below, here] += d * sigma[r + 1, c]
+                    dr[br, here] -= d * sigma[r, c]
+                    d = scaled * right * (t_tr + t_br)  # y edge (r, c + 1) -> (r + 1, c + 1)
+                    dr[below, right_block] += d * sigma[r + 1, c + 1]
+                    dr[br, right_block] -= d * sigma[r, c + 1]
+                    total += (
+                        (top * top + left * left) * t_tl + (top * top + right * right) * t_tr
+                        + (bottom * bottom + left * left) * t_bl + (bottom * bottom + right * right) * t_br
+                    )  # fmt: skip
+                scale_terms[r] = total
+    return dq, dr, sdr_scale * scale_terms.sum()
+
+
+# Feature parameters: steepest-ascent watershed ######################################################
+
+
+@numba.njit(parallel=True, **_JIT)
+def _ascent_targets(heights):
+    """Each pixel's (flat) steepest-ascent neighbour: the highest of its eight, the first in
+    row-major order on ties; itself where none is higher."""
+    rows, cols = heights.shape
+    target = np.empty(rows * cols, dtype=np.int64)
+    for r in numba.prange(rows):
+        for c in range(cols):
+            best = -np.inf
+            chosen = r * cols + c
+            for dr in range(-1, 2):
+                for dc in range(-1, 2):
+                    if dr == 0 and dc == 0:
+                        continue
+                    rr, cc = r + dr, c + dc
+                    if 0 <= rr < rows and 0 <= cc < cols and heights[rr, cc] > best:
+                        best = heights[rr, cc]
+                        if best > heights[r, c]:
+                            chosen = rr * cols + cc
+            target[r * cols + c] = chosen if best > heights[r, c] else r * cols + c
+    return target
+
+
+@numba.njit(**_JIT)
+def ascent_labels(heights):
+    """Label each pixel 1..n with the local maximum (plateau: an 8-connected set of pixels none of
+    whose neighbours is higher) that steepest ascent reaches from it; the steepest neighbour is the
+    highest, the first in row-major neighbour order on ties. Returns (labels, flat index of the
+    last pixel, row-major, of each label's maximum; index 0 unused)."""
+    rows, cols = heights.shape
+    n = rows * cols
+    target = _ascent_targets(heights)
+    labels = np.zeros(n, dtype=np.int64)
+    # Plateaus (pixels that do not climb) are labelled by an 8-connected flood fill.
+    stack = np.empty(n, dtype=np.int64)
+    peaks = [0]
+    count = 0
+    for start in range(n):
+        if target[start] != start or labels[start] != 0:
+            continue
+        count += 1
+        peaks.append(start)
+        labels[start] = count
+        top = 0
+        stack[0] = start
+        while top >= 0:
+            p = stack[top]
+            top -= 1
+            peaks[count] = max(peaks[count], p)  # the plateau's last pixel in row-major order
+            r, c = p // cols, p % cols
+            for dr in range(-1, 2):
+                for dc in range(-1, 2):
+                    rr, cc = r + dr, c + dc
+                    if 0 <= rr < rows and 0 <= cc < cols:
+                        q = rr * cols + cc
+                        if labels[q] == 0 and target[q] == q:
+                            labels[q] = count
+                            top += 1
+                            stack[top] = q
+    # Every other pixel takes the label its ascent ends at (paths compressed as they are walked).
+    for start in range(n):
+        if labels[start] != 0:
+            continue
+        length = 0
+        p = start
+        while labels[p] == 0:
+            stack[length] = p
+            length += 1
+            p = target[p]
+        label = labels[p]
+        for i in range(length):
+            labels[stack[i]] = label
+    return labels.reshape(rows, cols), np.array(peaks, dtype=np.int64)
+
+
+@numba.njit(**_JIT)
+def hill_boundaries(labels, heights):
+    """Adjacent hill pairs across every 8-connected boundary (right, down, down-right, down-left
+    neighbours): (low label, high label, pass height = the lower of the two heights), runs of the
+    same pair along a row folded to their largest pass."""
+    rows, cols = labels.shape
+    capacity = 1024
+    low = np.empty(capacity, dtype=np.int64)
+    high = np.empty(capacity, dtype=np.int64)
+    value = np.empty(capacity)
+    size = 0
+    for r in range(rows):
+        for c in range(cols):
+            a = labels[r, c]
+            for k in range(4):
+                rr, cc = (r, c + 1) if k == 0 else ((r + 1, c) if k == 1 else ((r + 1, c + 1) if k == 2 else (r + 1, c - 1)))
+                if rr >= rows or cc < 0 or cc >= cols:
+                    continue
+                b = labels[rr, cc]
+                if a == b:
+                    continue
+                lo_label, hi_label = (a, b) if a < b else (b, a)
+                height = min(heights[r, c], heights[rr, cc])
+                if size > 0 and low[size - 1] == lo_label and high[size - 1] == hi_label:
+                    value[size - 1] = max(value[size - 1], height)
+                    continue
+                if size == capacity:
+                    capacity *= 2
+                    low = np.resize(low, capacity)
+                    high = np.resize(high, capacity)
+                    value = np.resize(value, capacity)
+                low[size], high[size], value[size] = lo_label, hi_label, height
+                size += 1
+    return low[:size].copy(), high[:size].copy(), value[:size].copy()
+
+
+# Filters ###########################################################################################
+
+
+@numba.njit(parallel=True, **_JIT)
+def normalized_separable_filter(z, kernel_rows, kernel_cols):
+    """Normalized convolution of a map with a small separable kernel (odd lengths, centred):
+    (K * (w z)) / (K * w), w = 1 on finite heights and 0 elsewhere and outside; NaN where z is."""
+    rows, cols = z.shape
+    half_r, half_c = kernel_rows.size // 2, kernel_cols.size // 2
+    numerator = np.empty((rows, cols))
+    weight = np.empty((rows, cols))
+    for r in numba.prange(rows):
+        for c in range(cols):
+            total = 0.0
+            norm = 0.0
+            for t in range(kernel_cols.size):
+                cc = c + t - half_c
+                if 0 <= cc < cols:
+                    v = z[r, cc]
+                    if np.isfinite(v):
+                        total += kernel_cols[t] * v
+                        norm += kernel_cols[t]
+            numerator[r, c] = total
+            weight[r, c] = norm
+    out = np.empty((rows, cols))
+    for r in numba.prange(rows):
+        for c in range(cols):
+            if not np.isfinite(z[r, c]):
+                out[r, c] = np.nan
+                continue
+            total = 0.0
+            norm = 0.0
+            for t in range(kernel_rows.size):
+                rr = r + t - half_r
+                if 0 <= rr < rows:
+                    total += kernel_rows[t] * numerator[rr, c]
+                    norm += kernel_rows[t] * weight[rr, c]
+            out[r, c] = total / norm
+    return out
+
+
+@numba.njit(parallel=True, **_JIT)
+def block_sums_and_counts(z, block, pad):
+    """Sums of the finite heights and their counts over block x block pixels, on a grid of blocks
+    that starts `pad` blocks before the map and ends `pad` blocks after it (those empty)."""
+    rows, cols = z.shape
+    out_rows = (rows + block - 1) // block + 2 * pad
+    out_cols = (cols + block - 1) // block + 2 * pad
+    sums = np.zeros((out_rows, out_cols))
+    counts = np.zeros((out_rows, out_cols))
+    for br in numba.prange(out_rows - 2 * pad):
+        for r in range(br * block, min(rows, (br + 1) * block)):
+            for c in range(cols):
+                v = z[r, c]
+                if np.isfinite(v):
+                    sums[br + pad, c // block + pad] += v
+                    counts[br + pad, c // block + pad] += 1.0
+    return sums, counts
+
+
+@numba.njit(**_JIT)
+def _cubic_taps(start, step, count):
+    """For positions start + i * step (i < count): the first of the four samples around each, and
+    Keys' cubic convolution weights (a = -0.5) of the four."""
+    first = np.empty(count, dtype=np.int64)
+    weights = np.empty((count, 4))
+    a = -0.5
+    for i in range(count):
+        x = start + i * step
+        base = int(np.floor(x))
+        t = x - base
+        u = 1.0 - t
+        weights[i, 0] = ((a * (t + 1) - 5 * a) * (t + 1) + 8 * a) * (t + 1) - 4 * a
+        weights[i, 1] = ((a + 2) * t - (a + 3)) * t * t + 1
+        weights[i, 2] = ((a + 2) * u - (a + 3)) * u * u + 1
+        weights[i, 3] = 1.0 - weights[i, 0] - weights[i, 1] - weights[i, 2]
+        first[i] = base - 1
+    return first, weights
+
+
+@numba.njit(parallel=True, **_JIT)
+def upsample_cubic(coarse, start, step, rows, cols, known):
+    """Separable cubic convolution of a coarse grid at the fine pixels: fine pixel i sits at coarse
+    coordinate start + i * step along each axis (every fine pixel at least one coarse sample from
+    the coarse grid's edges). NaN where `known` is false."""
+    coarse_rows = coarse.shape[0]
+    first_c, weights_c = _cubic_taps(start, step, cols)
+    first_r, weights_r = _cubic_taps(start, step, rows)
+    along_cols = np.zeros((coarse_rows, cols))
+    for c in numba.prange(cols):
+        for t in range(4):
+            along_cols[:, c] += weights_c[c, t] * coarse[:, first_c[c] + t]
+    out = np.full((rows, cols), np.nan)
+    for r in numba.prange(rows):
+        blended = np.zeros(cols)
+        for t in range(4):
+            blended += weights_r[r, t] * along_cols[first_r[r] + t]
+        for c in range(cols):
+            if known[r, c]:
+                out[r, c] = blended[c]
+    return out
+
+
+# Scaling ###########################################################################################
+
+
+@numba.njit(parallel=True, **_JIT)
+def bilinear_profiles(z, origin, across, along, offsets, positions):
+    """Bilinear samples of z at origin + across · offset + along · position (row, col vectors) for
+    each offset (a profile) and position (a sample): (offsets, positions); NaN off the map or where
+    a corner is unknown (scipy.ndimage.map_coordinates, order 1, cval NaN)."""
+    rows, cols = z.shape
+    out = np.empty((offsets.size, positions.size))
+    for i in numba.prange(offsets.size):
+        base_r = origin[0] + across[0] * offsets[i]
+        base_c = origin[1] + across[1] * offsets[i]
+        for j in range(positions.size):
+            r = base_r + along[0] * positions[j]
+            c = base_c + along[1] * positions[j]
+            r0, c0 = int(np.floor(r)), int(np.floor(c))
+            if r < 0 or c < 0 or r > rows - 1 or c > cols - 1:
+                out[i, j] = np.nan
+                continue
+            r1, c1 = min(r0 + 1, rows - 1), min(c0 + 1, cols - 1)
+            fr, fc = r - r0, c - c0
+            out[i, j] = (
+                (1 - fr) * ((1 - fc) * z[r0, c0] + fc * z[r0, c1]) + fr * ((1 - fc) * z[r1, c0] + fc * z[r1, c1])
+            )
+    return out
+
+
+@numba.njit(parallel=True, **_JIT)
+def difference_sums(profiles, lags, order, band_starts, segments):
+    """Sums and counts of the squared order-th differences of the profiles at each lag, per block:
+    bands of profiles (starting at band_starts) times `segments` near-equal stretches along them
+    (a difference counted in the stretch where it starts). Returns (bands, segments, lags) twice."""
+    count, length = profiles.shape
+    bands = band_starts.size
+    sums = np.zeros((bands, segments, lags.size))
+    counts = np.zeros((bands, segments, lags.size))
+    band_of = np.empty(count, dtype=np.int64)
+    for b in range(bands):
+        end = band_starts[b + 1] if b + 1 < bands else count
+        band_of[band_starts[b] : end] = b
+    for j in numba.prange(lags.size):
+        lag = lags[j]
+        span = order * lag
+        starts = length - span
+        for p in range(count):
+            b = band_of[p]
+            for i in range(starts):
+                if order == 1:
+                    d = profiles[p, i + lag] - profiles[p, i]
+                else:
+                    d = profiles[p, i + span] - 2.0 * profiles[p, i + lag] + profiles[p, i]
+                if np.isfinite(d):
+                    s = _segment(i, starts, segments)
+                    sums[b, s, j] += d * d
+                    counts[b, s, j] += 1.0
+    return sums, counts
+
+
+@numba.njit(**_JIT)
+def _segment(i, length, parts):
+    """Which of np.array_split(range(length), parts)'s pieces index i falls in."""
+    size, extra = length // parts, length % parts
+    # The first `extra` pieces hold size + 1 items.
+    boundary = extra * (size + 1)
+    if i < boundary:
+        return i // (size + 1)
+    return extra + (i - boundary) // size
+
+
+@numba.njit(**_JIT)
+def windowed_difference(z, axis, hann_rows, hann_cols):
+    """For the areal PSD: the differences along `axis` (1: columns, 0: rows) on the (rows - 1,
+    cols - 1) grid, less their mean over the finite ones, times the Hann windows; 0 where unknown.
+    float32."""
+    rows, cols = z.shape[0] - 1, z.shape[1] - 1
+    out = np.zeros((rows, cols), dtype=np.float32)
+    total, count = 0.0, 0.0
+    for r in range(rows):
+        for c in range(cols):
+            d = (z[r, c + 1] - z[r, c]) if axis == 1 else (z[r + 1, c] - z[r, c])
+            if np.isfinite(d):
+                total += d
+                count += 1.0
+    mean = total / count
+    for r in range(rows):
+        for c in range(cols):
+            d = (z[r, c + 1] - z[r, c]) if axis == 1 else (z[r + 1, c] - z[r, c])
+            if np.isfinite(d):
+                out[r, c] = (d - mean) * hann_rows[r] * hann_cols[c]
+    return out
+
+
+@numba.njit(**_JIT)
+def radial_bins(power, cols, scale, pixel_size_um, log_q_min, log_step, bins):
+    """Radial log-binning of the areal PSD of the gradient: power (rows, cols // 2 + 1), the rfft
+    half-plane of a (rows, cols) grid; each value divided by the differences' transfer
+    4 (sin² pi fx + sin² pi fy) and times `scale`, columns other than 0 and Nyquist counted twice
+    (they stand for two frequencies). Bin k holds q in [10^(log_q_min + k log_step), ...).
+    Returns (sums, counts)."""
+    rows, half = power.shape
+    sums = np.zeros(bins)
+    counts = np.zeros(bins)
+    for r in range(rows):
+        f_r = (r if r < (rows + 1) // 2 else r - rows) / rows
+        s_r = np.sin(np.pi * f_r) ** 2
+        for c in range(half):
+            if r == 0 and c == 0:
+                continue
+            f_c = c / cols
+            q = np.sqrt(f_r * f_r + f_c * f_c) / pixel_size_um
+            k = int(np.floor((np.log10(q) - log_q_min) / log_step))
+            if k < 0 or k >= bins:
+                continue
+            weight = 2.0 if 1 <= c < (cols + 1) // 2 else 1.0
+            transfer = 4.0 * (s_r + np.sin(np.pi * f_c) ** 2)
+            sums[k] += weight * power[r, c] * scale / transfer
+            counts[k] += weight
+    return sums, counts
+
+
+@numba.njit(parallel=True, **_JIT)
+def known_sigma(z, sigma):
+    """sigma where z is finite, 0 elsewhere (float64), whether it is finite and >= 0 wherever z is,
+    and its mean square there."""
+    rows, cols = z.shape
+    out = np.zeros((rows, cols))
+    bad = np.zeros(rows)
+    squares = np.zeros(rows)
+    counts = np.zeros(rows)
+    for r in numba.prange(rows):
+        for c in range(cols):
+            if np.isfinite(z[r, c]):
+                s = sigma[r, c]
+                if not (np.isfinite(s) and s >= 0):
+                    bad[r] = 1.0
+                    continue
+                out[r, c] = s
+                squares[r] += s * s
+                counts[r] += 1.0
+    return out, bad.sum() == 0, squares.sum() / max(counts.sum(), 1.0)
+
+
+@numba.njit(**_JIT)
+def height_histogram(z, mean, low, width, bins):
+    """Counts of the finite heights h = z - mean in `bins` classes of `width` from `low` (the top
+    class closed)."""
+    counts = np.zeros(bins, dtype=np.int64)
+    flat = z.ravel()
+    for i in range(flat.size):
+        v = flat[i]
+        if np.isfinite(v):
+            counts[min(int((v - mean - low) / width), bins - 1)] += 1
+    return counts
