@@ -58,11 +58,18 @@ def test_regions_zoom_kinds_roughness_and_profile_parameters_round_trip():
     assert [wire.zoom_name(wire.ZOOM_KINDS[name]) for name in ("optical", "digital")] == ["optical", "digital"]
     assert wire.zoom_name(tiles_pb2.ZOOM_KIND_UNSPECIFIED) == "unknown"
     values = {"Sa": 1.0, "Sq": 1.25, "Ssk": -0.5, "Sku": 3.0, "Sp": 4.0, "Sv": 3.5, "Sz": 7.5, "Sdq": 0.75, "Sdr": 12.5,
-              "hurst_exponent": 0.8, "fractal_dimension": 2.2}
-    response = wire.roughness_response(values)
+              "Str": 0.5, "hurst_exponent": 0.8, "fractal_dimension": 2.2}
+    uncertainty = {"u": {"Sa": 0.125, "Sq": 0.25, "Str": None}, "u_tilt": {"Sa": 0.1, "Str": 0.0}, "u_noise": {"Sa": 0.075, "Str": None},
+                   "noise_bias": {"Sa": 0.01}, "relative_tilt_error": 0.1}
+    units = {name: "µm" for name in ("Sa", "Sq", "Sp", "Sv", "Sz")} | {"Ssk": "1", "Sku": "1", "Sdq": "1", "Sdr": "%", "Str": "1", "Spc": "1/µm"}
+    response = wire.roughness_response({**values, "uncertainty": uncertainty}, units)
     assert response.sa_um == 1.0 and response.sdr_percent == 12.5 and response.hurst_exponent == 0.8
+    assert response.parameters["Sa"].unit == "µm" and response.parameters["Sa"].uncertainty == 0.125
+    assert not response.parameters["Str"].HasField("uncertainty") and "Spc" not in response.parameters
     back = wire.response_to_roughness(response)
     assert {key: back[key] for key in values} == values
+    assert back["uncertainty"]["u"]["Sa"] == 0.125 and back["uncertainty"]["u"]["Str"] is None and back["uncertainty"]["u"]["Sv"] is None
+    assert back["uncertainty"]["noise_bias"] == {"Sa": 0.01} and back["uncertainty"]["relative_tilt_error"] == 0.1
     parameters = {"Ra": 0.5, "Rq": 0.75, "Rz": 3.0, "Rsk": 0.25, "Rku": 2.5}
     message = wire.profile_parameters_message(parameters)
     assert message.ra_um == 0.5 and message.rku == 2.5

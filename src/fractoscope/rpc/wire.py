@@ -48,16 +48,27 @@ def raster_to_array(raster: common_pb2.Raster, *, field: str = "raster") -> np.n
 
 REPORT_FIELDS = [field.name for field in matching_pb2.MatchingReport.DESCRIPTOR.fields]
 _REPEATED_REPORT_FIELDS = {field.name for field in matching_pb2.MatchingReport.DESCRIPTOR.fields if field.is_repeated}
+_MESSAGE_REPORT_FIELDS = {field.name for field in matching_pb2.MatchingReport.DESCRIPTOR.fields if field.message_type is not None}
 
 
 def report_to_message(report: dict) -> matching_pb2.MatchingReport:
-    """The `report` dict of a height map (keys as in MatchingReport) to its message."""
+    """The `report` dict of a height map (keys as in MatchingReport; `parameters` a dict of
+    MatchingParameters fields) to its message."""
     return matching_pb2.MatchingReport(**{key: report[key] for key in REPORT_FIELDS if key in report})
 
 
 def message_to_report(message: matching_pb2.MatchingReport) -> dict:
-    """A MatchingReport message to a plain dict (lists for repeated fields)."""
-    return {key: list(getattr(message, key)) if key in _REPEATED_REPORT_FIELDS else getattr(message, key) for key in REPORT_FIELDS}
+    """A MatchingReport message to a plain dict (lists for repeated fields, dicts of every field for
+    messages), ready for JSON."""
+    report = {}
+    for key in REPORT_FIELDS:
+        value = getattr(message, key)
+        if key in _REPEATED_REPORT_FIELDS:
+            value = list(value)
+        elif key in _MESSAGE_REPORT_FIELDS:
+            value = {field.name: getattr(value, field.name) for field in value.DESCRIPTOR.fields}
+        report[key] = value
+    return report
 
 
 Region = tuple[float, float, float, float]
@@ -95,15 +106,44 @@ _ROUGHNESS_NAMES = {field: name for name, field in _ROUGHNESS_FIELDS.items()}
 _PROFILE_FIELDS = {"Ra": "ra_um", "Rq": "rq_um", "Rz": "rz_um", "Rsk": "rsk", "Rku": "rku"}
 
 
-def roughness_response(values: dict) -> tiles_pb2.GetRoughnessResponse:
-    """Areal parameters by ISO name (Sa ... Sdr) and fracture metrics to their response."""
-    return tiles_pb2.GetRoughnessResponse(**{_ROUGHNESS_FIELDS.get(key, key): value for key, value in values.items()})
+_UNCERTAINTY_PARTS = {"u": "uncertainty", "u_tilt": "uncertainty_tilt", "u_noise": "uncertainty_noise"}
+
+
+def roughness_response(values: dict, units: dict[str, str]) -> tiles_pb2.GetRoughnessResponse:
+    """Areal parameters by ISO name (the keys of `units`, which gives each one's unit), fracture
+    metrics and `uncertainty` (specimen.queries.areal_uncertainty's dict) to their response."""
+    values = dict(values)
+    found = values.pop("uncertainty", None) or {}
+    response = tiles_pb2.GetRoughnessResponse(**{_ROUGHNESS_FIELDS.get(key, key): value for key, value in values.items() if key not in units})
+    for name, unit in units.items():
+        if name not in values:
+            continue
+        parameter = response.parameters[name]
+        parameter.value, parameter.unit = values[name], unit
+        if name in _ROUGHNESS_FIELDS:
+            setattr(response, _ROUGHNESS_FIELDS[name], values[name])
+        for part, field in _UNCERTAINTY_PARTS.items():
+            value = (found.get(part) or {}).get(name)
+            if value is not None:
+                setattr(parameter, field, value)
+    response.relative_tilt_error = found.get("relative_tilt_error") or 0.0
+    response.noise_bias_um.update({k: v for k, v in (found.get("noise_bias") or {}).items() if v is not None})
+    return response
 
 
 def response_to_roughness(response: tiles_pb2.GetRoughnessResponse) -> dict:
-    """A GetRoughnessResponse to a dict keyed by ISO names (every field, set or not)."""
+    """A GetRoughnessResponse to the dict `roughness_response` takes: parameters and fracture
+    metrics by name, and `uncertainty` (None where absent)."""
     values = json_format.MessageToDict(response, preserving_proto_field_name=True, always_print_fields_with_no_presence=True)
-    return {_ROUGHNESS_NAMES.get(key, key): value for key, value in values.items()}
+    for key in ("parameters", "relative_tilt_error", "noise_bias_um"):
+        values.pop(key)
+    values = {_ROUGHNESS_NAMES.get(key, key): value for key, value in values.items()}
+    values |= {name: parameter.value for name, parameter in response.parameters.items()}
+    values["uncertainty"] = {
+        part: {name: (getattr(parameter, field) if parameter.HasField(field) else None) for name, parameter in response.parameters.items()}
+        for part, field in _UNCERTAINTY_PARTS.items()
+    } | {"noise_bias": dict(response.noise_bias_um), "relative_tilt_error": response.relative_tilt_error or None}
+    return values
 
 
 def profile_parameters_message(values: dict) -> tiles_pb2.ProfileParameters:

@@ -36,13 +36,14 @@ class RoiRequest:
 
 @dataclass(frozen=True)
 class MeasuredHeights:
-    """What matching returns for an ROI: heights (rows, cols) µm, grey texture, pixel size µm and the
-    matching report (see MatchingReport)."""
+    """What matching returns for an ROI: heights (rows, cols) µm, grey texture, pixel size µm, the
+    matching report (see MatchingReport) and the heights' one-sigma uncertainty (rows, cols) µm."""
 
     z_um: np.ndarray
     texture: np.ndarray
     pixel_size_um: float
     report: dict
+    sigma_um: np.ndarray | None = None
 
 
 Measure = Callable[[RoiRequest], MeasuredHeights]
@@ -116,7 +117,8 @@ def _place(ordered: list[RoiRequest], measured: dict[str, MeasuredHeights]) -> t
     entries: list[RoiEntry] = []
     for roi in ordered:
         heights = measured[roi.id]
-        z_um = filtering.filter_heights(heights.z_um).z_um.astype(np.float32)
+        filtered = filtering.filter_heights(heights.z_um, sigma_um=heights.sigma_um)
+        z_um, sigma_um = filtered.z_um.astype(np.float32), filtered.sigma_um
         texture = _grey8(heights.texture)
         entry = RoiEntry(roi.id, roi.parent, roi.magnification, heights.pixel_size_um, (0.0, 0.0), z_um.shape, matching=heights.report)
         if roi.parent:
@@ -127,7 +129,7 @@ def _place(ordered: list[RoiRequest], measured: dict[str, MeasuredHeights]) -> t
             z_um = registration.apply_height_alignment(z_um, alignment, pixel_size_um=heights.pixel_size_um)
             texture = registration.match_texture(parent, unaligned)
             entry.alignment_residual_um = alignment.residual_um
-        placed[roi.id] = PlacedRoi(roi.id, roi.magnification, heights.pixel_size_um, entry.origin_um, z_um, texture)
+        placed[roi.id] = PlacedRoi(roi.id, roi.magnification, heights.pixel_size_um, entry.origin_um, z_um, texture, sigma_um)
         entries.append(entry)
     return placed, entries
 

@@ -93,7 +93,8 @@ class Specimen:
         placed = []
         for roi in self.rois:
             with np.load(self.directory / "rois" / f"{roi.id}.npz") as arrays:
-                placed.append(PlacedRoi(roi.id, roi.magnification, roi.pixel_size_um, roi.origin_um, arrays["z_um"], arrays["texture"]))
+                sigma_um = arrays["sigma_um"] if "sigma_um" in arrays.files else None
+                placed.append(PlacedRoi(roi.id, roi.magnification, roi.pixel_size_um, roi.origin_um, arrays["z_um"], arrays["texture"], sigma_um))
         return FusedSurface(placed)
 
     @cached_property
@@ -183,5 +184,7 @@ def write_description(directory: Path, *, specimen_id: str, request_id: str, roi
 
 
 def write_roi_arrays(directory: Path, roi: PlacedRoi) -> None:
+    """rois/{id}.npz: z_um, texture and, when known, sigma_um."""
     (directory / "rois").mkdir(exist_ok=True)
-    np.savez_compressed(directory / "rois" / f"{roi.id}.npz", z_um=roi.z_um, texture=roi.texture)
+    arrays = {"z_um": roi.z_um, "texture": roi.texture} | ({"sigma_um": roi.sigma_um} if roi.sigma_um is not None else {})
+    np.savez_compressed(directory / "rois" / f"{roi.id}.npz", **arrays)

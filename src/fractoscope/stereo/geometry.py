@@ -57,8 +57,7 @@ def height_sigma_um(
     Each view's disparity error becomes a height error through its height per pixel of
     disparity (p cos t_r / sin(t_i - t_r): 0.0287 µm at 0.005 µm/px and 5.74 µm at 1 µm/px for
     ±5°); the views combine by their information. The tilt error adds ε_z |z - z_ref| for the
-    widest pair (`relative_height_error_from_tilt`): a tilt error scales heights about a reference
-    level, the median height (of every 4th row and column, which tell it well enough)."""
+    widest pair (`series_relative_height_error`) about a reference level (`_tilt_lever_um`)."""
     _, b = tilt_series.coefficients(tilt_deg)
     with np.errstate(invalid="ignore", divide="ignore"):
         # Information on the height from each view's disparity, 1/px² (none where unmatched).
@@ -66,11 +65,34 @@ def height_sigma_um(
             np.where(np.isfinite(sigma), (np.float32(b[index + 1]) / sigma) ** 2, np.float32(0)) for index, sigma in enumerate(disparity_sigma_px)
         )
         disparity_sigma_um = np.float32(pixel_size_um) / np.sqrt(information)
+    relative = series_relative_height_error(tilt_deg, tilt_uncertainty_deg=tilt_uncertainty_deg)
+    sigma_um = np.hypot(disparity_sigma_um, np.float32(relative) * _tilt_lever_um(z_um))
+    sigma_um[~np.isfinite(z_um)] = np.nan
+    return sigma_um
+
+
+def series_relative_height_error(tilt_deg: Sequence[float], *, tilt_uncertainty_deg: float) -> float:
+    """ε_z of a tilt series: `relative_height_error_from_tilt` of its widest pair, the reference
+    and the view that weighs most on the heights."""
+    _, b = tilt_series.coefficients(tilt_deg)
     widest = (float(tilt_deg[0]), float(tilt_deg[np.argmax(np.abs(b))]))
-    relative = relative_height_error_from_tilt(tilt_deg=widest, tilt_uncertainty_deg=tilt_uncertainty_deg)
+    return relative_height_error_from_tilt(tilt_deg=widest, tilt_uncertainty_deg=tilt_uncertainty_deg)
+
+
+def matching_sigma_um(sigma_um: np.ndarray, z_um: np.ndarray, *, relative_height_error: float) -> np.ndarray:
+    """The matching part of a `height_sigma_um` map: its tilt term ε_z |z - z_ref| taken out again
+    (in quadrature, at least 0), for propagating matching noise apart from the tilt error, which
+    scales every height together. Exact on the heights the map was made with; on heights moved
+    since (an ROI's plane alignment to its parent) the reference level moves with them, which
+    shifts the split by the plane's tilt across the map."""
+    tilt_part = np.float32(relative_height_error) * _tilt_lever_um(z_um)
+    return np.sqrt(np.maximum(np.square(sigma_um, dtype=np.float32) - tilt_part * tilt_part, 0)).astype(np.float32)
+
+
+def _tilt_lever_um(z_um: np.ndarray) -> np.ndarray:
+    """|z - z_ref|: a tilt error scales heights about a reference level, the median height (of
+    every 4th row and column, which tell it well enough)."""
     sample = z_um[::4, ::4]
     sample = sample[np.isfinite(sample)]
     reference_um = np.float32(np.median(sample)) if sample.size else np.float32(0)
-    sigma_um = np.hypot(disparity_sigma_um, np.float32(relative) * np.abs(z_um - reference_um))
-    sigma_um[~np.isfinite(z_um)] = np.nan
-    return sigma_um
+    return np.abs(z_um - reference_um)

@@ -1,4 +1,5 @@
-"""Areal surface texture parameters (ISO 25178-2) of height maps after least-squares de-tilting."""
+"""Least-squares de-tilting of height maps, Sa and Sq after it, and the fracture metrics (Hurst
+exponent by the height-height correlation); the full ISO 25178-2 set is areal_parameters'."""
 
 from __future__ import annotations
 
@@ -25,44 +26,6 @@ def sa_um(z_um: np.ndarray) -> float:
 def sq_um(z_um: np.ndarray) -> float:
     """Root mean square height Sq after plane de-tilting, µm (NaN ignored)."""
     return float(np.sqrt(np.nanmean(detilted_heights_um(z_um) ** 2)))
-
-
-def areal_parameters(z_um: np.ndarray, *, pixel_size_um: float) -> dict[str, float]:
-    """ISO 25178-2 parameters of a height map (rows, cols) µm with square pixels after plane
-    de-tilting; NaN points are left out (gradients and areas use only complete cells).
-    Keys: Sa, Sq, Sp, Sv, Sz (µm), Ssk, Sku, Sdq (dimensionless), Sdr (percent)."""
-    z = detilted_heights_um(np.asarray(z_um, np.float64))
-    heights = z[np.isfinite(z)]
-    sq = float(np.sqrt(np.mean(heights**2)))
-    sp, sv = float(heights.max()), float(-heights.min())
-    slope_x = np.diff(z, axis=1) / pixel_size_um
-    slope_y = np.diff(z, axis=0) / pixel_size_um
-    return {
-        "Sa": float(np.mean(np.abs(heights))),
-        "Sq": sq,
-        "Ssk": float(np.mean(heights**3) / sq**3) if sq > 0 else 0.0,
-        "Sku": float(np.mean(heights**4) / sq**4) if sq > 0 else 0.0,
-        "Sp": sp,
-        "Sv": sv,
-        "Sz": sp + sv,
-        "Sdq": float(np.sqrt(np.nanmean(slope_x**2) + np.nanmean(slope_y**2))),
-        "Sdr": _developed_area_ratio_percent(z, pixel_size_um),
-    }
-
-
-def _developed_area_ratio_percent(z_um: np.ndarray, pixel_size_um: float) -> float:
-    """Sdr from ISO 25178-2 (2021) D.3: each cell's area is the mean of its two triangulations,
-    i.e. half the summed areas of its four corner triangles; complete cells only."""
-    step = pixel_size_um
-    dz_x = np.diff(z_um, axis=1)
-    dz_y = np.diff(z_um, axis=0)
-    edges_x = ((step * dz_x[:-1, :]) ** 2, (step * dz_x[1:, :]) ** 2)  # bottom, top edge of each cell
-    edges_y = ((step * dz_y[:, :-1]) ** 2, (step * dz_y[:, 1:]) ** 2)  # left, right edge
-    flat = step**4
-    corners = sum(np.sqrt(ex + ey + flat) for ex in edges_x for ey in edges_y)
-    cell_area = 0.25 * corners
-    complete = np.isfinite(cell_area)
-    return float((cell_area[complete].sum() / (complete.sum() * step**2) - 1.0) * 100.0)
 
 
 def height_height_correlation(z_um: np.ndarray, *, pixel_size_um: float, lag_count: int = 24) -> tuple[np.ndarray, np.ndarray]:

@@ -17,6 +17,7 @@ from fractoscope.specimen import quadtree
 from fractoscope.specimen import queries as specimen_queries
 from fractoscope.specimen.build import MeasuredHeights, RoiRequest, reconstruct_specimen
 from fractoscope.specimen.store import Specimen, SpecimenStore, validate_id
+from fractoscope.surface import areal_parameters
 from fractoscope.v1 import common_pb2, matching_pb2_grpc, meshing_pb2_grpc, tiles_pb2, tiles_pb2_grpc
 
 _log = logging.getLogger("fractoscope.tiles")
@@ -149,7 +150,7 @@ class TileServicer(tiles_pb2_grpc.TileServiceServicer):
             specimen, roi=request.roi if area == "roi" else None,
             region_um=rpc_tiles.region(request.region, "region") if area == "region" else None,
         )
-        return wire.roughness_response(values)
+        return wire.roughness_response(values, areal_parameters.UNITS)
 
     def _existing(self, specimen_id: str) -> Specimen | None:
         try:
@@ -191,4 +192,4 @@ def _measure(stub, spec: tiles_pb2.RoiSpec, index: int, *, request_id: str, time
         if error.field:
             raise InvalidInputError(f"rois[{index}].{error.field}", str(error).split(": ", 1)[-1]) from None
         raise
-    return MeasuredHeights(result.z_um, result.texture, result.pixel_size_um, result.report)
+    return MeasuredHeights(result.z_um, result.texture, result.pixel_size_um, result.report, result.sigma_um)
