@@ -3,6 +3,7 @@ usage errors and exit codes."""
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import os
 from collections.abc import Iterator
@@ -69,3 +70,12 @@ def existing_file(text: str) -> Path:
     if not path.is_file():
         raise UsageError(f"cannot read {text}: no such file")
     return path
+
+
+def region_argument(text: str) -> tuple[float, float, float, float]:
+    """X0,Y0,X1,Y1 in µm, for argparse."""
+    try:
+        x0, y0, x1, y1 = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected X0,Y0,X1,Y1 in µm, got {text!r}") from None
+    return x0, y0, x1, y1

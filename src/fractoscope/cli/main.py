@@ -8,7 +8,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from fractoscope.cli import demo, height, mesh, specimen
+from fractoscope.cli import demo, export, height, mesh, specimen
 from fractoscope.cli.common import EXIT_BAD_INPUT, EXIT_CODES, EXIT_FAILURE, UsageError
 from fractoscope.client import ClientError
 from fractoscope.errors import InvalidInputError
@@ -17,7 +17,7 @@ from fractoscope.errors import InvalidInputError
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="fracto", description="Calibrated 3D fracture surfaces from SEM stereo pairs.")
     commands = parser.add_subparsers(dest="command", required=True)
-    for verbs in (height, mesh, specimen, demo):
+    for verbs in (height, mesh, specimen, export, demo):
         verbs.add_parsers(commands)
     return parser
 

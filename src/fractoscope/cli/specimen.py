@@ -1,5 +1,5 @@
-"""The specimen verbs: `fracto reconstruct` (from a manifest), `profile`, `roughness`, `zoom` and
-`tiles` (download)."""
+"""The specimen verbs: `fracto reconstruct` (from a manifest), `list`, `profile`, `roughness`,
+`zoom`, `tiles` (download) and `report`."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fractoscope.cli.common import SERVER_HELP, connected, err, progress_bar
+from fractoscope.cli.common import SERVER_HELP, UsageError, connected, err, progress_bar, region_argument
 from fractoscope.client.manifest import load_manifest
 from fractoscope.formats.tileset import content_uris
 
@@ -40,16 +40,26 @@ def add_parsers(commands) -> None:
     rough.add_argument("specimen")
     area = rough.add_mutually_exclusive_group()
     area.add_argument("--roi", help="ROI id (default: the overview)")
-    area.add_argument("--region", type=_region, metavar="X0,Y0,X1,Y1", help="region of the fused surface, µm")
+    area.add_argument("--region", type=region_argument, metavar="X0,Y0,X1,Y1", help="region of the fused surface, µm")
 
     zoom = specimen_command("zoom", "tiles that show a region at a magnification, optical or digital", command_zoom)
     zoom.add_argument("specimen")
-    zoom.add_argument("--region", type=_region, required=True, metavar="X0,Y0,X1,Y1", help="region, µm")
+    zoom.add_argument("--region", type=region_argument, required=True, metavar="X0,Y0,X1,Y1", help="region, µm")
     zoom.add_argument("--magnification", type=float, required=True)
 
     tiles = specimen_command("tiles", "download a specimen's tileset.json and tiles", command_tiles)
     tiles.add_argument("specimen")
     tiles.add_argument("-o", "--output", required=True, help="directory to write into")
+
+    specimen_command("list", "the stored specimens and their ROIs", command_list)
+
+    report = specimen_command("report", "the measurement report of an ROI or region: HTML, and PDF with --pdf", command_report)
+    report.add_argument("specimen")
+    area = report.add_mutually_exclusive_group()
+    area.add_argument("--roi", help="ROI id (default: the overview)")
+    area.add_argument("--region", type=region_argument, metavar="X0,Y0,X1,Y1", help="region of the fused surface, µm")
+    report.add_argument("-o", "--output", required=True, metavar="REPORT.html", help="the HTML report")
+    report.add_argument("--pdf", metavar="REPORT.pdf", help="also the report as PDF")
 
 
 def command_reconstruct(args) -> int:
@@ -76,14 +86,6 @@ def _pair(text: str) -> tuple[float, float]:
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected X,Y in µm, got {text!r}") from None
     return x, y
-
-
-def _region(text: str) -> tuple[float, float, float, float]:
-    try:
-        x0, y0, x1, y1 = (float(v) for v in text.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected X0,Y0,X1,Y1 in µm, got {text!r}") from None
-    return x0, y0, x1, y1
 
 
 def command_profile(args) -> int:
@@ -163,4 +165,32 @@ def command_tiles(args) -> int:
             path.parent.mkdir(parents=True, exist_ok=True)
             path.write_bytes(client.get_tile(args.specimen, uri))
     print(json.dumps({"output": str(out), "tiles": len(uris)}) if args.json else f"wrote tileset.json and {len(uris)} tiles to {out}")
+    return 0
+
+
+def command_list(args) -> int:
+    with connected(args.server, args.data) as client:
+        specimens = client.list_specimens()
+    if args.json:
+        print(json.dumps({"specimens": specimens}))
+        return 0
+    for specimen in specimens:
+        rois = ", ".join(f"{roi['id']} ({roi['pixel_size_um']:.4g} µm/px)" for roi in specimen["rois"])
+        print(f"{specimen['id']}: {rois}")
+    return 0
+
+
+def command_report(args) -> int:
+    outputs = [Path(args.output)] + ([Path(args.pdf)] if args.pdf else [])
+    for path, suffix in zip(outputs, (".html", ".pdf")):
+        if path.suffix.lower() != suffix:
+            raise UsageError(f"{'-o' if suffix == '.html' else '--pdf'}: {path} must end in {suffix}")
+        path.parent.mkdir(parents=True, exist_ok=True)
+    with connected(args.server, args.data) as client:
+        for path in outputs:
+            client.report(args.specimen, path, roi=args.roi, region_um=args.region)
+    if args.json:
+        print(json.dumps({"outputs": [str(path) for path in outputs]}))
+    else:
+        print("wrote " + " and ".join(str(path) for path in outputs))
     return 0

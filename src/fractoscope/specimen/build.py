@@ -19,19 +19,23 @@ from fractoscope.progress import silent
 from fractoscope.specimen import registration
 from fractoscope.specimen.fusion import FusedSurface, PlacedRoi
 from fractoscope.specimen.quadtree import QuadtreeLayout, TileKey, TileRecord, build_tiles
-from fractoscope.specimen.store import RoiEntry, Specimen, SpecimenStore, validate_id, write_description, write_roi_arrays
+from fractoscope.specimen.store import (
+    RoiEntry, Specimen, SpecimenStore, validate_id, write_description, write_roi_arrays, write_roi_views,
+)
 from fractoscope.surface import filtering
 
 
 @dataclass(frozen=True)
 class RoiRequest:
-    """One ROI to build: its parent ('' for the overview), magnification, and centre in the parent's
-    frame (x, y) µm, or None to register it automatically."""
+    """One ROI to build: its parent ('' for the overview), magnification, centre in the parent's
+    frame (x, y) µm or None to register it automatically, and its image files as given ((file
+    name, bytes), reference first), which the specimen keeps with its heights."""
 
     id: str
     parent: str = ""
     magnification: float = 0.0
     center_um: tuple[float, float] | None = None
+    images: tuple[tuple[str, bytes], ...] = ()
 
 
 @dataclass(frozen=True)
@@ -103,6 +107,8 @@ def reconstruct_specimen(
         records = _write_tiles(staging, surface, layout, mesh_tile, report)
         for roi in placed.values():
             write_roi_arrays(staging, roi)
+        for roi, entry in zip(ordered, entries):
+            entry.views = write_roi_views(staging, roi.id, roi.images)
         (staging / "tileset.json").write_text(json.dumps(tileset_json(layout, records)))
         write_description(staging, specimen_id=specimen_id, request_id=request_id, rois=entries, layout=layout, tiles=records)
     report(1.0, "stored")

@@ -81,6 +81,7 @@ class SurfaceArea:
 
     z_um, sigma_um: (rows, cols) float32 heights and their one-sigma uncertainty, µm, NaN unknown
         (sigma all NaN for a specimen stored before it was kept).
+    texture: (rows, cols) uint8 grey SEM image on the same grid.
     source: (rows, cols) int16 index into `sources` (ROI ids) of the ROI each point comes from, -1
         where none.
     pixel_size_um: the grid step, µm; origin_um: (x, y) of pixel (0, 0) in the specimen frame, µm.
@@ -89,6 +90,7 @@ class SurfaceArea:
 
     z_um: np.ndarray
     sigma_um: np.ndarray
+    texture: np.ndarray
     source: np.ndarray
     sources: list[str]
     pixel_size_um: float
@@ -112,8 +114,9 @@ def surface_area(
     max_samples: int = MAX_REGION_SAMPLES,
 ) -> SurfaceArea:
     """An ROI as measured (`pixel_size_um`, if given, at least its own: area-averaged onto it), or a
-    region (x0, y0, x1, y1) µm of the fused surface sampled at `pixel_size_um` (default: the finest
-    there, coarser where that would exceed `max_samples`; a given one that exceeds it is an error).
+    region (x0, y0, x1, y1) µm of the fused surface, clipped to the specimen, sampled at
+    `pixel_size_um` (default: the finest there, coarser where that would exceed `max_samples`; a
+    given one that exceeds it is an error).
     The default area is the overview ROI."""
     if pixel_size_um is not None:
         positive(pixel_size_um, "pixel_size_um")
@@ -123,7 +126,7 @@ def surface_area(
     placed = specimen.heights(entry.id)
     z_um = placed.z_um
     sigma_um = placed.sigma_um if placed.sigma_um is not None else np.full(z_um.shape, np.nan, np.float32)
-    step = placed.pixel_size_um
+    texture, step = placed.texture, placed.pixel_size_um
     if pixel_size_um is not None and not math.isclose(pixel_size_um, step, rel_tol=1e-9):
         if pixel_size_um < step:
             raise InvalidInputError("pixel_size_um", f"{pixel_size_um} µm is finer than ROI {entry.id!r}'s {step} µm; sample a region instead")
@@ -131,15 +134,16 @@ def surface_area(
         if min(z_um.shape) < factor:
             raise InvalidInputError("pixel_size_um", f"{pixel_size_um} µm leaves no pixel of ROI {entry.id!r}")
         z_um, sigma_um, step = area_average(z_um, factor=factor), area_average(sigma_um, factor=factor), pixel_size_um
+        texture = np.clip(np.round(area_average(texture.astype(np.float32), factor=factor)), 0, 255).astype(np.uint8)
     if z_um.size > max_samples:
         raise InvalidInputError("pixel_size_um", f"{z_um.shape[1]} x {z_um.shape[0]} points exceed the limit of {max_samples}; choose a coarser one")
     index = [placed_roi.id for placed_roi in specimen.surface.rois].index(entry.id)
     source = np.where(np.isfinite(z_um), index, -1).astype(np.int16)
-    return SurfaceArea(z_um, sigma_um, source, [r.id for r in specimen.surface.rois], step, placed.origin_um, entry)
+    return SurfaceArea(z_um, sigma_um, texture, source, [r.id for r in specimen.surface.rois], step, placed.origin_um, entry)
 
 
 def _region_area(specimen: Specimen, region, pixel_size_um: float | None, max_samples: int) -> SurfaceArea:
-    x0, y0, x1, y1 = region
+    x0, y0, x1, y1 = _within_specimen(specimen, region)
     if pixel_size_um is None:
         cell_um = max(specimen.finest_pixel_size_um(region), math.sqrt((x1 - x0) * (y1 - y0) / max_samples))
     else:
@@ -149,6 +153,7 @@ def _region_area(specimen: Specimen, region, pixel_size_um: float | None, max_sa
         raise InvalidInputError("pixel_size_um", f"{cols} x {rows} points exceed the limit of {max_samples}; choose a coarser one")
     z_um = np.empty((rows, cols), np.float32)
     sigma_um = np.empty((rows, cols), np.float32)
+    texture = np.empty((rows, cols), np.uint8)
     source = np.empty((rows, cols), np.int16)
     x_um = x0 + np.arange(cols) * cell_um
     strip = max(1, _SAMPLING_STRIP // cols)
@@ -157,10 +162,22 @@ def _region_area(specimen: Specimen, region, pixel_size_um: float | None, max_sa
         samples = specimen.surface.sample(*np.meshgrid(x_um, y_um), cell_um=cell_um)
         block = slice(start, start + len(y_um))
         z_um[block], sigma_um[block], source[block] = samples.z_um, samples.sigma_um, samples.source
+        texture[block] = np.clip(np.round(samples.texture), 0, 255)
     sources = [roi.id for roi in specimen.surface.rois]
     counts = np.bincount(source[source >= 0].ravel(), minlength=len(sources))
     main = specimen.roi(sources[int(np.argmax(counts))]) if counts.any() else specimen.rois[0]
-    return SurfaceArea(z_um, sigma_um, source, sources, cell_um, (x0, y0), main)
+    return SurfaceArea(z_um, sigma_um, texture, source, sources, cell_um, (x0, y0), main)
+
+
+def _within_specimen(specimen: Specimen, region) -> tuple[float, float, float, float]:
+    """The part of a region that the specimen's ROIs cover (their bounding box)."""
+    extents = np.array([roi.region_um for roi in specimen.rois])
+    low, high = extents[:, :2].min(axis=0), extents[:, 2:].max(axis=0)
+    x0, y0 = max(region[0], low[0]), max(region[1], low[1])
+    x1, y1 = min(region[2], high[0]), min(region[3], high[1])
+    if not (x0 < x1 and y0 < y1):
+        raise InvalidInputError("region", f"does not meet the specimen, which spans x {low[0]:g} to {high[0]:g} µm, y {low[1]:g} to {high[1]:g} µm")
+    return float(x0), float(y0), float(x1), float(y1)
 
 
 def roughness_of(specimen: Specimen, *, roi: str | None = None, region_um=None) -> dict:
@@ -208,7 +225,7 @@ def areal_uncertainty(area: SurfaceArea, detilted_um: np.ndarray, values: dict) 
     )
 
     def finite(parts: dict) -> dict:
-        return {name: value if math.isfinite(value) else None for name, value in parts.items()}
+        return {name: float(value) if math.isfinite(value) else None for name, value in parts.items()}
 
     return {"u": finite(found.u_total), "u_tilt": finite(found.u_tilt), "u_noise": finite(found.u_noise),
-            "noise_bias": finite(found.noise_bias), "relative_tilt_error": relative}
+            "noise_bias": finite(found.noise_bias), "relative_tilt_error": float(relative)}

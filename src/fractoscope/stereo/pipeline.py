@@ -22,7 +22,7 @@ from fractoscope.stereo.disparity import MatchingMethod, StripMatcher
 
 AXIS_WARNING_DEG = 2.0
 # Where a calibration value came from (the report's tilt_source and pixel_size_source).
-METADATA, ARGUMENT, TILT_CALIBRATION = "metadata", "argument", "tilt_calibration"
+METADATA, ARGUMENT, TILT_CALIBRATION, DEFAULT = "metadata", "argument", "tilt_calibration", "default"
 # Tilt axis direction in the image, degrees from the column axis: vertical, parallax along rows.
 DEFAULT_TILT_AXIS_DEG = 90.0
 
@@ -72,7 +72,7 @@ def compute_height_map(
     *,
     tilt_deg: tuple[float | None, float | None] = (None, None),
     pixel_size_um: float | None = None,
-    tilt_axis_deg: float = DEFAULT_TILT_AXIS_DEG,
+    tilt_axis_deg: float | None = None,
     options: MatchingOptions = MatchingOptions(),
     progress: ProgressCallback | None = None,
 ) -> HeightMapResult:
@@ -89,7 +89,7 @@ def compute_series_height_map(
     *,
     tilt_deg: Sequence[float | None] | None = None,
     pixel_size_um: float | None = None,
-    tilt_axis_deg: float = DEFAULT_TILT_AXIS_DEG,
+    tilt_axis_deg: float | None = None,
     options: MatchingOptions = MatchingOptions(),
     strip_matcher: StripMatcher | None = None,
     progress: ProgressCallback | None = None,
@@ -98,12 +98,16 @@ def compute_series_height_map(
     axis): every view is aligned to and densely matched with the first, and each pixel's height is
     the least-squares solution over all views that matched it. With `options.calibrate_tilt` and
     three or more views the tilts of all but the first are estimated from the images first
-    (see tilt_series). Explicit `tilt_deg` entries and `pixel_size_um` override the files. Dense
+    (see tilt_series). Explicit `tilt_deg` entries and `pixel_size_um` override the files; the tilt
+    axis is DEFAULT_TILT_AXIS_DEG unless given. Dense
     matching runs in strips of rows (`options.strip_pixels`), matched by `strip_matcher` (default:
     here, one after another; see stereo.matching)."""
     started = time.perf_counter()
     report_progress = progress or silent
-    nominal, pixel_size, sources = _calibration(images, tilt_deg, pixel_size_um, tilt_axis_deg, options)
+    sources = {"tilt_axis_source": DEFAULT if tilt_axis_deg is None else ARGUMENT}
+    tilt_axis_deg = DEFAULT_TILT_AXIS_DEG if tilt_axis_deg is None else tilt_axis_deg
+    nominal, pixel_size, given_sources = _calibration(images, tilt_deg, pixel_size_um, tilt_axis_deg, options)
+    sources |= given_sources
     rectified = _rectify(images, tilt_axis_deg)
     matched = _match_views(rectified.views, options, strip_matcher, report_progress)
     tilts, offsets, calibration = _tilts(rectified.x1_px, matched, nominal, options, report_progress)

@@ -19,7 +19,7 @@ from fractoscope.sem.image import read_sem_image
 from fractoscope.services.matching.peers import PeerStripMatcher, StripPeers
 from fractoscope.services.streaming import stream_progress
 from fractoscope.stereo.matching import DEFAULT_STRIP_PIXELS
-from fractoscope.stereo.pipeline import DEFAULT_TILT_AXIS_DEG, compute_series_height_map
+from fractoscope.stereo.pipeline import compute_series_height_map
 from fractoscope.stereo.window_zncc import match_strip
 from fractoscope.v1 import common_pb2, matching_pb2, matching_pb2_grpc
 
@@ -59,7 +59,7 @@ class MatchingServicer(matching_pb2_grpc.MatchingServiceServicer):
                     images,
                     tilt_deg=tilts,
                     pixel_size_um=request.pixel_size_um if request.HasField("pixel_size_um") else None,
-                    tilt_axis_deg=request.tilt_axis_deg if request.HasField("tilt_axis_deg") else DEFAULT_TILT_AXIS_DEG,
+                    tilt_axis_deg=request.tilt_axis_deg if request.HasField("tilt_axis_deg") else None,
                     options=options,
                     strip_matcher=peers,
                     progress=progress,

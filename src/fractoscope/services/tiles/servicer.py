@@ -3,10 +3,14 @@
 from __future__ import annotations
 
 import logging
+import tempfile
+from pathlib import Path
 
 import grpc
 
+from fractoscope import report
 from fractoscope.errors import InvalidInputError, NotFoundError, UnavailableError
+from fractoscope.formats.exports import MEDIA_TYPES
 from fractoscope.rpc import calls, wire
 from fractoscope.rpc import tiles as rpc_tiles
 from fractoscope.rpc.channel import open_channel
@@ -151,6 +155,22 @@ class TileServicer(tiles_pb2_grpc.TileServiceServicer):
             region_um=rpc_tiles.region(request.region, "region") if area == "region" else None,
         )
         return wire.roughness_response(values, areal_parameters.UNITS)
+
+    @abort_on_error
+    def Export(self, request, context):
+        with tempfile.TemporaryDirectory(prefix="fractoscope-export-") as directory:
+            exported = rpc_tiles.export(request, Path(directory), self.store)
+            first = tiles_pb2.ExportResponse(grid=rpc_tiles.export_grid(exported))
+            media_type = MEDIA_TYPES[exported.file_format]
+            yield from rpc_tiles.streamed_file(first, exported.path, file_name=exported.path.name, media_type=media_type)
+
+    @abort_on_error
+    def GetReport(self, request, context):
+        file_format = wire.report_format_name(request.format)
+        area = rpc_tiles.area_of(request.area, "area")
+        with tempfile.TemporaryDirectory(prefix="fractoscope-report-") as directory:
+            path = report.write_report(self.store.load(request.area.specimen_id), Path(directory), file_format=file_format, **area)
+            yield from rpc_tiles.streamed_file(tiles_pb2.GetReportResponse(), path, file_name=path.name, media_type=report.MEDIA_TYPES[file_format])
 
     def _existing(self, specimen_id: str) -> Specimen | None:
         try:
