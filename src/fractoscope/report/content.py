@@ -13,7 +13,7 @@ from fractoscope.errors import FractoscopeError
 from fractoscope.formats.calibration import Calibration, software
 from fractoscope.sem.image import read_sem_image
 from fractoscope.specimen import queries
-from fractoscope.specimen.fusion import overlaps
+from fractoscope.specimen.fusion import footprint_um, overlaps
 from fractoscope.specimen.store import RoiEntry, Specimen
 from fractoscope.surface import profile_parameters, scaling
 
@@ -97,10 +97,9 @@ def report_content(specimen: Specimen, *, roi: str | None = None, region_um=None
     roughness = queries.roughness_of(specimen, roi=None if region_um is not None else (roi or specimen.rois[0].id), region_um=region_um)
     area = queries.surface_area(specimen, roi=roi, region_um=region_um)
     if region_um is not None:
-        x0, y0, x1, y1 = queries.checked_region(region_um)
-        label = f"region x {x0:g} to {x1:g} µm, y {y0:g} to {y1:g} µm"
-        shown = [entry for entry in specimen.rois if overlaps(entry.region_um, (x0, y0, x1, y1))]
-        bounds = (x0, y0, x1, y1)
+        bounds = footprint_um(area.origin_um, area.z_um.shape, area.pixel_size_um)  # the region as clipped to the specimen
+        label = "region x {:.6g} to {:.6g} µm, y {:.6g} to {:.6g} µm".format(bounds[0], bounds[2], bounds[1], bounds[3])
+        shown = [entry for entry in specimen.rois if overlaps(entry.region_um, bounds)]
     else:
         label = f"ROI {area.roi.id}"
         shown = [area.roi]

@@ -138,7 +138,8 @@ def write_pdf(document: Document, path: Path) -> None:
     200 dpi) at the column's width with their captions, each kept whole on one page."""
     with PdfPages(path, metadata={"Title": document.title, "Creator": "Fractoscope"}) as pdf:
         pages = _Pages(pdf)
-        pages.line("title", document.title)
+        for text in textwrap.wrap(document.title, 58):
+            pages.line("title", text)
         pages.line("text", "")
         for index, block in enumerate(document.blocks):
             following = document.blocks[index + 1] if index + 1 < len(document.blocks) else None
@@ -166,11 +167,12 @@ class _Pages:
         self._page = None
         self._used_in = 0.0
 
-    def line(self, kind: str, text: str, *, keep_with_next: int = 0) -> None:
-        self._room(_LINE_IN * (1 + keep_with_next))
+    def line(self, kind: str, text: str, *, keep_with_next: float = 0) -> None:
+        height_in = _LINE_IN * (1.6 if kind == "title" else 1.25 if kind == "heading" else 1.0)
+        self._room(height_in + _LINE_IN * keep_with_next)
         if text:
             self._page.text(_MARGIN_IN / _PAGE_IN[0], 1 - self._used_in / _PAGE_IN[1], text, va="top", ha="left", **_STYLES[kind])
-        self._used_in += _LINE_IN
+        self._used_in += height_in
 
     def figure_height_in(self, block: FigureBlock) -> float:
         """The height a figure and its caption take on the page."""
