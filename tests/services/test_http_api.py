@@ -8,6 +8,7 @@ from __future__ import annotations
 import http.client
 import io
 import json
+import os
 import shutil
 import time
 from pathlib import Path
@@ -31,7 +32,8 @@ from fractoscope.services.tiles import openapi
 from fractoscope.services.tiles.http import start_http_server
 from fractoscope.specimen.store import SpecimenStore
 
-FUZZ_EXAMPLES = 8  # per operation and generation mode
+# Per operation and generation mode; FRACTO_FUZZ_EXAMPLES asks for a deeper run.
+FUZZ_EXAMPLES = int(os.environ.get("FRACTO_FUZZ_EXAMPLES", "8"))
 TOKENS = TokenTable.from_text("lims:write-secret:write,viewer:read-secret:read")
 
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import re
 import shutil
 import threading
@@ -81,7 +82,10 @@ class Specimen:
         overview = self.rois[0]
         if overview.magnification <= 0:
             raise InvalidInputError("magnification", f"specimen {self.id!r} was built without magnifications; give them in its manifest")
-        return overview.pixel_size_um * overview.magnification / magnification
+        pixel_size_um = overview.pixel_size_um * overview.magnification / magnification
+        if not (math.isfinite(pixel_size_um) and pixel_size_um > 0):
+            raise InvalidInputError("magnification", f"{magnification} gives no usable pixel size")
+        return pixel_size_um
 
     def finest_pixel_size_um(self, region_um: tuple[float, float, float, float]) -> float:
         """The smallest pixel size among the ROIs that meet a region (the overview's if none)."""

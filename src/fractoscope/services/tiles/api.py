@@ -227,7 +227,7 @@ class JsonApi:
             body = await _json_body(request, limit_bytes=64 * 1024)
             unknown = sorted(set(body) - {"upload_id", "request_id"})
             if unknown:
-                raise InvalidInputError(unknown[0], "is not a field of a job request (upload_id, request_id)")
+                raise InvalidInputError(unknown[0] or "body", f"{unknown[0]!r} is not a field of a job request (upload_id, request_id)")
             upload_id, request_id = body.get("upload_id"), body.get("request_id", "")
             if not isinstance(upload_id, str):
                 raise InvalidInputError("upload_id", "is required (a string)")

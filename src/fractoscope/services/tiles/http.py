@@ -142,7 +142,7 @@ class HttpTileServer:
         self._api = api
         app = _TileApp(store, tokens, api)
         application = web.Application()
-        application.router.add_route("*", "/{tail:.*}", app.handle)
+        application.router.add_route("*", r"/{tail:[\s\S]*}", app.handle)  # any path, new lines too
         self._runner = web.AppRunner(application, access_log=None, handle_signals=False)
         self._loop.run_until_complete(self._runner.setup())
         site = web.TCPSite(self._runner, host, port, reuse_address=True)
