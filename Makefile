@@ -16,6 +16,7 @@ PORT ?= 8080
 GRPC_PORT ?= 50051
 CHROMIUM := /usr/bin/chromium
 WRK := /usr/bin/wrk
+PDFTOPPM := /usr/bin/pdftoppm
 GHZ := .tools/bin/ghz
 # Go tools for validating the Kubernetes manifests, built from the Go module proxy, and the
 # Kubernetes API's JSON schemas for them (deploy/kubernetes_schemas.py).
@@ -63,6 +64,11 @@ $(CHROMIUM) $(WRK):
 	if [ "$$(id -u)" = 0 ]; then SUDO=; else SUDO=sudo; fi; \
 	$$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq --no-install-recommends $(notdir $@) >/dev/null
 
+# Poppler's pdftoppm (and pdftotext), with which the tests open the measurement report's PDF.
+$(PDFTOPPM):
+	if [ "$$(id -u)" = 0 ]; then SUDO=; else SUDO=sudo; fi; \
+	$$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq --no-install-recommends poppler-utils >/dev/null
+
 $(KUBECONFORM):
 	GOBIN=$(abspath $(TOOLS)/bin) go install github.com/yannh/kubeconform/cmd/kubeconform@v0.6.7
 
@@ -77,7 +83,7 @@ $(KUBE_SCHEMAS): deploy/kubernetes_schemas.py
 	touch $@
 
 ## test: the whole test suite
-test: install $(CHROMIUM) $(KUBECONFORM) $(KUSTOMIZE) $(KUBE_SCHEMAS)
+test: install $(CHROMIUM) $(PDFTOPPM) $(KUBECONFORM) $(KUSTOMIZE) $(KUBE_SCHEMAS)
 	$(BIN)/lint-imports
 	$(BIN)/python -m pytest -q
 

@@ -1,7 +1,10 @@
 """`make bench` (exports): a 4096² height map written as X3P and as STL (targets: under 5 s each),
 with PLY, OBJ and a solid STL for finite element tools at a 4x coarser grid, and trimesh's own STL
 writer for comparison. "stl_bytes_only" writes as many bytes as the STL from memory: the file
-system's share of the STL's time (1.7 GB), which no writer can save.
+system's share of the STL's time (1.7 GB), which no writer can save. "region_*_streamed" export the
+same map as a region of a stored specimen through the Export RPC on loopback, sampled from the
+fused surface and streamed to the client's file in 1 MiB chunks: "above input" is then the peak
+less the process's once the specimen's surface is loaded, and stays well below the STL's 1.7 GB.
 
 Each export runs in its own process, so its peak resident memory is its own; "above input" is the
 peak less the process's peak once the height map is loaded. Files go to --scratch (the system's
@@ -21,12 +24,18 @@ from pathlib import Path
 
 import numpy as np
 
+from fractoscope.client import FractoscopeClient
 from fractoscope.formats.mesh_export import height_map_mesh, write_mesh
 from fractoscope.formats.x3p import write_x3p
+from fractoscope.services.server import embedded_server
+from fractoscope.specimen.fusion import PlacedRoi
+from fractoscope.specimen.quadtree import QuadtreeLayout
+from fractoscope.specimen.store import RoiEntry, SpecimenStore, write_description, write_roi_arrays
 
 PIXEL_SIZE_UM = 0.1
 TIMING_REPEATS = 2
-CASES = ("x3p", "x3p_deflated", "stl", "stl_bytes_only", "ply", "obj_4x_coarser", "stl_solid_4x_coarser", "stl_by_trimesh")
+CASES = ("x3p", "x3p_deflated", "stl", "stl_bytes_only", "ply", "obj_4x_coarser", "stl_solid_4x_coarser", "stl_by_trimesh",
+         "region_x3p_streamed", "region_stl_streamed")
 
 
 def height_map(size_px: int) -> np.ndarray:
@@ -79,9 +88,46 @@ def _export(case: str, z_um: np.ndarray, out: Path) -> Path:
     return path
 
 
+def _stored_specimen(z_um: np.ndarray, data: Path) -> SpecimenStore:
+    """A store holding the map as the one ROI of specimen "bench" (no tiles: exports need none)."""
+    store = SpecimenStore(data)
+    roi = PlacedRoi("map", 100.0, PIXEL_SIZE_UM, (0.0, 0.0), z_um, np.zeros(z_um.shape, np.uint8), np.full(z_um.shape, 0.05, np.float32))
+    entry = RoiEntry(roi.id, "", roi.magnification, PIXEL_SIZE_UM, roi.origin_um, z_um.shape)
+    with store.writing("bench") as staging:
+        write_roi_arrays(staging, roi)
+        (staging / "tileset.json").write_text("{}")
+        write_description(staging, specimen_id="bench", request_id="", rois=[entry],
+                          layout=QuadtreeLayout((0.0, 0.0), z_um.shape[0] * PIXEL_SIZE_UM), tiles={})
+    return store
+
+
+def run_streamed(case: str, z_um: np.ndarray, scratch: Path | None) -> dict:
+    """A region export through the Export RPC, server and client in this process."""
+    with tempfile.TemporaryDirectory(dir=scratch) as out:
+        store = _stored_specimen(z_um, Path(out) / "data")
+        region = (0.0, 0.0, (z_um.shape[1] - 1) * PIXEL_SIZE_UM, (z_um.shape[0] - 1) * PIXEL_SIZE_UM)
+        del z_um
+        store.load("bench").surface  # noqa: B018 - loaded before the baseline: the server holds it anyway
+        with embedded_server(store=store) as address, FractoscopeClient(address) as client:
+            baseline_mb = _peak_rss_mb()
+            runs = []
+            for _ in range(TIMING_REPEATS):
+                path = Path(out) / f"region.{case.split('_')[1]}"
+                started, cpu_started = time.perf_counter(), _cpu_seconds()
+                grid = client.export_area("bench", path, region_um=region, pixel_size_um=PIXEL_SIZE_UM)
+                runs.append((time.perf_counter() - started, _cpu_seconds() - cpu_started))
+            size_mb = path.stat().st_size / 1e6
+    peak_mb = _peak_rss_mb()
+    seconds, cpu_seconds = min(runs)
+    return {"case": case, "size_px": grid["rows"], "seconds": seconds, "cpu_seconds": cpu_seconds, "file_mb": size_mb,
+            "peak_rss_mb": peak_mb, "peak_rss_above_input_mb": peak_mb - baseline_mb}
+
+
 def run_one(case: str, map_path: Path, scratch: Path | None) -> dict:
     """One export in this process: its fastest time, peak memory and file size."""
     z_um = np.load(map_path)
+    if case.endswith("_streamed"):
+        return run_streamed(case, z_um, scratch)
     baseline_mb = _peak_rss_mb()
     repeats = 1 if case == "stl_by_trimesh" else TIMING_REPEATS  # 45 s: once is enough to compare
     runs = []

@@ -15,7 +15,12 @@ class InvalidInputError(FractoscopeError, ValueError):
 
 
 class NotFoundError(FractoscopeError, LookupError):
-    """A named resource (specimen, ROI, tile) does not exist."""
+    """A named resource (specimen, ROI, tile) does not exist; `field` names the request input that
+    named it (e.g. ``specimen_id``), when known."""
+
+    def __init__(self, message: str, field: str | None = None):
+        super().__init__(message)
+        self.field = field
 
 
 class CancelledError(FractoscopeError):

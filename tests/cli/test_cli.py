@@ -354,3 +354,39 @@ def test_roughness_of_an_x3p_file(tmp_path):
     assert (filtered["chain"]["s_filter_um"], filtered["chain"]["l_filter_um"]) == (0.5, 10.0) and filtered["Sa"] < values["Sa"]
     bad = _run("roughness", path, "--s-filter-um", "20", "--l-filter-um", "10")
     assert bad.returncode == 2 and "s_filter_um" in bad.stderr
+
+
+@pytest.mark.slow
+def test_list_export_and_report_of_a_stored_specimen(built, tmp_path):
+    """The forms the issue fixes: `fracto list`, `fracto export SOURCE [--roi | --region]
+    [--pixel-size-um] -o OUT.ext [--solid] [--units]` and `fracto report SPECIMEN -o .html --pdf`."""
+    _, _, data, summary = built
+    listed = _run("list", "--data", data, "--json")
+    assert listed.returncode == 0, listed.stderr
+    assert [s["id"] for s in json.loads(listed.stdout)["specimens"]] == ["synthetic"]
+    done = _run("export", "synthetic", "--roi", "zoom", "-o", tmp_path / "zoom.tif", "--data", data, "--json")
+    assert done.returncode == 0, done.stderr
+    assert tifffile.imread(tmp_path / "zoom.tif").shape == (512, 512)
+    region = summary["rois"][1]["region"]
+    box = f"{region['min']['x_um'] + 4},{region['min']['y_um'] + 4},{region['min']['x_um'] + 24},{region['min']['y_um'] + 14}"
+    done = _run("export", "synthetic", "--region", box, "--pixel-size-um", "0.5", "-o", tmp_path / "region.stl", "--solid", "--units", "mm",
+                "--data", data, "--json")
+    assert done.returncode == 0, done.stderr
+    assert (json.loads(done.stdout)["rows"], json.loads(done.stdout)["cols"]) == (21, 41)
+    done = _run("report", "synthetic", "--roi", "zoom", "-o", tmp_path / "report.html", "--pdf", tmp_path / "report.pdf", "--data", data)
+    assert done.returncode == 0, done.stderr
+    assert "Measurement report" in (tmp_path / "report.html").read_text() and (tmp_path / "report.pdf").read_bytes()[:5] == b"%PDF-"
+    wrong = _run("export", "synthetic", "-o", tmp_path / "zoom.docx", "--data", data)
+    assert wrong.returncode == 2 and wrong.stderr.count("\n") == 1 and ".x3p" in wrong.stderr
+
+
+def test_export_of_an_npz_height_map(tmp_path):
+    z_um = np.linspace(0, 1, 40 * 30, dtype=np.float32).reshape(30, 40)
+    np.savez(tmp_path / "map.npz", z_um=z_um, sigma_um=np.full_like(z_um, 0.01))
+    done = _run("export", tmp_path / "map.npz", "--pixel-size-um", "0.2", "-o", tmp_path / "map.csv", "--json")
+    assert done.returncode == 0, done.stderr
+    lines = (tmp_path / "map.csv").read_text().splitlines()
+    assert lines[0] == "x_um,y_um,z_um,sigma_um" and len(lines) == 1 + z_um.size
+    assert [float(v) for v in lines[-1].split(",")] == pytest.approx([39 * 0.2, 29 * 0.2, 1.0, 0.01], rel=1e-6)
+    missing = _run("export", tmp_path / "map.npz", "-o", tmp_path / "map.x3p")
+    assert missing.returncode == 2 and "--pixel-size-um" in missing.stderr

@@ -10,7 +10,8 @@ import pytest
 import trimesh
 
 from fractoscope.formats import mesh_export
-from fractoscope.formats.mesh_export import area_average, height_map_mesh, write_mesh
+from fractoscope.formats.mesh_export import height_map_mesh, write_mesh
+from fractoscope.mesh.grid import area_average
 
 ROWS, COLS, PIXEL_SIZE_UM = 30, 40, 0.5
 FORMATS = ("stl", "ply", "obj")

@@ -56,6 +56,15 @@ def test_a_huge_declared_image_is_refused_before_decoding(monkeypatch):
         read_sem_image(_valid_tiff())
 
 
+def _answers_clearly(call) -> None:
+    """A call succeeds or fails with an expected status that says why."""
+    try:
+        call()
+    except grpc.RpcError as error:
+        assert error.code() in EXPECTED, (error.code(), error.details())
+        assert error.details()
+
+
 finite_or_not = st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.sampled_from([0.0, -1.0, 1e300, float("nan")]))
 
 
@@ -78,12 +87,7 @@ def test_random_matching_requests_get_a_status_naming_the_problem(client, tilts,
         images=request_images, pixel_size_um=pixel_size, tilt_axis_deg=axis,
         parameters=matching_pb2.MatchingParameters(window_px=window, min_confidence=confidence, normalize_local_contrast=local_contrast),
     )
-    try:
-        for _ in client._matching.ComputeHeightMap(request, timeout=60):
-            pass
-    except grpc.RpcError as error:
-        assert error.code() in EXPECTED, (error.code(), error.details())
-        assert error.details()
+    _answers_clearly(lambda: list(client._matching.ComputeHeightMap(request, timeout=60)))
 
 
 @FUZZ
@@ -114,11 +118,7 @@ def test_random_strips_get_a_status_naming_the_problem(client, shapes, data_type
             window_px=window, max_disparity_px=max_disparity, min_confidence=confidence, max_lr_difference_px=lr
         ),
     )
-    try:
-        client._matching.MatchStrip(request, timeout=60)
-    except grpc.RpcError as error:
-        assert error.code() in EXPECTED, (error.code(), error.details())
-        assert error.details()
+    _answers_clearly(lambda: client._matching.MatchStrip(request, timeout=60))
 
 
 @FUZZ
@@ -128,8 +128,12 @@ def test_random_strips_get_a_status_naming_the_problem(client, shapes, data_type
     coordinates=st.lists(finite_or_not, min_size=4, max_size=4),
     magnification=finite_or_not,
 )
-def test_random_tile_queries_get_a_status_naming_the_problem(client, specimen, uri, coordinates, magnification):
+def test_random_tile_queries_get_a_status_naming_the_problem(client, tmp_path, specimen, uri, coordinates, magnification):
+    out = tmp_path / "out"
+    out.mkdir(exist_ok=True)
     calls = [
+        lambda: client.export_area(specimen, out / "out.x3p", region_um=tuple(coordinates), pixel_size_um=abs(magnification)),
+        lambda: client.report(specimen, out / "report.html", region_um=tuple(coordinates)),
         lambda: client.get_tile(specimen, uri),
         lambda: client.zoom(specimen, tuple(coordinates), magnification=magnification),
         lambda: client.profile(specimen, [tuple(coordinates[:2]), tuple(coordinates[2:])], magnification=magnification),
@@ -139,6 +143,31 @@ def test_random_tile_queries_get_a_status_naming_the_problem(client, specimen, u
         with pytest.raises(ClientError) as caught:  # no specimens exist on this server
             call()
         assert caught.value.code in EXPECTED and str(caught.value)
+    assert list(out.iterdir()) == []  # a failed export or report leaves no file, not even a part of one
+
+
+@FUZZ
+@given(
+    shape=st.tuples(st.integers(0, 40), st.integers(0, 40)),
+    data_type=st.sampled_from([0, 1, 2, 3, 99]),
+    truncate=st.booleans(),
+    fill=finite_or_not,
+    map_pixel_size=finite_or_not,
+    pixel_size=finite_or_not,
+    file_format=st.integers(-1, 8),
+    units=st.integers(-1, 4),
+    solid=st.booleans(),
+)
+def test_random_height_map_exports_get_a_status_naming_the_problem(client, shape, data_type, truncate, fill, map_pixel_size, pixel_size,
+                                                                  file_format, units, solid):
+    rows, cols = shape
+    with np.errstate(over="ignore"):  # out of float32 range now and then
+        heights = np.full(rows * cols, fill, "<f4")
+    data = heights.view(np.uint8) if data_type == 1 else np.full(rows * cols * (2 if data_type == 3 else 1), 7, np.uint8)
+    request = tiles_pb2.ExportRequest(format=file_format, pixel_size_um=pixel_size, units=units, solid=solid)
+    request.height_map.pixel_size_um = map_pixel_size
+    request.height_map.z_um.CopyFrom(common_pb2.Raster(rows=rows, cols=cols, data_type=data_type, data=data.tobytes()[: -1 if truncate else None]))
+    _answers_clearly(lambda: list(client._tiles.Export(request, timeout=60)))
 
 
 def test_path_tricks_in_roi_ids_are_refused(client):

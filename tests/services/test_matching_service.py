@@ -40,6 +40,9 @@ def test_height_map_of_images_larger_than_four_mib_with_progress(client):
     span = np.ptp(pair.z_seen_um[inner])
     assert np.std(error) / span < 0.02
     assert result.report["tilt_deg"] == [-5.0, 5.0] and result.report["pixel_size_um"] == pytest.approx(0.1)
+    assert result.report["tilt_source"] == ["argument", "argument"] and result.report["pixel_size_source"] == "argument"
+    assert result.report["parameters"]["window_px"] == 15 and result.report["parameters"]["tilt_uncertainty_deg"] == 0.5
+    assert result.report["tilt_axis_source"] == "default"
 
 
 @pytest.mark.parametrize(

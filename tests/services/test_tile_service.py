@@ -105,6 +105,19 @@ def test_sa_of_the_roi_and_of_a_region_match_the_truth(built):
     assert zoom["fractal_dimension"] == pytest.approx(3 - zoom["hurst_exponent"])
 
 
+def test_roughness_carries_an_uncertainty_from_sigma_and_tilt(built):
+    """The manifest gives the tilts (±5°) and the default tilt uncertainty is 0.5°: ε_z = 0.5° /
+    tan 5° = 10 %, which moves Sa as it moves the heights; matching noise adds a little more."""
+    _, client, _, _ = built
+    zoom = client.roughness("synthetic", roi="zoom")
+    found = zoom["uncertainty"]
+    assert zoom["tilt_rel_uncertainty"] == pytest.approx(np.radians(0.5) / np.tan(np.radians(5.0)), rel=1e-6)
+    assert found["Sa"]["u_tilt"] == pytest.approx(zoom["tilt_rel_uncertainty"] * zoom["Sa"], rel=1e-6)
+    assert found["Sa"]["u_total"] > found["Sa"]["u_tilt"] and 0 < found["Sa"]["u_noise"] < 0.2 * zoom["Sa"]
+    assert found["Ssk"]["u_tilt"] == 0 and found["Str"]["u_total"] is None  # a shape parameter; one without a derivative
+    assert {"Sal", "Str", "Std", "Sk", "Vmp", "Spd", "Spc"} <= set(zoom)
+
+
 def _sa(z: np.ndarray) -> float:
     rows, cols = np.indices(z.shape)
     design = np.column_stack([rows.ravel(), cols.ravel(), np.ones(z.size)])

@@ -138,5 +138,8 @@ def test_unknown_magnification_uncertainty_keeps_sigma_and_warns(monkeypatch):
 
     assert np.isnan(result.report["tilt_sigma_deg"][1:]).all()
     assert any("uncertainty is unknown" in warning for warning in result.report["warnings"])
+    # The reference keeps the given tilt; the others are the calibration's, the pixel size the file's.
+    assert result.report["tilt_source"] == ["argument", "tilt_calibration", "tilt_calibration"]
+    assert result.report["pixel_size_source"] == "metadata" and result.report["parameters"]["calibrate_tilt"]
     known = np.isfinite(result.z_um)
     assert known.mean() > 0.9 and np.isfinite(result.sigma_um[known]).all()

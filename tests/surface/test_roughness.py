@@ -97,6 +97,19 @@ def test_bad_settings_name_their_field(options, field):
     assert raised.value.field == field
 
 
+@pytest.mark.parametrize(("cutoffs", "field"), [({"lambda_s_um": 1e300}, "s_filter_um"), ({"lambda_c_um": 1e9}, "l_filter_um")])
+def test_a_cutoff_far_beyond_the_field_is_refused_naming_its_filter(rough_surface, cutoffs, field):
+    """A Gaussian much wider than the field is flat across it: such a cut-off (the fuzzed API's
+    1e300) filters nothing and is refused, by the areal chain and the profile chain alike."""
+    with pytest.raises(InvalidInputError) as raised:
+        roughness.analyse(rough_surface, pixel_size_um=0.2, chain=roughness.surface_chain(**cutoffs))
+    assert raised.value.field == field and "times the field" in raised.value.message
+    with pytest.raises(ValueError, match=next(iter(cutoffs))):  # beyond the field, or (lambda_s) above the default lambda_c
+        profile_parameters.roughness_profile(rough_surface[0], spacing_um=0.2, **cutoffs)
+    edge = 10 * 256 * 0.2  # MAX_CUTOFF_FIELDS times the longer side: still taken
+    assert np.isfinite(roughness.analyse(rough_surface, pixel_size_um=0.2, chain=roughness.surface_chain(lambda_c_um=edge)).parameters["Sa"])
+
+
 def test_profile_parameters_of_a_cosine_on_a_slope():
     # A cosine symmetric about the middle is orthogonal to the line, so de-tilting leaves it whole.
     distance = np.linspace(0, 100, 100001)

@@ -152,3 +152,12 @@ def _subparser(parser: argparse.ArgumentParser, name: str | None) -> argparse.Ar
         if isinstance(action, argparse._SubParsersAction) and name in action.choices:
             return action.choices[name]
     return None
+
+
+def region_argument(text: str) -> tuple[float, float, float, float]:
+    """X0,Y0,X1,Y1 in µm, for argparse."""
+    try:
+        x0, y0, x1, y1 = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected X0,Y0,X1,Y1 in µm, got {text!r}") from None
+    return x0, y0, x1, y1

@@ -47,6 +47,7 @@ def command_demo(args) -> int:
         raise UsageError(f"cannot serve HTTP on {args.host}:{args.http_port}: {error.strerror}; choose another --http-port") from None
     try:
         with embedded_server(host=args.host, port=args.port, store=store) as address, FractoscopeClient(address) as client:
+            http.send_builds_to(address)
             specimens = run_demo(client, data, shared_data=Path(args.shared_data), console=console)
             stop = threading.Event()
             if not args.exit:  # before the URL is printed: whoever reads it may ask us to stop at once

@@ -10,7 +10,7 @@ import sys
 
 import grpc
 
-from fractoscope.cli import demo, height, mesh, specimen
+from fractoscope.cli import demo, export, height, mesh, specimen
 from fractoscope.cli.common import (
     EXIT_BAD_INPUT, EXIT_CODES, EXIT_FAILURE, SuggestingParser, UsageError, in_command_line_terms, is_connection_failure, reject_unknown,
     unavailable_sentence,
@@ -22,7 +22,7 @@ from fractoscope.errors import InvalidInputError
 def build_parser() -> argparse.ArgumentParser:
     parser = SuggestingParser(prog="fracto", description="Calibrated 3D fracture surfaces from SEM stereo pairs.")
     commands = parser.add_subparsers(dest="command", required=True)
-    for verbs in (height, mesh, specimen, demo):
+    for verbs in (height, mesh, specimen, export, demo):
         verbs.add_parsers(commands)
     return parser
 

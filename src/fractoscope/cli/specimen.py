@@ -1,5 +1,5 @@
-"""The specimen verbs: `fracto reconstruct` (from a manifest), `profile`, `roughness`, `zoom` and
-`tiles` (download)."""
+"""The specimen verbs: `fracto reconstruct` (from a manifest), `list`, `profile`, `roughness`,
+`zoom`, `tiles` (download) and `report`."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fractoscope.cli.common import SERVER_HELP, UsageError, connected, err, existing_file, progress_bar
+from fractoscope.cli.common import SERVER_HELP, UsageError, connected, err, existing_file, progress_bar, region_argument
 from fractoscope.client.manifest import load_manifest
 from fractoscope.formats.tileset import content_uris
 from fractoscope.rpc import wire
@@ -49,13 +49,13 @@ def add_parsers(commands) -> None:
     rough.add_argument("source", metavar="SOURCE", help="specimen id, or a .npz height map, or a .x3p file")
     area = rough.add_mutually_exclusive_group()
     area.add_argument("--roi", help="ROI id (default: the overview; specimens only)")
-    area.add_argument("--region", type=_region, metavar="X0,Y0,X1,Y1", help="region of the fused surface, µm (specimens only)")
+    area.add_argument("--region", type=region_argument, metavar="X0,Y0,X1,Y1", help="region of the fused surface, µm (specimens only)")
     rough.add_argument("--form", choices=FORMS, help="form removed first (default plane)")
     rough.add_argument("--s-filter-um", type=float, help="S-filter cut-off lambda_s, µm (default: none)")
     rough.add_argument("--l-filter-um", type=float, help="L-filter cut-off lambda_c, µm (default: none)")
     rough.add_argument("--direction-deg", type=float, help="direction of the 'along' Hurst exponents, degrees "
                                                             "counter-clockwise from +x (default 0); 'across' is 90 more")
-    rough.add_argument("--levelling-region", type=_region, metavar="X0,Y0,X1,Y1",
+    rough.add_argument("--levelling-region", type=region_argument, metavar="X0,Y0,X1,Y1",
                        help="fit the form on this region only, µm (specimen frame; for files x = column, y = row times the pixel size)")
     rough.add_argument("--window-px", type=float, help="matcher's smoothing width in pixels of the map (default: the matching "
                                                         "window for specimens and npz maps, 1 for X3P files)")
@@ -66,12 +66,22 @@ def add_parsers(commands) -> None:
 
     zoom = specimen_command("zoom", "tiles that show a region at a magnification, optical or digital", command_zoom)
     zoom.add_argument("specimen")
-    zoom.add_argument("--region", type=_region, required=True, metavar="X0,Y0,X1,Y1", help="region, µm")
+    zoom.add_argument("--region", type=region_argument, required=True, metavar="X0,Y0,X1,Y1", help="region, µm")
     zoom.add_argument("--magnification", type=float, required=True)
 
     tiles = specimen_command("tiles", "download a specimen's tileset.json and tiles", command_tiles)
     tiles.add_argument("specimen")
     tiles.add_argument("-o", "--output", required=True, help="directory to write into")
+
+    specimen_command("list", "the stored specimens and their ROIs", command_list)
+
+    report = specimen_command("report", "the measurement report of an ROI or region: HTML, and PDF with --pdf", command_report)
+    report.add_argument("specimen")
+    area = report.add_mutually_exclusive_group()
+    area.add_argument("--roi", help="ROI id (default: the overview)")
+    area.add_argument("--region", type=region_argument, metavar="X0,Y0,X1,Y1", help="region of the fused surface, µm")
+    report.add_argument("-o", "--output", required=True, metavar="REPORT.html", help="the HTML report")
+    report.add_argument("--pdf", metavar="REPORT.pdf", help="also the report as PDF")
 
 
 def command_reconstruct(args) -> int:
@@ -98,14 +108,6 @@ def _pair(text: str) -> tuple[float, float]:
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected X,Y in µm, got {text!r}") from None
     return x, y
-
-
-def _region(text: str) -> tuple[float, float, float, float]:
-    try:
-        x0, y0, x1, y1 = (float(v) for v in text.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected X0,Y0,X1,Y1 in µm, got {text!r}") from None
-    return x0, y0, x1, y1
 
 
 def command_profile(args) -> int:
@@ -252,4 +254,32 @@ def command_tiles(args) -> int:
             path.parent.mkdir(parents=True, exist_ok=True)
             path.write_bytes(client.get_tile(args.specimen, uri))
     print(json.dumps({"output": str(out), "tiles": len(uris)}) if args.json else f"wrote tileset.json and {len(uris)} tiles to {out}")
+    return 0
+
+
+def command_list(args) -> int:
+    with connected(args.server, args.data) as client:
+        specimens = client.list_specimens()
+    if args.json:
+        print(json.dumps({"specimens": specimens}))
+        return 0
+    for specimen in specimens:
+        rois = ", ".join(f"{roi['id']} ({roi['pixel_size_um']:.4g} µm/px)" for roi in specimen["rois"])
+        print(f"{specimen['id']}: {rois}")
+    return 0
+
+
+def command_report(args) -> int:
+    outputs = [Path(args.output)] + ([Path(args.pdf)] if args.pdf else [])
+    for path, suffix in zip(outputs, (".html", ".pdf")):
+        if path.suffix.lower() != suffix:
+            raise UsageError(f"{'-o' if suffix == '.html' else '--pdf'}: {path} must end in {suffix}")
+        path.parent.mkdir(parents=True, exist_ok=True)
+    with connected(args.server, args.data) as client:
+        for path in outputs:
+            client.report(args.specimen, path, roi=args.roi, region_um=args.region)
+    if args.json:
+        print(json.dumps({"outputs": [str(path) for path in outputs]}))
+    else:
+        print("wrote " + " and ".join(str(path) for path in outputs))
     return 0

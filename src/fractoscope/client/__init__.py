@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 from google.protobuf import json_format
 
+from fractoscope.errors import InvalidInputError
 from fractoscope.rpc import calls, wire
 from fractoscope.rpc.calls import HeightMap, ProgressCallback
 from fractoscope.rpc.channel import ChannelOwner, open_channel
@@ -249,6 +250,55 @@ class FractoscopeClient(ChannelOwner):
         with raised_as_client_errors():
             response = self._tiles.GetRoughness(request, timeout=self._timeout_s)
         return wire.response_to_roughness(response)
+
+
+    def export_area(
+        self, specimen_id: str, path: str | Path, *, roi: str | None = None, region_um: Region | None = None,
+        pixel_size_um: float | None = None, solid: bool = False, units: str = "um",
+    ) -> dict:
+        """Writes an ROI (default: the overview) or a region (x0, y0, x1, y1) µm of a specimen to
+        `path`, in the format its extension names (.x3p, .tif, .csv, .stl, .ply, .obj), at
+        `pixel_size_um` (default: the ROI's, or the finest in the region); `solid` and `units`
+        ("um" or "mm") for meshes. The file appears complete or not at all. Returns the grid
+        written (rows, cols, pixel_size_um, origin_um)."""
+        request = tiles_pb2.ExportRequest(specimen=wire.specimen_area(specimen_id, roi=roi, region_um=region_um))
+        return self._export(request, path, pixel_size_um=pixel_size_um, solid=solid, units=units)
+
+    def export_height_map(
+        self, z_um: np.ndarray, path: str | Path, *, pixel_size_um: float, sigma_um: np.ndarray | None = None,
+        report: dict | None = None, export_pixel_size_um: float | None = None, solid: bool = False, units: str = "um",
+    ) -> dict:
+        """Writes a height map ((rows, cols) µm, NaN unknown, grid step `pixel_size_um`) to `path`
+        as `export_area` does, area-averaged onto `export_pixel_size_um` when given; `report` (a
+        height map's matching report) puts its calibration into the file."""
+        request = tiles_pb2.ExportRequest(report=wire.report_to_message(report) if report else None)
+        request.height_map.pixel_size_um = pixel_size_um
+        wire.fill_raster(request.height_map.z_um, np.asarray(z_um, np.float32))
+        if sigma_um is not None:
+            wire.fill_raster(request.height_map.sigma_um, np.asarray(sigma_um, np.float32))
+        return self._export(request, path, pixel_size_um=export_pixel_size_um, solid=solid, units=units)
+
+    def _export(self, request: tiles_pb2.ExportRequest, path, *, pixel_size_um, solid, units) -> dict:
+        request.format = wire.EXPORT_FORMATS[wire.export_format_of(str(path))]
+        request.pixel_size_um = pixel_size_um or 0.0
+        request.solid = solid
+        if units not in wire.LENGTH_UNITS:
+            raise InvalidInputError("units", f"{units!r} is none of {sorted(wire.LENGTH_UNITS)}")
+        request.units = wire.LENGTH_UNITS[units]
+        with raised_as_client_errors():
+            first = calls.read_file(self._tiles.Export(request, timeout=self._timeout_s), path)
+        return _as_dict(first.grid)
+
+    def report(self, specimen_id: str, path: str | Path, *, roi: str | None = None, region_um: Region | None = None) -> Path:
+        """Writes the measurement report of an ROI (default: the overview) or a region to `path`,
+        HTML or PDF as its extension says (.html, .pdf)."""
+        suffix = Path(path).suffix.lower().lstrip(".")
+        if suffix not in wire.REPORT_FORMATS:
+            raise InvalidInputError("output", f"extension .{suffix} is neither .html nor .pdf")
+        request = tiles_pb2.GetReportRequest(area=wire.specimen_area(specimen_id, roi=roi, region_um=region_um), format=wire.REPORT_FORMATS[suffix])
+        with raised_as_client_errors():
+            calls.read_file(self._tiles.GetReport(request, timeout=self._timeout_s), path)
+        return Path(path)
 
 
 def _as_dict(message) -> dict:

@@ -1,100 +1,28 @@
-"""Specimen manifests: a JSON file naming a specimen and its ROIs, images relative to the file.
-
-    {"specimen": "steel-42",
-     "rois": [{"id": "overview", "left": "o_l.tif", "right": "o_r.tif", "magnification": 500},
-              {"id": "zoom", "left": "z_l.tif", "right": "z_r.tif", "magnification": 2000,
-               "parent": "overview", "center_um": "auto", "tilt_deg": [-5, 5], "pixel_size_um": 0.05,
-               "tilt_axis_deg": 90, "matching": {"propagate_at_full_resolution": true}}]}
-
-"matching" holds MatchingParameters fields (see the protobuf API) for that ROI's pair. The
-overview may name a "level" ("plane" or "substrate"): where height zero is (RoiSpec.level).
-"""
+"""Specimen manifest files: JSON naming a specimen and its ROIs (the format: rpc.manifest), the
+images' paths relative to the file."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
-from google.protobuf import json_format
-
 from fractoscope.errors import InvalidInputError
-from fractoscope.v1 import common_pb2, tiles_pb2
-
-_KEYS = {"id", "left", "right", "tilt_deg", "pixel_size_um", "tilt_axis_deg", "magnification", "parent", "center_um", "matching", "level"}
-LEVELS = ("plane", "substrate")
+from fractoscope.rpc.manifest import parse_manifest
+from fractoscope.v1 import tiles_pb2
 
 
 def load_manifest(path: str | Path) -> tuple[str, list[tiles_pb2.RoiSpec]]:
     """(specimen id, ROI messages with the images' bytes); InvalidInputError names the bad entry."""
     path = Path(path)
     try:
-        manifest = json.loads(path.read_text())
+        text = path.read_text()
     except OSError as error:
         raise InvalidInputError("manifest", f"cannot read {path}: {error.strerror}") from None
-    except json.JSONDecodeError as error:
-        raise InvalidInputError("manifest", f"{path} is not JSON: {error}") from None
-    if not isinstance(manifest, dict) or not isinstance(manifest.get("specimen"), str):
-        raise InvalidInputError("manifest.specimen", "the manifest must be an object with a specimen id")
-    entries = manifest.get("rois")
-    if not isinstance(entries, list) or not entries:
-        raise InvalidInputError("manifest.rois", "must be a non-empty list")
-    return manifest["specimen"], [_roi(entry, index, path.parent) for index, entry in enumerate(entries)]
 
-
-def _roi(entry, index: int, base: Path) -> tiles_pb2.RoiSpec:
-    where = f"manifest.rois[{index}]"
-    if not isinstance(entry, dict):
-        raise InvalidInputError(where, "must be an object")
-    unknown = set(entry) - _KEYS
-    if unknown:
-        raise InvalidInputError(where, f"unknown keys {sorted(unknown)}; known: {sorted(_KEYS)}")
-    for key in ("id", "left", "right"):
-        if not isinstance(entry.get(key), str):
-            raise InvalidInputError(f"{where}.{key}", "is required (a string)")
-    tilts = entry.get("tilt_deg")
-    if tilts is not None and not (isinstance(tilts, list) and len(tilts) == 2 and all(_number(t) for t in tilts)):
-        raise InvalidInputError(f"{where}.tilt_deg", "must be two numbers [t1, t2]")
-    spec = tiles_pb2.RoiSpec(id=entry["id"], parent=entry.get("parent", ""), magnification=_float(entry, "magnification", where, 0.0))
-    for side_index, side in enumerate(("left", "right")):
-        image_path = base / entry[side]
+    def read_image(name: str, field: str) -> bytes:
+        image_path = path.parent / name
         try:
-            content = image_path.read_bytes()
+            return image_path.read_bytes()
         except OSError as error:
-            raise InvalidInputError(f"{where}.{side}", f"cannot read {image_path}: {error.strerror}") from None
-        image = spec.images.add()  # filled in place: nesting a built message would copy the image
-        image.image.content, image.image.filename = content, image_path.name
-        if tilts is not None:
-            image.tilt_deg = float(tilts[side_index])
-    if "pixel_size_um" in entry:
-        spec.pixel_size_um = _float(entry, "pixel_size_um", where)
-    if "tilt_axis_deg" in entry:
-        spec.tilt_axis_deg = _float(entry, "tilt_axis_deg", where)
-    centre = entry.get("center_um", "auto")
-    if centre != "auto":
-        if not (isinstance(centre, list) and len(centre) == 2 and all(_number(v) for v in centre)):
-            raise InvalidInputError(f"{where}.center_um", 'must be [x, y] in µm or "auto"')
-        spec.center_um.CopyFrom(common_pb2.PointUm(x_um=float(centre[0]), y_um=float(centre[1])))
-    if "level" in entry:
-        if entry["level"] not in LEVELS or entry.get("parent"):
-            raise InvalidInputError(f"{where}.level", f"must be one of {', '.join(LEVELS)}, and is for the overview only")
-        spec.level = entry["level"]
-    if "matching" in entry:
-        if not isinstance(entry["matching"], dict):
-            raise InvalidInputError(f"{where}.matching", "must be an object of MatchingParameters fields")
-        try:
-            json_format.ParseDict(entry["matching"], spec.parameters)
-        except json_format.ParseError as error:
-            first_line = str(error).splitlines()[0]
-            raise InvalidInputError(f"{where}.matching", f"not MatchingParameters: {first_line}") from None
-    return spec
+            raise InvalidInputError(field, f"cannot read {image_path}: {error.strerror}") from None
 
-
-def _number(value) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool)
-
-
-def _float(entry: dict, key: str, where: str, default: float | None = None) -> float:
-    value = entry.get(key, default)
-    if not _number(value):
-        raise InvalidInputError(f"{where}.{key}", "must be a number")
-    return float(value)
+    return parse_manifest(text, read_image, source=str(path))

@@ -9,8 +9,9 @@ from dataclasses import dataclass
 from importlib import metadata
 
 from fractoscope.formats._validate import positive
+from fractoscope.stereo.pipeline import ARGUMENT, METADATA, TILT_CALIBRATION
 
-SOURCES = ("metadata", "argument", "tilt_calibration")
+SOURCES = (METADATA, ARGUMENT, TILT_CALIBRATION)
 """Where a calibration value came from: the SEM file's metadata, the caller's argument, or the
 tilt calibration of a series (which also gives its sigma)."""
 
@@ -66,6 +67,22 @@ class Calibration:
             "pixel_size_um": self.pixel_size_um,
             "pixel_size_source": self.pixel_size_source,
         }
+
+    @classmethod
+    def from_report(cls, report: dict) -> Calibration | None:
+        """The calibration a height map's matching report (MatchingReport's fields) states: each
+        tilt's sigma is the calibration's estimate where calibrated, else the nominal tilt
+        uncertainty of its parameters. None for a report that names no sources (one written
+        before they were reported)."""
+        tilts, sources = list(report.get("tilt_deg") or ()), list(report.get("tilt_source") or ())
+        if not sources or len(sources) != len(tilts) or not report.get("pixel_size_source"):
+            return None
+        nominal_sigma = float((report.get("parameters") or {}).get("tilt_uncertainty_deg") or math.nan)
+        calibrated_sigma = list(report.get("tilt_sigma_deg") or ())
+        if len(calibrated_sigma) != len(tilts):
+            calibrated_sigma = [math.nan] * len(tilts)
+        sigma = [calibrated if source == TILT_CALIBRATION else nominal_sigma for source, calibrated in zip(sources, calibrated_sigma)]
+        return cls(tuple(tilts), tuple(sources), tuple(sigma), report["pixel_size_um"], report["pixel_size_source"])
 
     @classmethod
     def from_dict(cls, values: dict) -> Calibration:

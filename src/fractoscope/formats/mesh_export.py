@@ -29,45 +29,12 @@ from scipy import ndimage
 
 from fractoscope.formats._validate import height_grid, positive
 from fractoscope.formats.calibration import software
+from fractoscope.mesh.grid import area_average, quad_triangles
 
 UNITS_PER_UM = {"um": 1.0, "mm": 1e-3}
 _TRIMESH_UNITS = {"um": "microns", "mm": "mm"}
 FILE_TYPES = ("stl", "ply", "obj")
 _STL_BLOCK_TRIANGLES = 1 << 20  # 50 MB a block
-
-
-def area_average(z_um: np.ndarray, *, factor: float) -> np.ndarray:
-    """Heights on a grid `factor` (>= 1, any real) times coarser: each output cell is the mean of
-    the measured heights it covers, weighted by the area covered (exact for fractional overlaps).
-
-    z_um: (rows, cols) heights, µm, NaN where unknown. Output: (floor(rows / factor),
-    floor(cols / factor)) float32, NaN where a cell covers no measured point; cell (i, j) spans
-    source pixels [i·factor, (i + 1)·factor) along rows and likewise along columns.
-    """
-    z_um = np.asarray(z_um)
-    if not (np.isfinite(factor) and factor >= 1):
-        raise ValueError(f"factor: must be at least 1, got {factor}")
-    shape = tuple(int(n // factor) for n in z_um.shape)
-    if min(shape) < 1:
-        raise ValueError(f"factor: {factor} leaves no cell of a {z_um.shape} map")
-    valid = np.isfinite(z_um)
-    sums, counts = np.zeros(z_um.shape), valid.astype(np.float64)  # float64: running sums of thousands
-    np.copyto(sums, z_um, where=valid)
-    for axis, size in enumerate(shape):
-        edges = np.arange(size + 1) * float(factor)
-        sums, counts = (_integrate_between(values, edges, axis) for values in (sums, counts))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(counts > 1e-6, sums / counts, np.nan).astype(np.float32)
-
-
-def _integrate_between(values: np.ndarray, edges: np.ndarray, axis: int) -> np.ndarray:
-    """Integrals of the piecewise-constant `values` (unit cells along `axis`) between consecutive
-    `edges`: differences of their running integral, which is linear within each cell."""
-    values = np.moveaxis(values, axis, -1)
-    running = np.concatenate([np.zeros(values.shape[:-1] + (1,)), np.cumsum(values, axis=-1)], axis=-1)
-    cell = np.minimum(edges.astype(np.int64), values.shape[-1] - 1)
-    at_edges = running[..., cell] + (edges - cell) * values[..., cell]
-    return np.moveaxis(np.diff(at_edges, axis=-1), -1, axis)
 
 
 def height_map_mesh(
@@ -87,7 +54,7 @@ def height_map_mesh(
     """
     grid = _Grid.of(z_um, pixel_size_um=pixel_size_um, units=units, solid=solid, base_thickness_um=base_thickness_um)
     rows, cols = grid.z.shape
-    faces = _grid_faces(grid.complete, cols)
+    faces = quad_triangles(grid.complete, cols)
     vertices = grid.points(0, rows)
     used = np.zeros(grid.z.shape, dtype=bool)  # a measured point in no complete quad would be a stray vertex
     for corner in (used[:-1, :-1], used[:-1, 1:], used[1:, :-1], used[1:, 1:]):
@@ -205,17 +172,6 @@ class _Grid:
         return points.reshape(-1, 3)
 
 
-def _grid_faces(complete: np.ndarray, cols: int) -> np.ndarray:
-    """(M, 3) int32: two triangles per True quad of `complete` (rows - 1, cols - 1), the grid's
-    point (r, c) numbered r·cols + c. Seen from above, a quad's (top-left, bottom-left, top-right)
-    and (top-right, bottom-left, bottom-right) turn counter-clockwise."""
-    corner = np.arange(complete.shape[0], dtype=np.int32)[:, None] * cols + np.arange(cols - 1, dtype=np.int32)
-    corner = corner.reshape(-1) if complete.all() else corner[complete]
-    faces = np.empty((len(corner), 6), dtype=np.int32)
-    np.add(corner[:, None], np.array([0, cols, 1, 1, cols, cols + 1], dtype=np.int32), out=faces)
-    return faces.reshape(-1, 3)
-
-
 def _border(rows: int, cols: int) -> np.ndarray:
     """The grid's border points (numbered r·cols + c), clockwise seen from above: far edge, right,
     near edge, left."""
@@ -243,7 +199,7 @@ def _triangle_strips(grid: _Grid, *, triangles: int) -> Iterator[tuple[np.ndarra
     strip_rows = max(1, triangles // (2 * (cols - 1)))
     for start in range(0, rows - 1, strip_rows):
         stop = min(start + strip_rows, rows - 1)  # quads of rows start to stop - 1, points to stop
-        faces = _grid_faces(grid.complete[start:stop], cols)
+        faces = quad_triangles(grid.complete[start:stop], cols)
         points = grid.points(start, stop + 1)
         yield points, faces
         if grid.base_z is not None:

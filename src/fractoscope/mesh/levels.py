@@ -29,6 +29,7 @@ import fast_simplification
 import meshoptimizer
 import numpy as np
 
+from fractoscope.mesh.grid import cell_sums, quad_triangles
 from fractoscope.mesh.walls import WALL_SIGMA_FACTOR, grid_wall_triangles, wall_triangles, wall_vertices, within_distance
 
 LOD_TILE_MAX_CELLS = 254  # 255 x 255 vertices: indices fit 16 bits below the restart value 65535
@@ -98,13 +99,13 @@ def cluster_levels(z_um: np.ndarray, texture: np.ndarray, *, count: int, sigma_u
     # Sums per cell, aggregated 2x2 from level to level: heights, row and column positions,
     # measured pixels (exact in float32 up to 2**24), grey values, all pixels, sigmas.
     sums = [
-        _sum_2x2(np.where(measured, z_um, 0.0).astype(np.float64)),
-        _sum_2x2(np.where(measured, rows, 0.0)),
-        _sum_2x2(np.where(measured, cols, 0.0)),
-        _sum_2x2(measured.astype(np.float32)),
-        _sum_2x2(texture.astype(np.float32)),
-        _sum_2x2(np.ones(z_um.shape, np.float32)),
-        _sum_2x2(sigma),
+        cell_sums(np.where(measured, z_um, 0.0).astype(np.float64), factor=2, partial=True),
+        cell_sums(np.where(measured, rows, 0.0), factor=2, partial=True),
+        cell_sums(np.where(measured, cols, 0.0), factor=2, partial=True),
+        cell_sums(measured.astype(np.float32), factor=2, partial=True),
+        cell_sums(texture.astype(np.float32), factor=2, partial=True),
+        cell_sums(np.ones(z_um.shape, np.float32), factor=2, partial=True),
+        cell_sums(sigma, factor=2, partial=True),
     ]
     for level in range(1, count):
         z_sum, row_sum, col_sum, weight, texture_sum, area, sigma_sum = sums
@@ -121,17 +122,8 @@ def cluster_levels(z_um: np.ndarray, texture: np.ndarray, *, count: int, sigma_u
                     sigma_um=np.where(has, sigma_sum / weight, 0.0),
                 )
             )
-        sums = [_sum_2x2(values) for values in sums]
+        sums = [cell_sums(values, factor=2, partial=True) for values in sums]
     return levels
-
-
-def _sum_2x2(values: np.ndarray) -> np.ndarray:
-    """Sums of 2x2 blocks (zero-padded to even size): four times OpenCV's area average."""
-    rows, cols = values.shape
-    if rows % 2 or cols % 2:
-        values = cv2.copyMakeBorder(values, 0, rows % 2, 0, cols % 2, cv2.BORDER_CONSTANT, value=0)
-    half = (values.shape[1] // 2, values.shape[0] // 2)
-    return 4.0 * cv2.resize(values, half, interpolation=cv2.INTER_AREA)
 
 
 def level_count_for(shape: tuple[int, int]) -> int:
@@ -279,21 +271,16 @@ def _grid_tile_walls(grid_walls: tuple[np.ndarray, np.ndarray], cluster: Cluster
 @functools.lru_cache(maxsize=16)
 def _complete_grid_triangles(shape: tuple[int, int]) -> np.ndarray:
     """Triangles of a fully measured grid block (shared by every such block of one shape)."""
-    triangles = _quad_triangles(np.arange(shape[0] * shape[1]).reshape(shape))
+    triangles = quad_triangles(np.ones((shape[0] - 1, shape[1] - 1), bool), shape[1])
     triangles.setflags(write=False)
     return triangles
 
 
 def _quad_triangles(index: np.ndarray) -> np.ndarray:
-    """Two triangles per quad whose four corners have a vertex index (>= 0)."""
-    top_left, top_right = index[:-1, :-1], index[:-1, 1:]
-    bottom_left, bottom_right = index[1:, :-1], index[1:, 1:]
-    complete = (top_left >= 0) & (top_right >= 0) & (bottom_left >= 0) & (bottom_right >= 0)
-    a, b, c, d = (corner[complete] for corner in (top_left, top_right, bottom_left, bottom_right))
-    # Seen from above (+z up, rows down the image) (a, c, b) and (b, c, d) turn counter-clockwise.
-    # A quad's two triangles follow each other, row by row: the order meshoptimizer's index codec
-    # compresses best (half the bytes of meshoptimizer's own vertex-cache order on these grids).
-    return np.stack([np.column_stack([a, c, b]), np.column_stack([b, c, d])], axis=1).reshape(-1, 3)
+    """Two triangles per quad whose four corners have a vertex index (>= 0), in those indices."""
+    known = index >= 0
+    complete = known[:-1, :-1] & known[:-1, 1:] & known[1:, :-1] & known[1:, 1:]
+    return index.reshape(-1)[quad_triangles(complete, index.shape[1])]
 
 
 def _decimated_mesh(cluster: ClusterLevel, row_cells, col_cells):

@@ -3,8 +3,10 @@ the tile service, which calls matching and meshing. Numpy and protobuf only."""
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import grpc
 import numpy as np
@@ -120,3 +122,31 @@ def read_mesh(
         elif event == "filter_report":
             report = {name: getattr(response.filter_report, name) for name in FILTER_COUNTS}
     return tiles, report
+
+
+CHUNK_BYTES = 1 << 20  # a file stream's chunks, at most
+
+
+def read_file(responses: Iterable, path: str | os.PathLike):
+    """Writes a file stream (a FileHeader, then its chunks in order; ExportResponse or
+    GetReportResponse) to `path` and returns its first response. The file appears complete or
+    not at all: it is written beside `path` and renamed into place once every byte has come."""
+    path = Path(path)
+    partial = path.with_name(f".{path.name}.part")
+    first, received = None, 0
+    try:
+        with open(partial, "wb") as out:
+            for response in responses:
+                if response.WhichOneof("event") == "file":
+                    first = response
+                elif first is not None:
+                    out.write(response.chunk)
+                    received += len(response.chunk)
+        if first is None:
+            raise ClientError(grpc.StatusCode.INTERNAL, "the server closed the stream without a file")
+        if received != first.file.size_bytes:
+            raise ClientError(grpc.StatusCode.INTERNAL, f"the stream carried {received} of the file's {first.file.size_bytes} bytes")
+        os.replace(partial, path)
+    finally:
+        partial.unlink(missing_ok=True)
+    return first

@@ -5,20 +5,26 @@ from __future__ import annotations
 
 import contextlib
 import math
+from collections.abc import Iterator
+from pathlib import Path
 
 from fractoscope.errors import InvalidInputError
 from fractoscope.rpc import wire
+from fractoscope.rpc.calls import CHUNK_BYTES
+from fractoscope.formats.calibration import Calibration
 from fractoscope.sem.image import nominal_magnification
+from fractoscope.specimen import exports
 from fractoscope.specimen.build import RoiRequest
+from fractoscope.specimen.exports import ExportedFile
 from fractoscope.specimen.quadtree import TileRecord
 from fractoscope.specimen.queries import ChainRequest, SpecimenProfile, checked_region
-from fractoscope.specimen.store import Specimen
+from fractoscope.specimen.store import Specimen, SpecimenStore
 from fractoscope.stereo.geometry import validate_pixel_size_um
 from fractoscope.surface.datum import LEVELS
 from fractoscope.surface.areal_parameters import UNITS
 from fractoscope.surface.roughness import SurfaceAnalysis, SurfaceChain
 from fractoscope.units import METRES_PER_UM
-from fractoscope.v1 import tiles_pb2
+from fractoscope.v1 import common_pb2, tiles_pb2
 
 
 def specimen_message(specimen: Specimen) -> tiles_pb2.Specimen:
@@ -74,7 +80,8 @@ def roi_request(spec: tiles_pb2.RoiSpec, index: int) -> RoiRequest:
         if not all(math.isfinite(v) for v in centre):
             raise InvalidInputError(f"rois[{index}].center_um", "must be finite")
     magnification = spec.magnification or nominal_magnification(spec.images[0].image.content) or 0.0
-    return RoiRequest(spec.id, spec.parent, magnification, centre, spec.level)
+    images = tuple((item.image.filename, item.image.content) for item in spec.images)
+    return RoiRequest(spec.id, spec.parent, magnification, centre, spec.level, images)
 
 
 def region(message: tiles_pb2.RegionUm, field: str) -> tuple[float, float, float, float]:
@@ -162,3 +169,53 @@ def profile_response(found: SpecimenProfile) -> tiles_pb2.GetProfileResponse:
         response.cutoffs_from_iso_table = made.cutoffs.from_iso_table
         response.spacing_within_iso = made.cutoffs.sampling_ok
     return response
+
+
+def streamed_file(first, path: Path, *, file_name: str, media_type: str) -> Iterator:
+    """A file's stream: `first` (a fresh ExportResponse or GetReportResponse, which may carry more)
+    with its FileHeader, then the file's bytes in chunks of calls.CHUNK_BYTES, read as they go."""
+    first.file.CopyFrom(tiles_pb2.FileHeader(file_name=file_name, media_type=media_type, size_bytes=path.stat().st_size))
+    yield first
+    with open(path, "rb") as source:
+        while chunk := source.read(CHUNK_BYTES):
+            yield type(first)(chunk=chunk)
+
+
+def area_of(message: tiles_pb2.SpecimenArea, field: str) -> dict:
+    """A SpecimenArea as the keyword arguments roi / region_um (neither: the overview), checked;
+    errors name `field`'s members."""
+    kind = message.WhichOneof("area")
+    if kind == "region":
+        return {"roi": None, "region_um": region(message.region, f"{field}.region")}
+    return {"roi": message.roi if kind == "roi" else None, "region_um": None}
+
+
+def export(request: tiles_pb2.ExportRequest, directory: Path, store: SpecimenStore) -> ExportedFile:
+    """The file an ExportRequest asks for, written in `directory`."""
+    options = {
+        "file_format": wire.export_format_name(request.format),
+        "solid": request.solid,
+        "units": wire.length_unit_name(request.units),
+    }
+    pixel_size_um = request.pixel_size_um or None
+    if request.WhichOneof("source") == "specimen":
+        area = request.specimen
+        return exports.export_area(store.load(area.specimen_id), directory, **area_of(area, "specimen"), pixel_size_um=pixel_size_um, **options)
+    if request.WhichOneof("source") != "height_map":
+        raise InvalidInputError("source", "give a specimen area or a height map")
+    height_map = request.height_map
+    z_um = wire.raster_to_array(height_map.z_um, field="height_map.z_um")
+    sigma_um = wire.raster_to_array(height_map.sigma_um, field="height_map.sigma_um") if height_map.HasField("sigma_um") else None
+    calibration = Calibration.from_report(wire.message_to_report(request.report)) if request.HasField("report") else None
+    return exports.export_height_map(
+        directory, z_um, pixel_size_um=validate_pixel_size_um(height_map.pixel_size_um, field="height_map.pixel_size_um"),
+        sigma_um=sigma_um, calibration=calibration, export_pixel_size_um=pixel_size_um, **options,
+    )
+
+
+def export_grid(exported: ExportedFile) -> tiles_pb2.ExportGrid:
+    rows, cols = exported.shape
+    return tiles_pb2.ExportGrid(
+        rows=rows, cols=cols, pixel_size_um=exported.pixel_size_um,
+        origin_um=common_pb2.PointUm(x_um=exported.origin_um[0], y_um=exported.origin_um[1]),
+    )

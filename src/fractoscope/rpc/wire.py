@@ -4,6 +4,8 @@ only: both ends of the wire use them."""
 
 from __future__ import annotations
 
+from pathlib import PurePath
+
 import numpy as np
 from google.protobuf import json_format
 
@@ -48,16 +50,27 @@ def raster_to_array(raster: common_pb2.Raster, *, field: str = "raster") -> np.n
 
 REPORT_FIELDS = [field.name for field in matching_pb2.MatchingReport.DESCRIPTOR.fields]
 _REPEATED_REPORT_FIELDS = {field.name for field in matching_pb2.MatchingReport.DESCRIPTOR.fields if field.is_repeated}
+_MESSAGE_REPORT_FIELDS = {field.name for field in matching_pb2.MatchingReport.DESCRIPTOR.fields if field.message_type is not None}
 
 
 def report_to_message(report: dict) -> matching_pb2.MatchingReport:
-    """The `report` dict of a height map (keys as in MatchingReport) to its message."""
+    """The `report` dict of a height map (keys as in MatchingReport; `parameters` a dict of
+    MatchingParameters fields) to its message."""
     return matching_pb2.MatchingReport(**{key: report[key] for key in REPORT_FIELDS if key in report})
 
 
 def message_to_report(message: matching_pb2.MatchingReport) -> dict:
-    """A MatchingReport message to a plain dict (lists for repeated fields)."""
-    return {key: list(getattr(message, key)) if key in _REPEATED_REPORT_FIELDS else getattr(message, key) for key in REPORT_FIELDS}
+    """A MatchingReport message to a plain dict (lists for repeated fields, dicts of every field for
+    messages), ready for JSON."""
+    report = {}
+    for key in REPORT_FIELDS:
+        value = getattr(message, key)
+        if key in _REPEATED_REPORT_FIELDS:
+            value = list(value)
+        elif key in _MESSAGE_REPORT_FIELDS:
+            value = {field.name: getattr(value, field.name) for field in value.DESCRIPTOR.fields}
+        report[key] = value
+    return report
 
 
 Region = tuple[float, float, float, float]
@@ -192,6 +205,56 @@ def response_to_roughness(response: tiles_pb2.GetRoughnessResponse) -> dict:
     values["hurst_note"] = response.hurst_note
     values["psd"] = {"q_per_um": list(response.psd_q_per_um), "c_um4": [_number(v) for v in response.psd_um4]}
     return values
+
+
+# Export formats by name (as formats.exports names them and file extensions say) and mesh units.
+EXPORT_FORMATS = {
+    "x3p": tiles_pb2.EXPORT_FORMAT_X3P, "tif": tiles_pb2.EXPORT_FORMAT_TIFF, "csv": tiles_pb2.EXPORT_FORMAT_CSV,
+    "stl": tiles_pb2.EXPORT_FORMAT_STL, "ply": tiles_pb2.EXPORT_FORMAT_PLY, "obj": tiles_pb2.EXPORT_FORMAT_OBJ,
+}  # fmt: skip
+_EXPORT_NAMES = {code: name for name, code in EXPORT_FORMATS.items()}
+LENGTH_UNITS = {"um": tiles_pb2.LENGTH_UNIT_MICROMETRE, "mm": tiles_pb2.LENGTH_UNIT_MILLIMETRE}
+_UNIT_NAMES = {code: name for name, code in LENGTH_UNITS.items()} | {tiles_pb2.LENGTH_UNIT_UNSPECIFIED: "um"}
+REPORT_FORMATS = {"html": tiles_pb2.REPORT_FORMAT_HTML, "pdf": tiles_pb2.REPORT_FORMAT_PDF}
+_REPORT_NAMES = {code: name for name, code in REPORT_FORMATS.items()} | {tiles_pb2.REPORT_FORMAT_UNSPECIFIED: "html"}
+
+
+def export_format_of(path: str) -> str:
+    """The export format a file name asks for by its extension (.tiff is tif)."""
+    suffix = PurePath(path).suffix.lower().lstrip(".")
+    name = "tif" if suffix == "tiff" else suffix
+    if name not in EXPORT_FORMATS:
+        raise InvalidInputError("output", f"extension {'.' + suffix if suffix else '(none)'} is none of "
+                                          f"{', '.join('.' + n for n in EXPORT_FORMATS)} (.tiff too)")
+    return name
+
+
+def export_format_name(code: int) -> str:
+    if code not in _EXPORT_NAMES:
+        raise InvalidInputError("format", "must be one of EXPORT_FORMAT_X3P, _TIFF, _CSV, _STL, _PLY, _OBJ")
+    return _EXPORT_NAMES[code]
+
+
+def length_unit_name(code: int) -> str:
+    if code not in _UNIT_NAMES:
+        raise InvalidInputError("units", "must be LENGTH_UNIT_MICROMETRE or LENGTH_UNIT_MILLIMETRE")
+    return _UNIT_NAMES[code]
+
+
+def report_format_name(code: int) -> str:
+    if code not in _REPORT_NAMES:
+        raise InvalidInputError("format", "must be REPORT_FORMAT_HTML or REPORT_FORMAT_PDF")
+    return _REPORT_NAMES[code]
+
+
+def specimen_area(specimen_id: str, *, roi: str | None = None, region_um: Region | None = None) -> tiles_pb2.SpecimenArea:
+    """A SpecimenArea: an ROI, a region (x0, y0, x1, y1) µm, or neither (the overview)."""
+    area = tiles_pb2.SpecimenArea(specimen_id=specimen_id)
+    if region_um is not None:
+        area.region.CopyFrom(region_message(region_um))
+    elif roi is not None:
+        area.roi = roi
+    return area
 
 
 def profile_parameters_message(values: dict) -> tiles_pb2.ProfileParameters:

@@ -184,7 +184,8 @@ def main(argv: list[str] | None = None) -> None:
     http = None
     if store is not None and args.http_address:
         host, _, http_port = args.http_address.rpartition(":")
-        http = start_http_server(store, host or "0.0.0.0", int(http_port), tokens=tokens)
+        http = start_http_server(store, host or "0.0.0.0", int(http_port), tokens=tokens, grpc_address=f"127.0.0.1:{port}",
+                                 max_upload_bytes=args.max_message_mb * 1024 * 1024)
         _log.info(f"serving tilesets over HTTP on port {http.server_port}")
     stopped = threading.Event()
 

@@ -19,7 +19,9 @@ from fractoscope.progress import ProgressCallback, silent
 from fractoscope.specimen import registration
 from fractoscope.specimen.fusion import FusedSurface, PlacedRoi
 from fractoscope.specimen.quadtree import QuadtreeLayout, TileKey, TileRecord, TileSamples, build_tiles
-from fractoscope.specimen.store import RoiEntry, Specimen, SpecimenStore, validate_id, write_description, write_roi_arrays
+from fractoscope.specimen.store import (
+    RoiEntry, Specimen, SpecimenStore, validate_id, write_description, write_roi_arrays, write_roi_views,
+)
 from fractoscope.stereo import geometry
 from fractoscope.stereo.pipeline import MatchingOptions
 from fractoscope.surface import datum, filtering
@@ -28,14 +30,16 @@ from fractoscope.surface import datum, filtering
 @dataclass(frozen=True)
 class RoiRequest:
     """One ROI to build: its parent ('' for the overview), magnification, centre in the parent's
-    frame (x, y) µm or None to register it automatically, and for the overview the datum its
-    heights are levelled on ('' none, else one of surface.datum.LEVELS)."""
+    frame (x, y) µm or None to register it automatically, for the overview the datum its heights
+    are levelled on ('' none, else one of surface.datum.LEVELS), and its image files as given
+    ((file name, bytes), reference first), which the specimen keeps with its heights."""
 
     id: str
     parent: str = ""
     magnification: float = 0.0
     center_um: tuple[float, float] | None = None
     level: str = ""
+    images: tuple[tuple[str, bytes], ...] = ()
 
 
 @dataclass(frozen=True)
@@ -115,6 +119,8 @@ def reconstruct_specimen(
         records = _write_tiles(staging, surface, layout, mesh_tile, report)
         for roi in placed.values():
             write_roi_arrays(staging, roi)
+        for roi, entry in zip(ordered, entries):
+            entry.views = write_roi_views(staging, roi.id, roi.images)
         (staging / "tileset.json").write_text(json.dumps(tileset_json(layout, records)))
         write_description(staging, specimen_id=specimen_id, request_id=request_id, rois=entries, layout=layout, tiles=records)
     report(1.0, "stored")
@@ -133,10 +139,11 @@ def _place(
     entries: list[RoiEntry] = []
     for roi in ordered:
         heights = measured[roi.id]
-        z_um = filtering.filter_heights(heights.z_um).z_um.astype(np.float32)
+        filtered = filtering.filter_heights(heights.z_um, sigma_um=heights.sigma_um)
+        z_um = filtered.z_um.astype(np.float32)
         texture = _grey8(heights.texture)
         entry = RoiEntry(roi.id, roi.parent, roi.magnification, heights.pixel_size_um, (0.0, 0.0), z_um.shape, matching=heights.report)
-        sigma_um = _matching_sigma(heights, z_um, entry)
+        sigma_um = _matching_sigma(heights, z_um, filtered.sigma_um, entry)
         walls = _wall_settings(heights, sigma_um)
         if roi.level:
             try:
@@ -160,17 +167,17 @@ def _place(
     return placed, entries
 
 
-def _matching_sigma(heights: MeasuredHeights, z_um: np.ndarray, entry: RoiEntry) -> np.ndarray | None:
-    """The matching-noise part of the heights' sigma (float32 µm, NaN where z_um is; points the
-    filter filled get the median), with the relative tilt uncertainty it leaves out set on
+def _matching_sigma(heights: MeasuredHeights, z_um: np.ndarray, sigma_um: np.ndarray | None, entry: RoiEntry) -> np.ndarray | None:
+    """The matching-noise part of the filtered heights' sigma (float32 µm, NaN where z_um is;
+    points without one get the median), with the relative tilt uncertainty it leaves out set on
     `entry`: surface analysis propagates the two apart. The tilt uncertainty is the one the
     pipeline's sigma used (the report's tilt_uncertainty_deg)."""
     tilts = heights.report.get("tilt_deg") or []
-    if heights.sigma_um is None or len(tilts) < 2:
+    if sigma_um is None or len(tilts) < 2:
         return None
     tilt_uncertainty = heights.report.get("tilt_uncertainty_deg", MatchingOptions().tilt_uncertainty_deg)
     entry.tilt_rel_uncertainty = geometry.series_relative_height_error(tilts, tilt_uncertainty_deg=tilt_uncertainty)
-    noise = geometry.matching_sigma_um(heights.z_um, heights.sigma_um, relative_height_error=entry.tilt_rel_uncertainty)
+    noise = geometry.matching_sigma_um(z_um, sigma_um, relative_height_error=entry.tilt_rel_uncertainty)
     known = np.isfinite(noise)
     fill = np.float32(np.median(noise[known])) if known.any() else np.float32(np.nan)
     return np.where(np.isfinite(z_um), np.where(known, noise, fill), np.nan).astype(np.float32)

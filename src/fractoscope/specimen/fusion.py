@@ -18,6 +18,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from fractoscope.mesh.grid import cell_sums
+
 FEATHER_PX = 32
 
 
@@ -28,9 +30,11 @@ class PlacedRoi:
     z_um: (rows, cols) float32 heights, µm, already aligned to its parent; NaN unknown.
     texture: (rows, cols) uint8 grey SEM image on the same grid.
     origin_um: (x, y) of pixel (0, 0) in the specimen frame, µm.
-    sigma_um: (rows, cols) float32 one-sigma matching noise of the heights, µm (None: not known).
+    sigma_um: (rows, cols) float32 one-sigma matching noise of the heights (the tilt error, which
+        scales all heights together, left out), µm, NaN unknown; None when not known at all (a
+        specimen stored before it was kept).
     max_slope: the steepest slope its pair could measure (mesh.walls; None: unknown, no walls).
-    noise_um: the typical local uncertainty of its heights, µm (median of their local sigma).
+    noise_um: the typical local uncertainty of its heights, µm (median of sigma_um).
     """
 
     id: str
@@ -59,11 +63,15 @@ def footprint_um(origin_um: tuple[float, float], shape: tuple[int, int], pixel_s
 @dataclass(frozen=True)
 class FusedSamples:
     """Fused values at sample points (any shape): heights µm (NaN unknown), texture 0-255 float32,
-    and the index (into FusedSurface.rois) of the ROI that contributes most, -1 where none."""
+    the index (into FusedSurface.rois) of the ROI that contributes most (-1 where none), and the
+    heights' one-sigma matching noise µm, blended as the heights are (NaN unknown). A finer ROI's
+    sigma is averaged over the sampling cell, not reduced by it: an upper bound for errors that
+    correlate over a matching window."""
 
     z_um: np.ndarray
     texture: np.ndarray
     source: np.ndarray
+    sigma_um: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -72,6 +80,7 @@ class _PyramidLevel:
     texture: np.ndarray
     weight: np.ndarray
     texture_weight: np.ndarray
+    sigma_um: np.ndarray
 
 
 class FusedSurface:
@@ -106,6 +115,7 @@ class FusedSurface:
         texture = np.zeros(flat_x.shape, np.float32)
         pictured = np.zeros(flat_x.shape, bool)
         source = np.full(flat_x.shape, -1, np.int32)
+        sigma = np.full(flat_x.shape, np.nan, np.float32)
         for index, (roi, pyramid) in enumerate(zip(self.rois, self._pyramids)):
             if not overlaps(roi.extent_um, (flat_x.min(), flat_y.min(), flat_x.max(), flat_y.max())):
                 continue
@@ -121,14 +131,16 @@ class FusedSurface:
             roi_weight[~np.isfinite(roi_z)] = 0.0
             roi_texture = _remap(arrays.texture, maps, 0.0)
             roi_texture_weight = _remap(arrays.texture_weight, maps, 0.0)
+            roi_sigma = _remap(arrays.sigma_um, maps, np.nan)
             unknown = ~np.isfinite(z)
             blend = np.where(unknown & (roi_weight > 0), 1.0, roi_weight).astype(np.float32)
             z = np.where(blend > 0, np.where(unknown, roi_z, z * (1 - blend) + np.nan_to_num(roi_z) * blend), z)
+            sigma = np.where(blend > 0, np.where(unknown, roi_sigma, sigma * (1 - blend) + roi_sigma * blend), sigma)
             texture_blend = np.where(~pictured & (roi_texture_weight > 0), 1.0, roi_texture_weight).astype(np.float32)
             texture = texture * (1 - texture_blend) + roi_texture * texture_blend
             pictured |= roi_texture_weight > 0
             source = np.where(blend >= 0.5, index, source)
-        return FusedSamples(*(values.ravel()[: x_um.size].reshape(x_um.shape) for values in (z, texture, source)))
+        return FusedSamples(*(values.ravel()[: x_um.size].reshape(x_um.shape) for values in (z, texture, source, sigma)))
 
 
 def overlaps(a, b) -> bool:
@@ -156,22 +168,29 @@ def _border_weight(valid: np.ndarray) -> np.ndarray:
 
 
 def _pyramid(roi: PlacedRoi) -> list[_PyramidLevel]:
-    """Levels 0, 1, ... of 2x2 averages (unknown heights ignored) down to about 64 pixels."""
+    """Levels 0, 1, ... of 2x2 averages (unknown heights and sigmas ignored) down to about 64
+    pixels; a level's pixel is unknown where less than a quarter of what it covers is known."""
     valid = np.isfinite(roi.z_um)
-    weight = _border_weight(valid)
+    with_sigma = valid & np.isfinite(roi.sigma_um) if roi.sigma_um is not None else np.zeros_like(valid)
+    z, counts = np.where(valid, roi.z_um, 0).astype(np.float32), valid.astype(np.float32)
+    sigma, sigma_counts = (np.where(with_sigma, roi.sigma_um, 0).astype(np.float32) if roi.sigma_um is not None
+                           else np.zeros(valid.shape, np.float32)), with_sigma.astype(np.float32)
+    texture, weight = roi.texture.astype(np.float32), _border_weight(valid)
     texture_weight = _border_weight(np.ones(valid.shape, bool))
-    z = np.where(valid, roi.z_um, 0).astype(np.float32)
-    counts = valid.astype(np.float32)
-    texture = roi.texture.astype(np.float32)
-    levels = [_PyramidLevel(np.where(valid, z, np.nan).astype(np.float32), texture, weight.astype(np.float32), texture_weight)]
+    levels = [_PyramidLevel(np.where(valid, z, np.nan), texture, weight, texture_weight, np.where(with_sigma, sigma, np.nan))]
     while min(counts.shape) >= 128:
-        rows, cols = (counts.shape[0] // 2) * 2, (counts.shape[1] // 2) * 2
-        size = (cols // 2, rows // 2)
-        z_sum = cv2.resize(z[:rows, :cols] * counts[:rows, :cols], size, interpolation=cv2.INTER_AREA)
-        counts = cv2.resize(counts[:rows, :cols], size, interpolation=cv2.INTER_AREA)
-        z = np.where(counts > 0, z_sum / np.maximum(counts, 1e-6), 0).astype(np.float32)
-        texture = cv2.resize(texture[:rows, :cols], size, interpolation=cv2.INTER_AREA)
-        weight = cv2.resize(weight[:rows, :cols], size, interpolation=cv2.INTER_AREA)
-        texture_weight = cv2.resize(texture_weight[:rows, :cols], size, interpolation=cv2.INTER_AREA)
-        levels.append(_PyramidLevel(np.where(counts > 0.25, z, np.nan).astype(np.float32), texture, weight, texture_weight))
+        z, counts = _halved(z, counts)
+        sigma, sigma_counts = _halved(sigma, sigma_counts)
+        texture, weight, texture_weight = (cell_sums(values, factor=2) / 4 for values in (texture, weight, texture_weight))
+        kept = counts > 0.25
+        levels.append(_PyramidLevel(np.where(kept, z, np.nan), texture, weight, texture_weight,
+                                    np.where(kept & (sigma_counts > 0), sigma, np.nan)))
     return levels
+
+
+def _halved(values: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The count-weighted mean of every 2x2 block (0 where the block has no count) and the
+    blocks' mean counts (float32; an odd last row or column is dropped)."""
+    sums = cell_sums(values * counts, factor=2)
+    counts = cell_sums(counts, factor=2) / 4
+    return np.where(counts > 0, sums / 4 / np.maximum(counts, 1e-6), 0).astype(np.float32), counts

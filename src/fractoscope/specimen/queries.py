@@ -1,5 +1,5 @@
-"""Profiles and roughness of a stored specimen or a height map, validated; shared by the gRPC and HTTP
-endpoints and the command line."""
+"""Profiles, roughness and the heights of an area of a stored specimen or a height map, validated;
+shared by the gRPC and HTTP endpoints, the command line, the exports and the report."""
 
 from __future__ import annotations
 
@@ -9,12 +9,16 @@ from dataclasses import dataclass
 import numpy as np
 
 from fractoscope.errors import InvalidInputError
-from fractoscope.specimen.store import Specimen
+from fractoscope.formats.calibration import Calibration
+from fractoscope.mesh.grid import area_average
+from fractoscope.specimen.store import RoiEntry, Specimen
 from fractoscope.stereo.matching import DEFAULT_WINDOW_PX
 from fractoscope.surface import profile_parameters, profiles, roughness, scaling
 
-MAX_REGION_SAMPLES = 2048 * 2048
+MAX_REGION_SAMPLES = 2048 * 2048  # what roughness is computed on, at most
+MAX_EXPORT_SAMPLES = 8192 * 8192  # what an export samples, at most (z and sigma: 512 MB)
 MAX_PROFILE_SAMPLES = 1_000_000
+_SAMPLING_STRIP = 1 << 20  # points sampled at once: bounds the temporaries of a large region
 
 
 @dataclass(frozen=True)
@@ -114,7 +118,9 @@ def profile_along(
             z_um[regular], spacing_um=spacing_um, form=form, lambda_s_um=lambdas[0], lambda_c_um=lambdas[1]
         )
     except ValueError as error:
-        raise InvalidInputError("s_filter_um" if "lambda_s" in str(error) else "form", str(error)) from None
+        message = str(error)
+        field = "s_filter_um" if message.startswith("lambda_s") else "l_filter_um" if message.startswith("lambda_c") else "form"
+        raise InvalidInputError(field, message) from None
     r_um = np.full(z_um.shape, np.nan)
     r_um[regular] = made.r_um
     parameters = profile_parameters.profile_parameters(made.r_um, spacing_um=spacing_um)
@@ -126,10 +132,11 @@ def height_statistics(specimen: Specimen, region_um) -> dict:
     µm, sampled at the finest pixel size there (coarser if that would exceed MAX_REGION_SAMPLES):
     mean, median, std, min, max (µm; None when nothing is measured), the number of measured
     samples, their share of all samples and the sampling pixel size."""
-    x0, y0, x1, y1 = checked_region(region_um, allow_point=True)
+    x0, y0, x1, y1 = _within_specimen(specimen, checked_region(region_um, allow_point=True), allow_point=True)
     cell_um = specimen.finest_pixel_size_um((x0, y0, x1, y1))
     cell_um = max(cell_um, math.sqrt((x1 - x0) * (y1 - y0) / MAX_REGION_SAMPLES))
-    x_um, y_um = np.meshgrid(np.arange(x0, x1 + 1e-9, cell_um), np.arange(y0, y1 + 1e-9, cell_um))
+    cols, rows = int((x1 - x0) / cell_um + 1e-9) + 1, int((y1 - y0) / cell_um + 1e-9) + 1
+    x_um, y_um = np.meshgrid(x0 + np.arange(cols) * cell_um, y0 + np.arange(rows) * cell_um)
     z_um = specimen.surface.sample(x_um, y_um, cell_um=cell_um).z_um
     known = z_um[np.isfinite(z_um)].astype(np.float64)
     figures = (known.mean(), np.median(known), known.std(), known.min(), known.max()) if known.size else (None,) * 5
@@ -223,3 +230,109 @@ def _cutoff(value: float | None, field: str) -> float | None:
     if value is not None and not (math.isfinite(value) and value >= 0):
         raise InvalidInputError(field, f"must be a cut-off in µm >= 0 (0: no filter), got {value}")
     return value
+
+
+@dataclass(frozen=True)
+class SurfaceArea:
+    """The heights of an ROI or of a region of the fused surface on a regular grid.
+
+    z_um, sigma_um: (rows, cols) float32 heights and their one-sigma uncertainty, µm, NaN unknown
+        (sigma all NaN for a specimen stored before it was kept).
+    texture: (rows, cols) uint8 grey SEM image on the same grid.
+    source: (rows, cols) int16 index into `sources` (ROI ids) of the ROI each point comes from, -1
+        where none.
+    pixel_size_um: the grid step, µm; origin_um: (x, y) of pixel (0, 0) in the specimen frame, µm.
+    roi: the ROI the area shows most of, whose calibration and matching it carries.
+    """
+
+    z_um: np.ndarray
+    sigma_um: np.ndarray
+    texture: np.ndarray
+    source: np.ndarray
+    sources: list[str]
+    pixel_size_um: float
+    origin_um: tuple[float, float]
+    roi: RoiEntry
+
+    @property
+    def calibration(self) -> Calibration | None:
+        """Tilts, pixel size and where each came from (None for a specimen stored before the
+        sources were recorded)."""
+        return Calibration.from_report(self.roi.matching)
+
+    @property
+    def window_px(self) -> int:
+        """The matching window the heights were measured with: their noise correlates over it."""
+        return int((self.roi.matching.get("parameters") or {}).get("window_px") or DEFAULT_WINDOW_PX)
+
+
+def surface_area(
+    specimen: Specimen, *, roi: str | None = None, region_um=None, pixel_size_um: float | None = None,
+    max_samples: int = MAX_REGION_SAMPLES,
+) -> SurfaceArea:
+    """An ROI as measured (`pixel_size_um`, if given, at least its own: area-averaged onto it), or a
+    region (x0, y0, x1, y1) µm of the fused surface, clipped to the specimen, sampled at
+    `pixel_size_um` (default: the finest there, coarser where that would exceed `max_samples`; a
+    given one that exceeds it is an error).
+    The default area is the overview ROI."""
+    if pixel_size_um is not None:
+        positive(pixel_size_um, "pixel_size_um")
+    if region_um is not None:
+        return _region_area(specimen, checked_region(region_um), pixel_size_um, max_samples)
+    entry = specimen.roi(roi) if roi is not None else specimen.rois[0]
+    placed = specimen.heights(entry.id)
+    z_um = placed.z_um
+    sigma_um = placed.sigma_um if placed.sigma_um is not None else np.full(z_um.shape, np.nan, np.float32)
+    texture, step = placed.texture, placed.pixel_size_um
+    if pixel_size_um is not None and not math.isclose(pixel_size_um, step, rel_tol=1e-9):
+        if pixel_size_um < step:
+            raise InvalidInputError("pixel_size_um", f"{pixel_size_um} µm is finer than ROI {entry.id!r}'s {step} µm; sample a region instead")
+        factor = pixel_size_um / step
+        if min(z_um.shape) < factor:
+            raise InvalidInputError("pixel_size_um", f"{pixel_size_um} µm leaves no pixel of ROI {entry.id!r}")
+        z_um, sigma_um, step = area_average(z_um, factor=factor), area_average(sigma_um, factor=factor), pixel_size_um
+        texture = np.clip(np.round(area_average(texture.astype(np.float32), factor=factor)), 0, 255).astype(np.uint8)
+    if z_um.size > max_samples:
+        raise InvalidInputError("pixel_size_um", f"{z_um.shape[1]} x {z_um.shape[0]} points exceed the limit of {max_samples}; choose a coarser one")
+    index = [placed_roi.id for placed_roi in specimen.surface.rois].index(entry.id)
+    source = np.where(np.isfinite(z_um), index, -1).astype(np.int16)
+    return SurfaceArea(z_um, sigma_um, texture, source, [r.id for r in specimen.surface.rois], step, placed.origin_um, entry)
+
+
+def _region_area(specimen: Specimen, region, pixel_size_um: float | None, max_samples: int) -> SurfaceArea:
+    x0, y0, x1, y1 = _within_specimen(specimen, region)
+    if pixel_size_um is None:
+        cell_um = max(specimen.finest_pixel_size_um(region), math.sqrt((x1 - x0) * (y1 - y0) / max_samples))
+    else:
+        cell_um = pixel_size_um
+    cols, rows = int((x1 - x0) / cell_um + 1e-9) + 1, int((y1 - y0) / cell_um + 1e-9) + 1
+    if rows * cols > max_samples:
+        raise InvalidInputError("pixel_size_um", f"{cols} x {rows} points exceed the limit of {max_samples}; choose a coarser one")
+    z_um = np.empty((rows, cols), np.float32)
+    sigma_um = np.empty((rows, cols), np.float32)
+    texture = np.empty((rows, cols), np.uint8)
+    source = np.empty((rows, cols), np.int16)
+    x_um = x0 + np.arange(cols) * cell_um
+    strip = max(1, _SAMPLING_STRIP // cols)
+    for start in range(0, rows, strip):
+        y_um = y0 + np.arange(start, min(start + strip, rows)) * cell_um
+        samples = specimen.surface.sample(*np.meshgrid(x_um, y_um), cell_um=cell_um)
+        block = slice(start, start + len(y_um))
+        z_um[block], sigma_um[block], source[block] = samples.z_um, samples.sigma_um, samples.source
+        texture[block] = np.clip(np.round(samples.texture), 0, 255)
+    sources = [roi.id for roi in specimen.surface.rois]
+    counts = np.bincount(source[source >= 0].ravel(), minlength=len(sources))
+    main = specimen.roi(sources[int(np.argmax(counts))]) if counts.any() else specimen.rois[0]
+    return SurfaceArea(z_um, sigma_um, texture, source, sources, cell_um, (x0, y0), main)
+
+
+def _within_specimen(specimen: Specimen, region, *, allow_point: bool = False) -> tuple[float, float, float, float]:
+    """The part of a region that the specimen's ROIs cover (their bounding box); with
+    `allow_point`, a point or a line in it too."""
+    extents = np.array([roi.region_um for roi in specimen.rois])
+    low, high = extents[:, :2].min(axis=0), extents[:, 2:].max(axis=0)
+    x0, y0 = max(region[0], low[0]), max(region[1], low[1])
+    x1, y1 = min(region[2], high[0]), min(region[3], high[1])
+    if not ((x0 <= x1 and y0 <= y1) if allow_point else (x0 < x1 and y0 < y1)):
+        raise InvalidInputError("region", f"does not meet the specimen, which spans x {low[0]:g} to {high[0]:g} µm, y {low[1]:g} to {high[1]:g} µm")
+    return float(x0), float(y0), float(x1), float(y1)

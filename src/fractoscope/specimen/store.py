@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import re
 import shutil
@@ -41,8 +42,10 @@ def validate_id(value: str, *, field: str) -> str:
 @dataclass
 class RoiEntry:
     """An ROI as stored: placement (origin of pixel (0, 0), µm), shape (rows, cols), fit figures,
-    the matching report and the datum its heights were levelled on (surface.datum.Datum.to_dict;
-    None: as measured)."""
+    the matching report, the datum its heights were levelled on (surface.datum.Datum.to_dict;
+    None: as measured) and its image files (`views`: {"file": path in the specimen folder,
+    "name": the name it was given}, reference first; empty for specimens built before they
+    were kept)."""
 
     id: str
     parent: str
@@ -55,6 +58,7 @@ class RoiEntry:
     matching: dict = field(default_factory=dict)
     datum: dict | None = None
     tilt_rel_uncertainty: float | None = None  # relative height error a tilt error makes (None: not known)
+    views: list[dict] = field(default_factory=list)
 
     @property
     def region_um(self) -> tuple[float, float, float, float]:
@@ -79,14 +83,17 @@ class Specimen:
         for roi in self.rois:
             if roi.id == roi_id:
                 return roi
-        raise NotFoundError(f"specimen {self.id!r} has no ROI {roi_id!r}")
+        raise NotFoundError(f"specimen {self.id!r} has no ROI {roi_id!r}", field="roi")
 
     def pixel_size_at_magnification(self, magnification: float) -> float:
         """Pixel size, µm, that a magnification means here (inversely proportional, from the overview)."""
         overview = self.rois[0]
         if overview.magnification <= 0:
             raise InvalidInputError("magnification", f"specimen {self.id!r} was built without magnifications; give them in its manifest")
-        return overview.pixel_size_um * overview.magnification / magnification
+        pixel_size_um = overview.pixel_size_um * overview.magnification / magnification
+        if not (math.isfinite(pixel_size_um) and pixel_size_um > 0):
+            raise InvalidInputError("magnification", f"{magnification} gives no usable pixel size")
+        return pixel_size_um
 
     def finest_pixel_size_um(self, region_um: tuple[float, float, float, float]) -> float:
         """The smallest pixel size among the ROIs that meet a region (the overview's if none)."""
@@ -115,8 +122,15 @@ class Specimen:
         except ValueError:
             raise InvalidInputError("uri", f"{uri!r} is not a tile URI of the form tiles/LEVEL/COL/ROW.glb") from None
         if key not in self.tiles:
-            raise NotFoundError(f"specimen {self.id!r} has no tile {uri!r}")
+            raise NotFoundError(f"specimen {self.id!r} has no tile {uri!r}", field="uri")
         return self.tiles[key]
+
+    def view_bytes(self, roi_id: str, index: int) -> bytes:
+        """The image file of view `index` (0: the reference) of an ROI, as it was given."""
+        views = self.roi(roi_id).views
+        if not 0 <= index < len(views):
+            raise NotFoundError(f"ROI {roi_id!r} of specimen {self.id!r} keeps no view {index}")
+        return (self.directory / views[index]["file"]).read_bytes()
 
     def tile_bytes(self, uri: str) -> bytes:
         """The GLB of a tile named as in tileset.json."""
@@ -164,7 +178,7 @@ class SpecimenStore:
         try:
             stamp = description_path.stat().st_mtime_ns
         except FileNotFoundError:
-            raise NotFoundError(f"no specimen {specimen_id!r}") from None
+            raise NotFoundError(f"no specimen {specimen_id!r}", field="specimen_id") from None
         with self._lock:
             cached = self._cache.get(specimen_id)
             if cached and cached[0] == stamp:
@@ -230,6 +244,19 @@ def write_description(directory: Path, *, specimen_id: str, request_id: str, roi
 
 
 def write_roi_arrays(directory: Path, roi: PlacedRoi) -> None:
+    """rois/{id}.npz: z_um, texture and, when known, sigma_um."""
     (directory / "rois").mkdir(exist_ok=True)
-    extra = {} if roi.sigma_um is None else {"sigma_um": roi.sigma_um}
-    np.savez_compressed(directory / "rois" / f"{roi.id}.npz", z_um=roi.z_um, texture=roi.texture, **extra)
+    arrays = {"z_um": roi.z_um, "texture": roi.texture} | ({"sigma_um": roi.sigma_um} if roi.sigma_um is not None else {})
+    np.savez_compressed(directory / "rois" / f"{roi.id}.npz", **arrays)
+
+
+def write_roi_views(directory: Path, roi_id: str, images) -> list[dict]:
+    """rois/{id}.view{N}: the ROI's image files ((name, bytes), reference first) as given; returns
+    the RoiEntry's `views`."""
+    (directory / "rois").mkdir(exist_ok=True)
+    views = []
+    for index, (name, content) in enumerate(images):
+        relative = f"rois/{roi_id}.view{index}"
+        (directory / relative).write_bytes(content)
+        views.append({"file": relative, "name": name})
+    return views

@@ -21,6 +21,8 @@ from fractoscope.stereo import alignment, geometry, matching, tilt_series
 from fractoscope.stereo.disparity import MatchingMethod, StripMatcher
 
 AXIS_WARNING_DEG = 2.0
+# Where a calibration value came from (the report's tilt_source and pixel_size_source).
+METADATA, ARGUMENT, TILT_CALIBRATION, DEFAULT = "metadata", "argument", "tilt_calibration", "default"
 # Tilt axis direction in the image, degrees from the column axis: vertical, parallax along rows.
 DEFAULT_TILT_AXIS_DEG = 90.0
 
@@ -39,6 +41,13 @@ class MatchingOptions:
     tilt_uncertainty_deg: float = 0.5
     calibrate_tilt: bool = False
     strip_pixels: int = matching.DEFAULT_STRIP_PIXELS
+
+
+# The MatchingOptions a run reports as its parameters (strip_pixels is the server's, not the run's).
+PARAMETER_FIELDS = (
+    "window_px", "max_disparity_px", "min_confidence", "max_lr_difference_px", "normalize_local_contrast",
+    "propagate_at_full_resolution", "tilt_uncertainty_deg", "calibrate_tilt",
+)
 
 
 @dataclass(frozen=True)
@@ -63,7 +72,7 @@ def compute_height_map(
     *,
     tilt_deg: tuple[float | None, float | None] = (None, None),
     pixel_size_um: float | None = None,
-    tilt_axis_deg: float = DEFAULT_TILT_AXIS_DEG,
+    tilt_axis_deg: float | None = None,
     options: MatchingOptions = MatchingOptions(),
     progress: ProgressCallback | None = None,
 ) -> HeightMapResult:
@@ -80,7 +89,7 @@ def compute_series_height_map(
     *,
     tilt_deg: Sequence[float | None] | None = None,
     pixel_size_um: float | None = None,
-    tilt_axis_deg: float = DEFAULT_TILT_AXIS_DEG,
+    tilt_axis_deg: float | None = None,
     options: MatchingOptions = MatchingOptions(),
     strip_matcher: StripMatcher | None = None,
     progress: ProgressCallback | None = None,
@@ -89,15 +98,21 @@ def compute_series_height_map(
     axis): every view is aligned to and densely matched with the first, and each pixel's height is
     the least-squares solution over all views that matched it. With `options.calibrate_tilt` and
     three or more views the tilts of all but the first are estimated from the images first
-    (see tilt_series). Explicit `tilt_deg` entries and `pixel_size_um` override the files. Dense
+    (see tilt_series). Explicit `tilt_deg` entries and `pixel_size_um` override the files; the tilt
+    axis is DEFAULT_TILT_AXIS_DEG unless given. Dense
     matching runs in strips of rows (`options.strip_pixels`), matched by `strip_matcher` (default:
     here, one after another; see stereo.matching)."""
     started = time.perf_counter()
     report_progress = progress or silent
-    nominal, pixel_size = _calibration(images, tilt_deg, pixel_size_um, tilt_axis_deg, options)
+    sources = {"tilt_axis_source": DEFAULT if tilt_axis_deg is None else ARGUMENT}
+    tilt_axis_deg = DEFAULT_TILT_AXIS_DEG if tilt_axis_deg is None else tilt_axis_deg
+    nominal, pixel_size, given_sources = _calibration(images, tilt_deg, pixel_size_um, tilt_axis_deg, options)
+    sources |= given_sources
     rectified = _rectify(images, tilt_axis_deg)
     matched = _match_views(rectified.views, options, strip_matcher, report_progress)
     tilts, offsets, calibration = _tilts(rectified.x1_px, matched, nominal, options, report_progress)
+    if calibration:  # the reference keeps its tilt: only differences are observable
+        sources["tilt_source"][1:] = [TILT_CALIBRATION] * (len(images) - 1)
     report_progress(0.92, "heights")
     z_px, _ = tilt_series.heights_px(rectified.x1_px, matched.disparities, tilts, offsets_px=offsets)
     z_um = (z_px * pixel_size).astype(np.float32)
@@ -113,15 +128,17 @@ def compute_series_height_map(
         tilts=tilts, tilt_axis_deg=tilt_axis_deg, pixel_size=pixel_size, matched=matched, z_um=z_um,
         bar_rows=rectified.bar_rows, axis_estimated=axis_estimated, warnings=warnings, calibration=calibration, tilt_uncertainty=tilt_uncertainty,
     )
+    report.update(sources, parameters=_parameters_used(options))
     report["elapsed_s"] = time.perf_counter() - started
     report["method"] = MatchingMethod(options.method).value
     report_progress(1.0, "done")
     return HeightMapResult(z_um, sigma_um, np.nan_to_num(confidence).astype(np.float32), report)
 
 
-def _calibration(images, tilt_deg, pixel_size_um, tilt_axis_deg, options) -> tuple[list[float], float]:
+def _calibration(images, tilt_deg, pixel_size_um, tilt_axis_deg, options) -> tuple[list[float], float, dict]:
     """The nominal tilt of every view and the pixel size (explicit values over metadata),
-    validated with the images and options."""
+    validated with the images and options, and where each came from (the report's tilt_source
+    and pixel_size_source: ARGUMENT or METADATA)."""
     if len(images) < 2:
         raise InvalidInputError("images", f"at least two images are needed, got {len(images)}")
     if options.calibrate_tilt and len(images) < 3:
@@ -135,7 +152,19 @@ def _calibration(images, tilt_deg, pixel_size_um, tilt_axis_deg, options) -> tup
     pixel_size = _resolve_pixel_size(images[0], pixel_size_um)
     for index in range(1, len(images)):
         _validate(images[0], images[index], tilt_axis_deg, options, index=index)
-    return nominal, pixel_size
+    sources = {
+        "tilt_source": [ARGUMENT if explicit is not None else METADATA for explicit in given],
+        "pixel_size_source": ARGUMENT if pixel_size_um is not None else METADATA,
+    }
+    return nominal, pixel_size, sources
+
+
+def _parameters_used(options: MatchingOptions) -> dict:
+    """The matcher's tuning as MatchingParameters fields, defaults filled in (0: the search range
+    the alignment chose), so that a run can be repeated."""
+    used = {name: getattr(options, name) for name in PARAMETER_FIELDS}
+    used["max_disparity_px"] = used["max_disparity_px"] or 0
+    return used
 
 
 @dataclass(frozen=True)

@@ -34,6 +34,9 @@ _TRUNCATE_SIGMAS = 5.0
 _DIRECT_MAX_SIGMA_PX = 8.0
 _DECIMATED_MIN_SIGMA_PX = 48.0  # maps filtered with a wider Gaussian are filtered on blocks of pixels
 _SAMPLES_PER_SIGMA = 24.0
+# A cut-off beyond this many times the field's longer side filters nothing the field can show
+# (its Gaussian is flat across it) and would only cost memory.
+MAX_CUTOFF_FIELDS = 10.0
 
 # ISO 21920-3:2021 Table 1, the setting classes Sc1 to Sc5: lambda_c (= sampling length, with five of
 # them in the default evaluation length), lambda_s and the largest sampling distance, all µm.
@@ -144,9 +147,18 @@ def scale_limited_surface(
     if lambda_s_um is not None and lambda_c_um is not None and not lambda_s_um < lambda_c_um:
         raise ValueError(f"lambda_s_um ({lambda_s_um}) must be below lambda_c_um ({lambda_c_um})")
     z = np.asarray(z_um, dtype=np.float64)
+    check_cutoffs_fit(max(z.shape) * pixel_size_um, lambda_s_um=lambda_s_um, lambda_c_um=lambda_c_um)
     sf = z if lambda_s_um is None else s_filter(z, pixel_size_um=pixel_size_um, lambda_s_um=lambda_s_um)
     sl = sf if lambda_c_um is None else l_filter(sf, pixel_size_um=pixel_size_um, lambda_c_um=lambda_c_um)
     return ScaleLimitedSurface(z_um=sl, sf_um=sf, lambda_s_um=lambda_s_um, lambda_c_um=lambda_c_um)
+
+
+def check_cutoffs_fit(field_um: float, *, lambda_s_um: float | None, lambda_c_um: float | None) -> None:
+    """ValueError naming lambda_s_um or lambda_c_um when one exceeds MAX_CUTOFF_FIELDS times the
+    field (its longer side, or the profile's length, µm); None or 0: no such filter."""
+    for name, cutoff in (("lambda_s_um", lambda_s_um), ("lambda_c_um", lambda_c_um)):
+        if cutoff and not cutoff <= MAX_CUTOFF_FIELDS * field_um:
+            raise ValueError(f"{name} ({cutoff:g} µm) must be at most {MAX_CUTOFF_FIELDS:g} times the field's {field_um:.4g} µm")
 
 
 def _check_positive(value: float, name: str) -> None:

@@ -59,6 +59,7 @@ def roughness_profile(
         raise ValueError(f"lambda_s_um ({lambda_s}) and lambda_c_um ({lambda_c}) must be finite and >= 0")
     if lambda_s and lambda_c and not lambda_s < lambda_c:
         raise ValueError(f"lambda_s_um ({lambda_s}) must be below lambda_c_um ({lambda_c})")
+    iso_filters.check_cutoffs_fit(z.size * spacing_um, lambda_s_um=lambda_s, lambda_c_um=lambda_c)
     primary = z if form == "none" else form_removal.remove_profile_form(z, spacing_um=spacing_um, form=form)
     smoothed = iso_filters.gaussian_mean_line(primary, spacing_um=spacing_um, cutoff_um=lambda_s) if lambda_s else primary
     if lambda_c:

@@ -185,7 +185,7 @@ def analyse(
                 residual, pixel_size_um=pixel_size_um, lambda_s_um=chain.lambda_s_um or None, lambda_c_um=chain.lambda_c_um or None
             )
         except ValueError as error:
-            raise InvalidInputError("l_filter_um", str(error)) from None
+            raise InvalidInputError("s_filter_um" if str(error).startswith("lambda_s") else "l_filter_um", str(error)) from None
     sl = surface.z_um
     with step("height and hybrid parameters"):
         parameters = areal_parameters.height_parameters(sl) | areal_parameters.hybrid_parameters(sl, pixel_size_um=pixel_size_um)

@@ -91,7 +91,7 @@ class MatchingServicer(matching_pb2_grpc.MatchingServiceServicer):
             images,
             tilt_deg=tilts,
             pixel_size_um=request.pixel_size_um if request.HasField("pixel_size_um") else None,
-            tilt_axis_deg=_tilt_axis_deg(request),
+            tilt_axis_deg=request.tilt_axis_deg if request.HasField("tilt_axis_deg") else None,
             options=options,
             strip_matcher=peers,
             progress=progress,

@@ -6,14 +6,8 @@
   (the gzip one has its own) and 304 when If-None-Match holds it (weak comparison, RFC 9110).
 - `/viewer/` the web viewer (this package's data folder `web/`) and `/vendor/` the three.js and
   3DTilesRendererJS modules it imports (installed by `make install` into node_modules).
-- `/api/specimens[/{id}[/profile|/roughness]]` JSON for the viewer: summaries, profiles
-  (`?from=X,Y&to=X,Y[&magnification=M]`) and roughness (`?roi=ID` or `?region=X0,Y0,X1,Y1`), µm.
-  Both take the surface texture chain's settings: `form` (none, plane, poly2 ... poly6, sphere,
-  cylinder), `s_filter_um`, `l_filter_um` (0: no filter), and for roughness `direction_deg`,
-  `levelling_region=X0,Y0,X1,Y1`, `window_px`, `min_windows`, `robust_form`; roughness answers as
-  `rpc.wire.response_to_roughness` (the same JSON as `fracto roughness --json`). A bad parameter
-  gets 400 with {"error", "field"}.
-- `/api/specimens/{id}/heights?region=X0,Y0,X1,Y1`: the statistics of the heights in a region, µm.
+- `/api/` the HTTP/JSON API (services.tiles.api, described at `/api/openapi.json`), which the
+  viewer uses too.
 """
 
 from __future__ import annotations
@@ -21,8 +15,6 @@ from __future__ import annotations
 import asyncio
 import gzip
 import hashlib
-import json
-import math
 import os
 import re
 import threading
@@ -30,15 +22,11 @@ from http import HTTPStatus
 from pathlib import Path
 
 from aiohttp import web
-from google.protobuf import json_format
 
-from fractoscope.errors import FractoscopeError, InvalidInputError, NotFoundError
-from fractoscope.rpc import tiles as rpc_tiles
-from fractoscope.rpc import wire
-from fractoscope.rpc.tiles import specimen_message
+from fractoscope.errors import FractoscopeError, NotFoundError
 from fractoscope.services.auth import TokenTable
 from fractoscope.services.caches import BoundedCache
-from fractoscope.specimen import queries as specimen_queries
+from fractoscope.services.tiles.api import DEFAULT_MAX_UPLOAD_BYTES, JsonApi
 from fractoscope.specimen.quadtree import TILE_URI
 from fractoscope.specimen.store import SpecimenStore
 
@@ -52,7 +40,6 @@ WEB_ROOT = Path(__file__).resolve().parent / "web"
 _VENDOR = Path(os.environ.get("FRACTO_VENDOR_ROOT", Path(__file__).resolve().parents[4] / "node_modules"))
 VENDOR_ROOTS = {"three": _VENDOR / "three", "3d-tiles-renderer": _VENDOR / "3d-tiles-renderer"}
 _STATIC = re.compile(r"/(?P<area>viewer|vendor)/(?P<path>[A-Za-z0-9_./-]*)")
-_API = re.compile(r"/api/specimens(?:/(?P<specimen>[A-Za-z0-9_-]{1,64})(?:/(?P<query>profile|roughness|heights))?)?")
 # An entity tag in If-None-Match: its opaque part, weak or not.
 _ENTITY_TAG = re.compile(r'(?:W/)?("[^"]*")')
 
@@ -77,16 +64,19 @@ class _TileApp:
     Cached bodies are answered on the event loop; producing them (file reads, gzip) and the
     analysis queries run on the default executor so that they never stall it."""
 
-    def __init__(self, store: SpecimenStore, tokens: TokenTable):
+    def __init__(self, store: SpecimenStore, tokens: TokenTable, api: JsonApi):
         self.store = store
         self.cache = body_cache()
         self.tokens = tokens
+        self.api = api
 
     async def handle(self, request: web.Request) -> web.StreamResponse:
         if request.method == "OPTIONS":
             return web.Response(status=HTTPStatus.NO_CONTENT, headers={
-                **_CORS, "Access-Control-Allow-Methods": "GET, HEAD, OPTIONS", "Access-Control-Allow-Headers": "*",
+                **_CORS, "Access-Control-Allow-Methods": "GET, HEAD, POST, OPTIONS", "Access-Control-Allow-Headers": "*",
             })
+        if request.path.startswith("/api/"):
+            return await self.api.handle(request)  # its own JSON errors, scopes and methods
         if request.method not in ("GET", "HEAD"):
             return _plain(HTTPStatus.METHOD_NOT_ALLOWED, "only GET, HEAD and OPTIONS\n", Allow="GET, HEAD, OPTIONS")
         path = request.path
@@ -98,11 +88,6 @@ class _TileApp:
             offered = request.headers.get("Authorization") or "Bearer " + request.query.get("token", "")
             if self.tokens.grant(offered) is None:
                 return _plain(HTTPStatus.UNAUTHORIZED, "a valid bearer token is required\n")
-        if (api := _API.fullmatch(path)) is not None:
-            arguments = {key: request.query.getall(key) for key in request.query.keys()}
-            status, answer = await _off_loop(self._api_answer, api["specimen"], api["query"], arguments)
-            return web.Response(status=status, body=json.dumps(answer, allow_nan=False).encode(),
-                                headers={**_CORS, "Content-Type": "application/json", "Cache-Control": "no-store"})
         if (static := _STATIC.fullmatch(path)) is not None:
             return await self._static(request, static["area"], static["path"] or "index.html")
         route = _ROUTE.fullmatch(path)
@@ -133,42 +118,6 @@ class _TileApp:
         key = ("static", path.stat().st_mtime_ns, str(path))
         body = self.cache.cached(key) or await _off_loop(self.cache.get, key, lambda: _Body(path.read_bytes()))
         return _body_response(request, body, _TYPES[path.suffix])
-
-    def _api_answer(self, specimen_id: str | None, query: str | None, arguments: dict) -> tuple[HTTPStatus, object]:
-        try:
-            if specimen_id is None:
-                return HTTPStatus.OK, [_summary(self.store.load(i)) for i in self.store.ids()]
-            if query is None:
-                return HTTPStatus.OK, _summary(self.store.load(specimen_id))
-            chain = _chain(arguments)
-            if query == "profile":
-                found = specimen_queries.profile_along(
-                    self.store.load(specimen_id), [_numbers(arguments, "from", 2), _numbers(arguments, "to", 2)],
-                    magnification=_numbers(arguments, "magnification", 1, default=[0.0])[0], chain=chain,
-                )
-                names = found.sources + [""]
-                response = rpc_tiles.profile_response(found)
-                return HTTPStatus.OK, {
-                    "distance_um": found.distance_um.tolist(),
-                    "z_um": _nullable(found.z_um),
-                    "source": [names[i] for i in found.source_index.tolist()],
-                    "parameters": wire.message_to_profile_parameters(response.parameters) if found.parameters else None,
-                    "roughness_um": _nullable(found.r_um) if found.r_um is not None else None,
-                    "chain": {**wire.chain_to_dict(response.chain), "cutoffs_from_iso_table": response.cutoffs_from_iso_table,
-                              "spacing_within_iso": response.spacing_within_iso} if found.roughness else None,
-                }  # fmt: skip
-            if query == "heights":
-                return HTTPStatus.OK, specimen_queries.height_statistics(self.store.load(specimen_id), _numbers(arguments, "region", 4))
-            region = _numbers(arguments, "region", 4) if "region" in arguments else None
-            roi = arguments.get("roi", [None])[0]
-            specimen = self.store.load(specimen_id)
-            analysis = specimen_queries.roughness_of(specimen, roi=roi or (None if region else specimen.rois[0].id), region_um=region, chain=chain)
-            return HTTPStatus.OK, wire.response_to_roughness(rpc_tiles.roughness_response(analysis, chain))
-        except NotFoundError as error:
-            return HTTPStatus.NOT_FOUND, {"error": str(error)}
-        except FractoscopeError as error:
-            return HTTPStatus.BAD_REQUEST, {"error": str(error), "field": getattr(error, "field", None)}
-
 
 _CORS = {"Access-Control-Allow-Origin": "*", "Access-Control-Expose-Headers": "ETag, Content-Encoding"}
 
@@ -223,64 +172,15 @@ def _plain(status: HTTPStatus, text: str, **headers: str) -> web.Response:
     return web.Response(status=status, body=text.encode(), headers={**_CORS, "Content-Type": "text/plain; charset=utf-8", **headers})
 
 
-def _summary(specimen) -> dict:
-    return json_format.MessageToDict(specimen_message(specimen), preserving_proto_field_name=True, always_print_fields_with_no_presence=True)
-
-
-def _nullable(values) -> list[float | None]:
-    return [None if math.isnan(v) else v for v in values.tolist()]
-
-
-def _chain(arguments: dict) -> specimen_queries.ChainRequest:
-    """The chain's query parameters (form, s_filter_um, l_filter_um, direction_deg,
-    levelling_region=X0,Y0,X1,Y1, window_px, min_windows, robust_form=true|false); absent ones are
-    left at the defaults."""
-
-    def number(name: str) -> float | None:
-        return _numbers(arguments, name, 1)[0] if name in arguments else None
-
-    form = arguments["form"][0] if "form" in arguments else None
-    if form is not None and form not in wire.FORMS:
-        raise InvalidInputError("form", f"must be one of {', '.join(wire.FORMS)}, not {form!r}")
-    return specimen_queries.ChainRequest(
-        form=form, s_filter_um=number("s_filter_um"), l_filter_um=number("l_filter_um"), direction_deg=number("direction_deg"),
-        levelling_region_um=tuple(_numbers(arguments, "levelling_region", 4)) if "levelling_region" in arguments else None,
-        window_px=number("window_px"), min_windows=number("min_windows"), robust_form=_flag(arguments, "robust_form"),
-    )  # fmt: skip
-
-
-def _flag(arguments: dict, name: str) -> bool | None:
-    if name not in arguments:
-        return None
-    value = arguments[name][0].lower()
-    if value not in ("true", "false", "1", "0"):
-        raise InvalidInputError(name, f"must be true or false, got {value!r}")
-    return value in ("true", "1")
-
-
-def _numbers(arguments: dict, name: str, count: int, default: list[float] | None = None) -> list[float]:
-    """`name=a,b,...` from a query string as `count` finite numbers."""
-    if name not in arguments:
-        if default is not None:
-            return default
-        raise InvalidInputError(name, "is required")
-    try:
-        values = [float(v) for v in arguments[name][0].split(",")]
-    except ValueError:
-        values = []
-    if len(values) != count or not all(math.isfinite(v) for v in values):
-        raise InvalidInputError(name, f"must be {count} comma-separated numbers")
-    return values
-
-
 class HttpTileServer:
     """The HTTP endpoint, served by aiohttp from an event loop on its own daemon thread."""
 
-    def __init__(self, store: SpecimenStore, host: str, port: int, tokens: TokenTable):
+    def __init__(self, store: SpecimenStore, host: str, port: int, tokens: TokenTable, api: JsonApi):
         self._loop = asyncio.new_event_loop()
-        app = _TileApp(store, tokens)
+        self._api = api
+        app = _TileApp(store, tokens, api)
         application = web.Application()
-        application.router.add_route("*", "/{tail:.*}", app.handle)
+        application.router.add_route("*", r"/{tail:[\s\S]*}", app.handle)  # any path, new lines too
         self._runner = web.AppRunner(application, access_log=None, handle_signals=False)
         self._loop.run_until_complete(self._runner.setup())
         site = web.TCPSite(self._runner, host, port, reuse_address=True)
@@ -289,15 +189,28 @@ class HttpTileServer:
         self._thread = threading.Thread(target=self._loop.run_forever, name="fractoscope-http", daemon=True)
         self._thread.start()
 
+    def send_builds_to(self, grpc_address: str) -> None:
+        """Builds submitted to the API go to this gRPC endpoint from now on."""
+        self._api.jobs.address = grpc_address
+
     def shutdown(self) -> None:
         """Stops serving: open connections are closed, the loop and its thread end."""
         asyncio.run_coroutine_threadsafe(self._runner.cleanup(), self._loop).result(timeout=30)
+        self._api.jobs.close()
         self._loop.call_soon_threadsafe(self._loop.stop)
         self._thread.join(timeout=30)
         self._loop.close()
 
 
-def start_http_server(store: SpecimenStore, host: str = "127.0.0.1", port: int = 0, *, tokens: TokenTable | None = None) -> HttpTileServer:
-    """Serves the store's tilesets over HTTP from a daemon thread; `server_port` is the bound port.
-    With `tokens`, everything but the viewer's static files needs a bearer token (any access)."""
-    return HttpTileServer(store, host, port, tokens or TokenTable({}))
+def start_http_server(
+    store: SpecimenStore, host: str = "127.0.0.1", port: int = 0, *, tokens: TokenTable | None = None, grpc_address: str | None = None,
+    max_upload_bytes: int = DEFAULT_MAX_UPLOAD_BYTES,
+) -> HttpTileServer:
+    """Serves the store's tilesets, the viewer and the JSON API over HTTP from a daemon thread;
+    `server_port` is the bound port. With `tokens`, everything but the viewer's static files and
+    the OpenAPI document needs a bearer token, and the API's builds a write token. Builds go to the
+    gRPC endpoint at `grpc_address` (None: the API refuses them); uploads are kept next to the
+    specimens (DATA/uploads), at most `max_upload_bytes` each."""
+    tokens = tokens or TokenTable({})
+    api = JsonApi(store, tokens, grpc_address=grpc_address, uploads_root=store.root.parent / "uploads", max_upload_bytes=max_upload_bytes)
+    return HttpTileServer(store, host, port, tokens, api)

@@ -4,12 +4,16 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import tempfile
+from pathlib import Path
 from typing import Protocol
 
 import grpc
 import numpy as np
 
+from fractoscope import report
 from fractoscope.errors import CancelledError, InvalidInputError, NotFoundError, ResourceExhaustedError, UnauthenticatedError, UnavailableError
+from fractoscope.formats.exports import MEDIA_TYPES
 from fractoscope.mesh.pipeline import EncodedTile
 from fractoscope.progress import ProgressCallback, silent
 from fractoscope.rpc import calls, wire
@@ -219,6 +223,22 @@ class TileServicer(tiles_pb2_grpc.TileServiceServicer):
                 region_um=rpc_tiles.region(request.region, "region") if area == "region" else None, chain=chain,
             )
         return rpc_tiles.roughness_response(analysis, chain)
+
+    @abort_on_error
+    def Export(self, request, context):
+        with tempfile.TemporaryDirectory(prefix="fractoscope-export-") as directory:
+            exported = rpc_tiles.export(request, Path(directory), self.store)
+            first = tiles_pb2.ExportResponse(grid=rpc_tiles.export_grid(exported))
+            media_type = MEDIA_TYPES[exported.file_format]
+            yield from rpc_tiles.streamed_file(first, exported.path, file_name=exported.path.name, media_type=media_type)
+
+    @abort_on_error
+    def GetReport(self, request, context):
+        file_format = wire.report_format_name(request.format)
+        area = rpc_tiles.area_of(request.area, "area")
+        with tempfile.TemporaryDirectory(prefix="fractoscope-report-") as directory:
+            path = report.write_report(self.store.load(request.area.specimen_id), Path(directory), file_format=file_format, **area)
+            yield from rpc_tiles.streamed_file(tiles_pb2.GetReportResponse(), path, file_name=path.name, media_type=report.MEDIA_TYPES[file_format])
 
     def _stored(self, specimen_id: str, request_id: str) -> Specimen | None:
         """The stored specimen that a request with `request_id` built, if any."""

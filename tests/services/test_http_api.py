@@ -1,0 +1,220 @@
+"""The HTTP/JSON API on a real server on loopback: its OpenAPI document validates, an upload
+builds a specimen through a job, tokens and scopes are gRPC's, and schemathesis fuzzes every
+documented operation (bounded: a few examples each, no shrinking) without a 5xx, a non-JSON error
+or anything half-written."""
+
+from __future__ import annotations
+
+import http.client
+import io
+import json
+import os
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import requests
+import schemathesis
+from hypothesis import HealthCheck, Phase, given, settings
+from hypothesis.errors import Unsatisfiable
+from openapi_spec_validator import validate
+from schemathesis.checks import not_a_server_error
+from schemathesis.generation.modes import GenerationMode
+from schemathesis.specs.openapi.checks import (
+    content_type_conformance, negative_data_rejection, response_schema_conformance, status_code_conformance,
+)
+
+from fractoscope.services.auth import TokenTable
+from fractoscope.services.server import create_server
+from fractoscope.services.tiles import openapi
+from fractoscope.services.tiles.http import start_http_server
+from fractoscope.specimen.store import SpecimenStore
+
+# Per operation and generation mode; FRACTO_FUZZ_EXAMPLES asks for a deeper run.
+FUZZ_EXAMPLES = int(os.environ.get("FRACTO_FUZZ_EXAMPLES", "8"))
+TOKENS = TokenTable.from_text("lims:write-secret:write,viewer:read-secret:read")
+
+
+def _serve(data: Path, tokens: TokenTable | None = None):
+    store = SpecimenStore(data)
+    server, port = create_server("127.0.0.1:0", store=store, tokens=tokens)
+    server.start()
+    endpoint = start_http_server(store, tokens=tokens, grpc_address=f"127.0.0.1:{port}")
+    return server, endpoint, f"http://127.0.0.1:{endpoint.server_port}"
+
+
+@pytest.fixture(scope="module")
+def api(built, tmp_path_factory):
+    """A server on a copy of the example specimen's data (builds and uploads go there)."""
+    _, _, data, _ = built
+    copy = tmp_path_factory.mktemp("api") / "data"
+    shutil.copytree(data, copy)
+    server, endpoint, base = _serve(copy)
+    yield base, copy
+    endpoint.shutdown()
+    server.stop(grace=None)
+
+
+def _upload_parts(input_directory: Path, specimen_id: str) -> list:
+    manifest = json.loads((input_directory / "manifest.json").read_text())
+    manifest["specimen"] = specimen_id
+    return [("manifest", (None, json.dumps(manifest), "application/json"))] + [
+        ("images", (path.name, path.read_bytes(), "image/png")) for path in sorted(input_directory.glob("*.png"))
+    ]
+
+
+@pytest.fixture(scope="module")
+def input_directory(built) -> Path:
+    _, _, data, _ = built
+    return data.parent / "input"
+
+
+def test_the_openapi_document_is_valid_openapi_3_1_and_served(api):
+    base, _ = api
+    served = requests.get(f"{base}/api/openapi.json", timeout=30)
+    assert served.status_code == 200 and served.json() == openapi.document()
+    validate(served.json())  # raises unless the document is valid OpenAPI 3.1
+    assert served.json()["openapi"] == "3.1.0"
+
+
+def test_an_upload_builds_a_specimen_through_a_job_that_reports_progress(api, input_directory):
+    base, data = api
+    uploaded = requests.post(f"{base}/api/uploads", files=_upload_parts(input_directory, "from-upload"), timeout=60)
+    assert uploaded.status_code == 201 and uploaded.json()["rois"] == ["overview", "zoom"]
+    submitted = requests.post(f"{base}/api/jobs", json={"upload_id": uploaded.json()["upload_id"], "request_id": "lims-7"}, timeout=30)
+    assert submitted.status_code == 202 and submitted.json()["state"] in ("queued", "running")
+    seen = []
+    deadline = time.monotonic() + 240
+    while time.monotonic() < deadline:
+        job = requests.get(base + submitted.headers["Location"], timeout=30).json()
+        seen.append(job["progress"]["fraction"])
+        if job["state"] in ("succeeded", "failed"):
+            break
+        time.sleep(0.5)
+    assert job["state"] == "succeeded", job["error"]
+    assert job["specimen"]["id"] == "from-upload" and job["request_id"] == "lims-7" and seen == sorted(seen) and seen[-1] == 1.0
+    specimen = requests.get(f"{base}/api/specimens/from-upload", timeout=30).json()
+    assert [roi["id"] for roi in specimen["rois"]] == ["overview", "zoom"]
+    assert specimen["rois"][1]["matching"]["tilt_source"] == ["argument", "argument"]
+    assert not list((data / "uploads").glob(".staging-*"))
+
+
+def test_a_bad_upload_names_the_field_and_stores_nothing(api, input_directory):
+    base, data = api
+    before = sorted(path.name for path in (data / "uploads").iterdir())
+    parts = [part for part in _upload_parts(input_directory, "missing-image") if part[1][0] != "zoom_right.png"]
+    answer = requests.post(f"{base}/api/uploads", files=parts, timeout=60)
+    assert answer.status_code == 400 and answer.json()["field"] == "manifest.rois[1].right"
+    answer = requests.post(f"{base}/api/jobs", json={"upload_id": "0" * 32}, timeout=30)
+    assert answer.status_code == 404 and answer.json()["field"] == "upload_id"
+    assert sorted(path.name for path in (data / "uploads").iterdir()) == before
+
+
+def test_a_height_map_export_over_http_is_the_file_of_the_map(api):
+    base, _ = api
+    z_um = np.arange(48 * 64, dtype=np.float32).reshape(48, 64) / 100
+    buffer = io.BytesIO()
+    np.savez(buffer, z_um=z_um, pixel_size_um=np.float64(0.5))
+    answer = requests.post(f"{base}/api/exports", files={"height_map": ("map.npz", buffer.getvalue()), "format": (None, "tif")}, timeout=60)
+    assert answer.status_code == 200 and answer.headers["Content-Type"] == "image/tiff"
+    import tifffile
+
+    np.testing.assert_array_equal(tifffile.imread(io.BytesIO(answer.content)), z_um)
+
+
+def test_tokens_and_scopes_are_grpcs_and_checked_before_the_body(built, tmp_path, input_directory):
+    _, _, data, _ = built
+    copy = tmp_path / "data"
+    shutil.copytree(data, copy)
+    server, endpoint, base = _serve(copy, TOKENS)
+    try:
+        read, write = {"Authorization": "Bearer read-secret"}, {"Authorization": "Bearer write-secret"}
+        assert requests.get(f"{base}/api/specimens/synthetic/roughness?roi=zoom", timeout=60).status_code == 401
+        assert requests.get(f"{base}/api/specimens/synthetic/roughness?roi=zoom&token=read-secret", timeout=60).status_code == 200
+        assert requests.get(f"{base}/api/openapi.json", timeout=30).status_code == 200  # the document is public
+
+        # A gigabyte announced and a few bytes sent: the refusal comes without waiting for the rest.
+        connection = http.client.HTTPConnection("127.0.0.1", endpoint.server_port, timeout=10)
+        connection.putrequest("POST", "/api/uploads")
+        for name, value in {**read, "Content-Type": "multipart/form-data; boundary=x", "Content-Length": str(10**9)}.items():
+            connection.putheader(name, value)
+        connection.endheaders(b"--x\r\n")
+        early = connection.getresponse()
+        assert early.status == 403 and json.loads(early.read())["field"] == "authorization"
+        connection.close()
+        refused = requests.post(f"{base}/api/uploads", files=_upload_parts(input_directory, "refused"), headers=read, timeout=60)
+        assert refused.status_code == 403 and refused.json()["field"] == "authorization"
+        assert requests.post(f"{base}/api/jobs", json={"upload_id": "0" * 32}, headers=read, timeout=30).status_code == 403
+        accepted = requests.post(f"{base}/api/uploads", files=_upload_parts(input_directory, "accepted"), headers=write, timeout=60)
+        assert accepted.status_code == 201
+        assert sorted(path.name for path in (copy / "uploads").iterdir()) == [accepted.json()["upload_id"]]
+    finally:
+        endpoint.shutdown()
+        server.stop(grace=None)
+
+
+# Fuzzing ###########################################################################################
+# Every operation of the document, positive and negative examples, a few each (no shrinking): run
+# with hypothesis directly, as schemathesis' lazy pytest loader does not run under pytest 9.
+
+
+@pytest.fixture(scope="module")
+def operations(api):
+    base, _ = api
+    schema = schemathesis.openapi.from_url(f"{base}/api/openapi.json")
+    return [result.ok() for result in schema.get_all_operations()]
+
+
+def test_the_fuzzer_sees_every_documented_operation(operations):
+    assert {operation.label for operation in operations} == {
+        f"{method.upper()} {path}" for path, item in openapi.document()["paths"].items() for method in item
+    }
+
+
+@pytest.mark.parametrize("mode", list(GenerationMode))
+def test_every_operation_answers_bad_input_with_a_json_4xx_naming_the_field(api, operations, mode):
+    """Positive examples run twice: as generated, and with the example specimen's id, so that the
+    queries, exports and reports run on real data with the generated parameters."""
+    _, data = api
+    statuses: dict[int, int] = {}
+    unsatisfiable = []
+
+    def check(case, operation):
+        response = case.call(timeout=300)
+        statuses[response.status_code] = statuses.get(response.status_code, 0) + 1
+        case.validate_response(response, checks=[
+            not_a_server_error, status_code_conformance, content_type_conformance, response_schema_conformance,
+            *([negative_data_rejection] if mode is GenerationMode.NEGATIVE else []),
+        ])
+        if 400 <= response.status_code < 500:
+            error = response.json()
+            assert set(error) == {"error", "field"} and error["error"], (operation.label, error)
+            if response.status_code == 400:
+                assert error["field"], (operation.label, error)
+
+    def fuzzer(operation):
+        @given(case=operation.as_strategy(generation_mode=mode))
+        @settings(max_examples=FUZZ_EXAMPLES, deadline=None, phases=[Phase.explicit, Phase.generate], database=None,
+                  suppress_health_check=list(HealthCheck))
+        def fuzz(case):
+            check(case, operation)
+            if mode is GenerationMode.POSITIVE and "specimen_id" in (case.path_parameters or {}):
+                case.path_parameters["specimen_id"] = "synthetic"
+                check(case, operation)
+
+        return fuzz
+
+    for operation in operations:
+        try:
+            fuzzer(operation)()
+        except Unsatisfiable:  # nothing in the operation can be made invalid (no parameters, no body)
+            unsatisfiable.append(operation.label)
+    print(f"\nschemathesis, {mode} examples: {sum(statuses.values())} requests over {len(operations)} operations, "
+          f"statuses {dict(sorted(statuses.items()))}; none possible for {unsatisfiable or 'none'}")
+    assert set(unsatisfiable) <= {"GET /api/specimens"}
+    assert not list((data / "uploads").glob(".staging-*")) and not list((data / "specimens").glob(".staging-*"))
+    store = SpecimenStore(data)
+    for specimen_id in store.ids():  # nothing half-written: every stored specimen loads whole
+        assert store.load(specimen_id).surface.rois
