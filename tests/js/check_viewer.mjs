@@ -1,10 +1,11 @@
 // The web viewer's tools on a running stack in headless Chromium: a link to a specimen that does
-// not exist, tiles streaming in, every measuring tool, the roughness of the view, styles that
-// reach tiles cached outside the scene, the permalink and the PNG snapshot. Prints one JSON line;
+// not exist, tiles streaming in with their counter, the optical/digital legend and the ROI labels,
+// every measuring tool, two profiles in one plot, the vertical exaggeration, the roughness of the
+// view, styles that reach tiles cached outside the scene, the permalink and the PNG snapshot. Prints one JSON line;
 // screenshots go to OUT_DIR. Usage: node check_viewer.mjs BASE_URL SPECIMEN OUT_DIR
 import { writeFile } from "node:fs/promises";
 import { join } from "node:path";
-import { addPageHelpers, canvasStats, clickView, countColour, launchChromium, setControl, twoFrames, waitUntilSettled } from "./browser.mjs";
+import { addPageHelpers, canvasDifference, canvasStats, clickView, countColour, launchChromium, setControl, twoFrames, waitUntilSettled } from "./browser.mjs";
 
 const [baseUrl, specimenId, outDir] = process.argv.slice(2);
 const browser = await launchChromium();
@@ -52,7 +53,12 @@ try {
   await twoFrames(page);
   result.litFraction = (await canvasStats(page, canvas, background)).litFraction;
   await writeFile(join(outDir, "viewer.png"), await page.screenshot({ timeout: 60000 }));
+  result.overlays = await page.evaluate(() => ({
+    legend: document.getElementById("legend").textContent, tileProgress: document.getElementById("tile-progress-text").textContent,
+    roiLabels: [...document.querySelectorAll("#roi-labels span")].filter((label) => label.style.display !== "none").map((label) => label.textContent),
+  }));
   await page.uncheck("#zoom-kinds");
+  result.overlays.legendAfter = await page.evaluate(() => document.getElementById("legend").textContent);
 
   // Every tool, measured where the view shows the surface.
   const redBefore = await countColour(page, canvas, [255, 51, 85]);
@@ -69,7 +75,20 @@ try {
     samples: window.viewer.profile.distance_um?.length ?? 0, parameters: window.viewer.profile.parameters,
     text: window.viewer.measurements.items[0].text,
   }));
+  // A second profile: both drawn in the one plot, each in its own colour.
+  result.tools.secondProfile = await measure(page, "profile", [[0.35, 0.6], [0.65, 0.4]]);
+  const profileColours = await page.evaluate(() => window.viewer.measurements.items.filter((item) => item.tool === "profile").map((item) => item.colour));
+  result.plotted = [];
+  for (const colour of profileColours) {
+    const rgb = [1, 3, 5].map((i) => parseInt(colour.slice(i, i + 2), 16));
+    result.plotted.push({ colour, pixels: await countColour(page, "#profile-plot", rgb, 30) });
+  }
   await writeFile(join(outDir, "measurements.png"), await page.screenshot({ timeout: 60000 }));
+  // Heights 10x: the picture changes; back to 1x, and the levels it refined settle.
+  result.exaggerationChange = await canvasDifference(page, canvas, () => setControl(page, "#exaggeration", 1));
+  result.exaggerationShown = await page.evaluate(() => document.getElementById("exaggeration-value").textContent);
+  await setControl(page, "#exaggeration", 0);
+  await waitUntilSettled(page, 120000);
 
   await page.click("#roughness-button");
   result.roughnessBusy = await page.evaluate(() => document.getElementById("roughness-button").classList.contains("busy"));
