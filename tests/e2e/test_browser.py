@@ -97,6 +97,7 @@ def test_web_viewer_tools_styles_permalink_and_snapshot(built):
     assert result["scaleBar"].endswith("µm")
     assert result["heightColourSpread"] > 0.3  # heights from the dequantized positions span the ramp
     assert result["restyledSpread"] < 0.5 * result["heightColourSpread"]  # cached tiles came back as SEM image, not height colours
+    assert result["tintedBefore"] < 0.1 and result["tintedAfter"] > 0.8, (result["tintedBefore"], result["tintedAfter"])  # and tinted
     link = parse_qs(urlparse(result["permalink"]).query)
     assert link["specimen"] == ["synthetic"] and link["measurements"][0].startswith("profile:") and len(link["camera"][0].split(",")) == 6
     np.testing.assert_allclose(result["reopened"]["camera"], result["camera"], rtol=1e-3)

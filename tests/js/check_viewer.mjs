@@ -1,8 +1,9 @@
 // The web viewer's tools on a running stack in headless Chromium: a link to a specimen that does
 // not exist, tiles streaming in with their counter, the optical/digital legend and the ROI labels,
 // every measuring tool, two profiles in one plot, the vertical exaggeration, the roughness of the
-// view, styles that reach tiles cached outside the scene, the permalink and the PNG snapshot. Prints one JSON line;
-// screenshots go to OUT_DIR. Usage: node check_viewer.mjs BASE_URL SPECIMEN OUT_DIR
+// view, styles (colouring, optical/digital shading) that reach tiles cached outside the scene, the
+// permalink and the PNG snapshot. Prints one JSON line; screenshots go to OUT_DIR.
+// Usage: node check_viewer.mjs BASE_URL SPECIMEN OUT_DIR
 import { writeFile } from "node:fs/promises";
 import { join } from "node:path";
 import { addPageHelpers, canvasDifference, canvasStats, clickView, countColour, launchChromium, setControl, twoFrames, waitUntilSettled } from "./browser.mjs";
@@ -111,6 +112,26 @@ try {
   await zoom(1 / 0.15);
   await waitUntilSettled(page, 120000);
   result.restyledSpread = (await canvasStats(page, canvas, background)).redMinusBlueSpread;
+  // Likewise the optical/digital shading switched on close in: the cached tiles come back tinted.
+  const tinted = () => page.evaluate(([selector, background]) => {
+    const pixels = window.__pixels(selector);
+    let surface = 0, shaded = 0;
+    for (let i = 0; i < pixels.length; i += 4) {
+      const [r, g, b] = [pixels[i], pixels[i + 1], pixels[i + 2]];
+      if (Math.abs(r - background[0]) + Math.abs(g - background[1]) + Math.abs(b - background[2]) <= 30) continue;
+      surface++;
+      if (g > 1.3 * Math.max(r, b, 1) || (r > 1.3 * Math.max(b, 1) && r > g)) shaded++; // optical green or digital orange
+    }
+    return shaded / Math.max(surface, 1);
+  }, [canvas, background]);
+  result.tintedBefore = await tinted();
+  await zoom(0.15);
+  await waitUntilSettled(page, 120000);
+  await page.check("#zoom-kinds");
+  await zoom(1 / 0.15);
+  await waitUntilSettled(page, 120000);
+  result.tintedAfter = await tinted();
+  await page.uncheck("#zoom-kinds");
 
   // The permalink opens the same view with the same measurements.
   const link = await page.evaluate(() => { document.getElementById("permalink").click(); return document.getElementById("permalink-text").value; });
