@@ -62,8 +62,10 @@ def _numbers_in(text: str) -> list[float]:
 
 def test_web_viewer_tools_styles_permalink_and_snapshot(built):
     """The viewer page, served by the tile endpoint: a link to a missing specimen shows an error
-    and opens nothing else; tiles stream in; every measuring tool answers from the server's data;
-    a profile's line is drawn on the surface; roughness shows that it is busy; a style change
+    and opens nothing else; tiles stream in, counted on screen; the optical/digital legend and the
+    ROI's label show; every measuring tool answers from the server's data; a profile's line is
+    drawn on the surface, and two profiles share the plot; the heights' exaggeration changes the
+    picture; roughness shows that it is busy; a style change
     reaches tiles cached outside the scene; the permalink reopens the view and its
     measurements; the snapshot is a PNG."""
     truth, _, data, _ = built
@@ -75,9 +77,16 @@ def test_web_viewer_tools_styles_permalink_and_snapshot(built):
     assert missing["shown"] and "doesnotexist" in missing["message"] and "synthetic" in missing["message"]
     assert missing["chosen"] == "" and result["missingTileRequests"] == 0
     assert result["tileRequests"] >= 5 and result["status"]["loaded"] >= 5 and result["litFraction"] > 0.2
+    overlays = result["overlays"]  # the tile counter, the optical/digital legend and the ROI's label on the surface
+    assert re.fullmatch(r"tiles: \d+ shown, 0 loading", overlays["tileProgress"]), overlays
+    assert "optical zoom (measured)" in overlays["legend"] and "digital zoom (upsampled)" in overlays["legend"] and overlays["legendAfter"] == ""
+    assert any(label.startswith("zoom · ") and "×" in label and label.endswith("µm/px") for label in overlays["roiLabels"]), overlays
     tools = result["tools"]
     assert result["profile"]["samples"] > 100 and result["profile"]["parameters"]["Ra"] > 0 and "Ra" in result["profile"]["text"]
     assert result["profileLinePixels"] > 300  # a 3 px line across a third of the view
+    assert tools["secondProfile"].startswith("Profile 6:") and len(result["plotted"]) == 2
+    assert all(curve["pixels"] > 50 for curve in result["plotted"]), result["plotted"]  # both profiles in the one plot
+    assert result["exaggerationShown"] == "10.0" and result["exaggerationChange"] > 5.0, result["exaggerationChange"]
     assert tools["point"].startswith("Height 2: z = ") and "µm" in tools["point"]
     distance = _numbers_in(tools["distance"])
     assert tools["distance"].startswith("Distance 3:") and distance[1] >= distance[2] > 0  # 3D length >= horizontal
@@ -88,6 +97,7 @@ def test_web_viewer_tools_styles_permalink_and_snapshot(built):
     assert result["scaleBar"].endswith("µm")
     assert result["heightColourSpread"] > 0.3  # heights from the dequantized positions span the ramp
     assert result["restyledSpread"] < 0.5 * result["heightColourSpread"]  # cached tiles came back as SEM image, not height colours
+    assert result["tintedBefore"] < 0.1 and result["tintedAfter"] > 0.8, (result["tintedBefore"], result["tintedAfter"])  # and tinted
     link = parse_qs(urlparse(result["permalink"]).query)
     assert link["specimen"] == ["synthetic"] and link["measurements"][0].startswith("profile:") and len(link["camera"][0].split(",")) == 6
     np.testing.assert_allclose(result["reopened"]["camera"], result["camera"], rtol=1e-3)

@@ -1,10 +1,12 @@
 // The web viewer's tools on a running stack in headless Chromium: a link to a specimen that does
-// not exist, tiles streaming in, every measuring tool, the roughness of the view, styles that
-// reach tiles cached outside the scene, the permalink and the PNG snapshot. Prints one JSON line;
-// screenshots go to OUT_DIR. Usage: node check_viewer.mjs BASE_URL SPECIMEN OUT_DIR
+// not exist, tiles streaming in with their counter, the optical/digital legend and the ROI labels,
+// every measuring tool, two profiles in one plot, the vertical exaggeration, the roughness of the
+// view, styles (colouring, optical/digital shading) that reach tiles cached outside the scene, the
+// permalink and the PNG snapshot. Prints one JSON line; screenshots go to OUT_DIR.
+// Usage: node check_viewer.mjs BASE_URL SPECIMEN OUT_DIR
 import { writeFile } from "node:fs/promises";
 import { join } from "node:path";
-import { addPageHelpers, canvasStats, clickView, countColour, launchChromium, setControl, twoFrames, waitUntilSettled } from "./browser.mjs";
+import { addPageHelpers, canvasDifference, canvasStats, clickView, countColour, launchChromium, setControl, twoFrames, waitUntilSettled } from "./browser.mjs";
 
 const [baseUrl, specimenId, outDir] = process.argv.slice(2);
 const browser = await launchChromium();
@@ -52,7 +54,12 @@ try {
   await twoFrames(page);
   result.litFraction = (await canvasStats(page, canvas, background)).litFraction;
   await writeFile(join(outDir, "viewer.png"), await page.screenshot({ timeout: 60000 }));
+  result.overlays = await page.evaluate(() => ({
+    legend: document.getElementById("legend").textContent, tileProgress: document.getElementById("tile-progress-text").textContent,
+    roiLabels: [...document.querySelectorAll("#roi-labels span")].filter((label) => label.style.display !== "none").map((label) => label.textContent),
+  }));
   await page.uncheck("#zoom-kinds");
+  result.overlays.legendAfter = await page.evaluate(() => document.getElementById("legend").textContent);
 
   // Every tool, measured where the view shows the surface.
   const redBefore = await countColour(page, canvas, [255, 51, 85]);
@@ -69,7 +76,20 @@ try {
     samples: window.viewer.profile.distance_um?.length ?? 0, parameters: window.viewer.profile.parameters,
     text: window.viewer.measurements.items[0].text,
   }));
+  // A second profile: both drawn in the one plot, each in its own colour.
+  result.tools.secondProfile = await measure(page, "profile", [[0.35, 0.6], [0.65, 0.4]]);
+  const profileColours = await page.evaluate(() => window.viewer.measurements.items.filter((item) => item.tool === "profile").map((item) => item.colour));
+  result.plotted = [];
+  for (const colour of profileColours) {
+    const rgb = [1, 3, 5].map((i) => parseInt(colour.slice(i, i + 2), 16));
+    result.plotted.push({ colour, pixels: await countColour(page, "#profile-plot", rgb, 30) });
+  }
   await writeFile(join(outDir, "measurements.png"), await page.screenshot({ timeout: 60000 }));
+  // Heights 10x: the picture changes; back to 1x, and the levels it refined settle.
+  result.exaggerationChange = await canvasDifference(page, canvas, () => setControl(page, "#exaggeration", 1));
+  result.exaggerationShown = await page.evaluate(() => document.getElementById("exaggeration-value").textContent);
+  await setControl(page, "#exaggeration", 0);
+  await waitUntilSettled(page, 120000);
 
   await page.click("#roughness-button");
   result.roughnessBusy = await page.evaluate(() => document.getElementById("roughness-button").classList.contains("busy"));
@@ -92,6 +112,26 @@ try {
   await zoom(1 / 0.15);
   await waitUntilSettled(page, 120000);
   result.restyledSpread = (await canvasStats(page, canvas, background)).redMinusBlueSpread;
+  // Likewise the optical/digital shading switched on close in: the cached tiles come back tinted.
+  const tinted = () => page.evaluate(([selector, background]) => {
+    const pixels = window.__pixels(selector);
+    let surface = 0, shaded = 0;
+    for (let i = 0; i < pixels.length; i += 4) {
+      const [r, g, b] = [pixels[i], pixels[i + 1], pixels[i + 2]];
+      if (Math.abs(r - background[0]) + Math.abs(g - background[1]) + Math.abs(b - background[2]) <= 30) continue;
+      surface++;
+      if (g > 1.3 * Math.max(r, b, 1) || (r > 1.3 * Math.max(b, 1) && r > g)) shaded++; // optical green or digital orange
+    }
+    return shaded / Math.max(surface, 1);
+  }, [canvas, background]);
+  result.tintedBefore = await tinted();
+  await zoom(0.15);
+  await waitUntilSettled(page, 120000);
+  await page.check("#zoom-kinds");
+  await zoom(1 / 0.15);
+  await waitUntilSettled(page, 120000);
+  result.tintedAfter = await tinted();
+  await page.uncheck("#zoom-kinds");
 
   // The permalink opens the same view with the same measurements.
   const link = await page.evaluate(() => { document.getElementById("permalink").click(); return document.getElementById("permalink-text").value; });

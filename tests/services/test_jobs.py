@@ -18,7 +18,7 @@ from fractoscope.errors import CancelledError, ResourceExhaustedError
 from fractoscope.services.config import DEFAULT_BUILD_QUEUE, default_build_workers
 from fractoscope.services.jobs import JobRunner
 from fractoscope.services.server import create_server
-from fractoscope.v1 import common_pb2, tiles_pb2
+from fractoscope.v1 import common_pb2, matching_pb2_grpc, tiles_pb2, tiles_pb2_grpc
 
 
 class _Call:
@@ -229,8 +229,6 @@ def test_a_cancelled_build_frees_its_worker_and_stores_nothing(tmp_path):
     server.start()
     stub_channel = grpc.insecure_channel(f"127.0.0.1:{port}")
     try:
-        from fractoscope.v1 import tiles_pb2_grpc
-
         stub = tiles_pb2_grpc.TileServiceStub(stub_channel)
         call = stub.ReconstructSpecimen(tiles_pb2.ReconstructSpecimenRequest(specimen_id="abandoned", rois=[_specimen_roi(384, 4)]), timeout=300)
         assert next(call).HasField("progress")
@@ -268,3 +266,46 @@ def test_height_maps_are_jobs_too_and_health_answers_while_they_run(server_addre
         tiles, _ = client.build_mesh(np.nan_to_num(result.z_um), None, pixel_size_um=0.1)
     assert np.isfinite(result.z_um).mean() > 0.9 and tiles and stages
     assert health.failures == []
+
+
+class _StalledMatching(matching_pb2_grpc.MatchingServiceServicer):
+    """A remote matching service that never finishes: records the deadline its ComputeHeightMap
+    call came with, and when that call is cancelled."""
+
+    def __init__(self):
+        self.called, self.cancelled = threading.Event(), threading.Event()
+        self.time_remaining_s = None
+
+    def ComputeHeightMap(self, request, context):
+        self.time_remaining_s = context.time_remaining()
+        context.add_callback(self.cancelled.set)
+        self.called.set()
+        self.cancelled.wait(60)
+        yield from ()
+
+
+@pytest.mark.timeout(120)
+def test_a_remote_matching_call_gets_the_callers_deadline_and_is_cancelled_with_the_build(tmp_path):
+    """The tile service on its own, its matching remote: the call it makes for a build carries
+    what is left of the build's caller's deadline (not its own 1,800 s), and the client's cancel
+    reaches the remote call."""
+    stalled = _StalledMatching()
+    peer = grpc.server(ThreadPoolExecutor(4))
+    matching_pb2_grpc.add_MatchingServiceServicer_to_server(stalled, peer)
+    peer_port = peer.add_insecure_port("127.0.0.1:0")
+    peer.start()
+    tiles, port = create_server("127.0.0.1:0", services=("tiles",), data_dir=tmp_path / "data",
+                                matching_address=f"127.0.0.1:{peer_port}", meshing_address=f"127.0.0.1:{peer_port}")
+    tiles.start()
+    channel = grpc.insecure_channel(f"127.0.0.1:{port}")
+    try:
+        request = tiles_pb2.ReconstructSpecimenRequest(specimen_id="remote", rois=[_specimen_roi(128, 7)])
+        call = tiles_pb2_grpc.TileServiceStub(channel).ReconstructSpecimen(request, timeout=60)
+        assert stalled.called.wait(30)
+        assert 0 < stalled.time_remaining_s <= 60
+        call.cancel()
+        assert stalled.cancelled.wait(15)  # long before the deadline
+    finally:
+        channel.close()
+        tiles.stop(grace=None)
+        peer.stop(grace=None)

@@ -135,6 +135,25 @@ def test_a_writer_killed_at_any_step_leaves_the_old_or_the_new_build_intact(tmp_
     assert served[0] == 1 and served[-1] == 2 and served == sorted(served)  # the old build until the new one is in place
 
 
+def test_every_file_and_folder_is_fsynced_before_its_rename_and_the_renames_after(tmp_path, monkeypatch):
+    """The write's journal of fsyncs (by path) and renames: every file and folder of the staging
+    copy is flushed before it is renamed into place, and the specimens folder after each rename."""
+    store = SpecimenStore(tmp_path)
+    write_small_specimen(store, "steel-1", height_um=1.0)
+    journal, fsync, rename = [], os.fsync, os.rename
+    monkeypatch.setattr(os, "fsync", lambda fd: (journal.append(("fsync", os.readlink(f"/proc/self/fd/{fd}"))), fsync(fd))[1])
+    monkeypatch.setattr(os, "rename", lambda a, b: (journal.append(("rename", str(a), str(b))), rename(a, b))[1])
+    write_small_specimen(store, "steel-1", height_um=2.0)
+    renames = [index for index, entry in enumerate(journal) if entry[0] == "rename"]
+    assert len(renames) == 2  # stored -> retired, staging -> stored
+    specimens = os.path.realpath(tmp_path / "specimens")
+    staging, stored = journal[renames[1]][1:]
+    flushed = {path.replace(staging, stored) for kind, path, *_ in journal[:renames[0]] if kind == "fsync"}
+    assert flushed >= {stored, *(str(path) for path in Path(stored).rglob("*"))}  # every file and folder, itself too
+    for index in renames:
+        assert journal[index + 1] == ("fsync", specimens)
+
+
 def test_unknown_and_malformed_names_are_told_apart(tmp_path):
     store = SpecimenStore(tmp_path)
     write_small_specimen(store, "steel-1")
