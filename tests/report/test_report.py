@@ -141,3 +141,21 @@ def test_a_calibrated_tilt_is_reported_with_its_sigma_and_no_warning(built, tmp_
     text = " ".join(page.text)
     assert NOT_CALIBRATED not in text and "tilt_calibration" in text
     assert page.values["zoom.tilt_sigma_deg[1]"] == 0.02 and page.values["zoom.tilt_sigma_deg[0]"] == 0.5
+
+
+def test_a_region_report_has_the_apis_numbers_for_that_region(built, tmp_path):
+    """`fracto report SPECIMEN --region X0,Y0,X1,Y1`'s report (write_report with region_um): the
+    area is named by its bounds and the parameters are GetRoughness's for the same region, a
+    Hurst exponent the region is too small for included: no number, where the API has none."""
+    _, client, data, summary = built
+    region = summary["rois"][1]["region"]
+    box = (region["min"]["x_um"] + 10, region["min"]["y_um"] + 10, region["min"]["x_um"] + 70, region["min"]["y_um"] + 50)
+    page = _Numbers()
+    page.feed(write_report(SpecimenStore(data).load("synthetic"), tmp_path, file_format="html", region_um=box).read_text())
+    roughness = client.roughness("synthetic", region_um=box)
+    for name in ("Sa", "Sq", "Sz", "Sdr", "Sk", "hurst_exponent", "hurst_fit_min_um", "fractal_dimension"):
+        assert page.values.get(name) == roughness[name], name  # None: no number shown, as the API gives none
+    text = " ".join(page.text)
+    if roughness["hurst_exponent"] is None:  # 240 x 160 px: too small a field for a Hurst fit, and the report says why
+        assert roughness["hurst_note"] and roughness["hurst_note"][1:] in text
+    assert f"region x {box[0]:.6g} to {box[2]:.6g} µm, y {box[1]:.6g} to {box[3]:.6g} µm" in text

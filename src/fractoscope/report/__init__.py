@@ -138,10 +138,10 @@ def _scaling(document: Document, content: ReportContent, figures) -> None:
     document.add(
         Heading("Scaling", "scaling"),
         Table(["quantity", "value", "unit"], [
-            [Cell("Hurst exponent H"), Cell(number(values["hurst_exponent"], 3), values["hurst_exponent"], "hurst_exponent"), Cell("1")],
-            [Cell("fit from"), Cell(number(values["hurst_fit_min_um"]), values["hurst_fit_min_um"], "hurst_fit_min_um"), Cell("µm")],
-            [Cell("fit to"), Cell(number(values["hurst_fit_max_um"]), values["hurst_fit_max_um"], "hurst_fit_max_um"), Cell("µm")],
-            [Cell("fractal dimension 3 - H"), Cell(number(values["fractal_dimension"], 3), values["fractal_dimension"], "fractal_dimension"), Cell("1")],
+            [Cell("Hurst exponent H"), Cell(number(values["hurst_exponent"], 3), _finite(values["hurst_exponent"]), "hurst_exponent"), Cell("1")],
+            [Cell("fit from"), Cell(number(values["hurst_fit_min_um"]), _finite(values["hurst_fit_min_um"]), "hurst_fit_min_um"), Cell("µm")],
+            [Cell("fit to"), Cell(number(values["hurst_fit_max_um"]), _finite(values["hurst_fit_max_um"]), "hurst_fit_max_um"), Cell("µm")],
+            [Cell("fractal dimension 3 - H"), Cell(number(values["fractal_dimension"], 3), _finite(values["fractal_dimension"]), "fractal_dimension"), Cell("1")],
         ], anchor="scaling-table", caption="The slope of log h(r) against log r, h(r) the height-height correlation (second "
                                            f"differences) along {content.roughness.chain.direction_deg:g}° from +x, over the fit range below."),
         Paragraph(f"Fit range: {content.trustworthy_note}."),

@@ -139,8 +139,11 @@ def psd_figure(content: ReportContent) -> Figure:
     profile_ax.set_xlabel("spatial frequency k (1/µm)")
     profile_ax.set_ylabel("P(k) (µm³)")
     profile_ax.set_title("Profile PSD and its fits", fontsize=9)
+    if not analysis.hurst.fits:
+        profile_ax.text(0.5, 0.5, "no PSD fit: the field is too small", ha="center", va="center", transform=profile_ax.transAxes, fontsize=8)
     for ax in (areal_ax, profile_ax):
-        ax.legend(fontsize=6)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=6)
         ax.grid(True, which="both", alpha=0.3)
         ax.tick_params(labelsize=7)
     return figure
