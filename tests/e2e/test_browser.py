@@ -94,6 +94,11 @@ def test_web_viewer_tools_styles_permalink_and_snapshot(built):
     assert tools["angle"].endswith("°") and 0 < angle < 180
     assert tools["step"].startswith("Step 5:") and "±" in tools["step"] and "area means" in tools["step"]
     assert result["roughnessBusy"] and result["roughness"]["Sa"] > 0 and 0 < result["roughness"]["hurst_exponent"] < 1.5
+    rough = result["roughness"]  # the panel shows each value with its uncertainty, then the chain that made them
+    panel = result["roughnessText"]
+    assert f"Sa {rough['Sa']:.3f} ± " in panel and f"Sq {rough['Sq']:.3f} ± " in panel and f"Sdr {rough['Sdr']:.2f} ± " in panel, panel
+    assert f"chain: form {rough['chain']['form']}, no filters, " in panel and panel.count("µm/px") == 1, panel
+    assert "Hurst " in panel and " µm)" in panel, panel
     assert result["scaleBar"].endswith("µm")
     assert result["heightColourSpread"] > 0.3  # heights from the dequantized positions span the ramp
     assert result["restyledSpread"] < 0.5 * result["heightColourSpread"]  # cached tiles came back as SEM image, not height colours

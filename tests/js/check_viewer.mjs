@@ -95,6 +95,7 @@ try {
   result.roughnessBusy = await page.evaluate(() => document.getElementById("roughness-button").classList.contains("busy"));
   await page.waitForFunction(() => window.viewer.roughness !== null, null, { timeout: 120000 });  // slow on a busy machine
   result.roughness = await page.evaluate(() => window.viewer.roughness);
+  result.roughnessText = await page.evaluate(() => document.getElementById("roughness-stats").textContent);
   result.scaleBar = await page.evaluate(() => document.getElementById("scale-label").textContent);
 
   // Height colours, then closer in (tiles of the overview drop out of the scene into the cache),

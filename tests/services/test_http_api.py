@@ -10,6 +10,7 @@ import io
 import json
 import os
 import shutil
+import tempfile
 import time
 from pathlib import Path
 
@@ -17,6 +18,7 @@ import numpy as np
 import pytest
 import requests
 import schemathesis
+import trimesh
 from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis.errors import Unsatisfiable
 from openapi_spec_validator import validate
@@ -25,7 +27,9 @@ from schemathesis.generation.modes import GenerationMode
 from schemathesis.specs.openapi.checks import (
     content_type_conformance, negative_data_rejection, response_schema_conformance, status_code_conformance,
 )
+from surfalize import Surface
 
+from fractoscope.formats.x3p import read_x3p
 from fractoscope.services.auth import TokenTable
 from fractoscope.services.server import create_server
 from fractoscope.services.tiles import openapi
@@ -122,6 +126,40 @@ def test_a_height_map_export_over_http_is_the_file_of_the_map(api):
     import tifffile
 
     np.testing.assert_array_equal(tifffile.imread(io.BytesIO(answer.content)), z_um)
+
+
+def test_a_region_export_over_http_at_a_chosen_pixel_size_is_grpcs(api, built, tmp_path, monkeypatch):
+    """GET .../export with region= and pixel_size_um=: the X3P holds the same heights as the
+    Export RPC's on the 0.25 µm grid asked for, with the API's Sa after surfalize's plane; a solid
+    STL in mm is a watertight block of the region's extent; a failed export answers 400 naming the
+    field and leaves nothing behind in the folder it was being written in."""
+    base, _ = api
+    _, client, _, summary = built
+    region = summary["rois"][1]["region"]
+    box = (region["min"]["x_um"] + 16, region["min"]["y_um"] + 16, region["min"]["x_um"] + 56, region["min"]["y_um"] + 46)
+    query = {"region": ",".join(map(str, box)), "pixel_size_um": "0.25"}
+    answer = requests.get(f"{base}/api/specimens/synthetic/export", params={**query, "format": "x3p"}, timeout=120)
+    assert answer.status_code == 200, answer.text
+    (tmp_path / "http.x3p").write_bytes(answer.content)
+    client.export_area("synthetic", tmp_path / "grpc.x3p", region_um=box, pixel_size_um=0.25)
+    over_http, over_grpc = read_x3p(tmp_path / "http.x3p"), read_x3p(tmp_path / "grpc.x3p")
+    assert over_http.z_um.shape == (121, 161) and over_http.step_x_um == pytest.approx(0.25)
+    np.testing.assert_array_equal(over_http.z_um, over_grpc.z_um)
+    assert over_http.origin_um == pytest.approx(box[:2])
+    assert Surface.load(tmp_path / "http.x3p").level().Sa() == pytest.approx(client.roughness("synthetic", region_um=box)["Sa"], rel=1e-6)
+
+    answer = requests.get(f"{base}/api/specimens/synthetic/export", params={**query, "format": "stl", "solid": "true", "units": "mm"},
+                          timeout=120)
+    assert answer.status_code == 200 and int(answer.headers["Content-Length"]) == len(answer.content)
+    mesh = trimesh.load(io.BytesIO(answer.content), file_type="stl", force="mesh")
+    assert mesh.is_watertight and mesh.is_volume
+    assert (mesh.bounds[1] - mesh.bounds[0])[:2] == pytest.approx([0.04, 0.03], rel=1e-4)  # 160 and 120 steps of 0.25 µm, in mm
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "scratch"))  # where the endpoint writes before it streams
+    (tmp_path / "scratch").mkdir()
+    refused = requests.get(f"{base}/api/specimens/synthetic/export", params={**query, "format": "tif", "solid": "true"}, timeout=120)
+    assert refused.status_code == 400 and refused.json()["field"] == "solid"
+    assert list((tmp_path / "scratch").iterdir()) == []
 
 
 def test_tokens_and_scopes_are_grpcs_and_checked_before_the_body(built, tmp_path, input_directory):

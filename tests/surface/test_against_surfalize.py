@@ -116,3 +116,19 @@ def test_profile_parameters_agree():
     # ISO 21920-2's 7-point derivative against surfalize's first difference: equal for a
     # well-sampled profile (here 200+ samples per shortest wavelength would give 1e-4).
     assert ours["Rdq"] == pytest.approx(theirs.Rdq(), rel=0.01)
+
+
+def test_a_known_abbott_curve_agrees_with_surfalize():
+    """The analytic Abbott surface of test_areal_parameters (heights whose material ratio curve is
+    three straight pieces, shuffled over the grid): both find the same Sk family and volumes within
+    FUNCTIONAL_REL, and the same heights exactly."""
+    count = 512 * 512
+    ratio = (np.arange(count) + 0.5) * 100.0 / count
+    z = np.random.default_rng(0).permutation(np.interp(ratio, [0.0, 10.0, 90.0, 100.0], [3.0, 1.0, -1.0, -4.0])).reshape(512, 512)
+    ours = areal_parameters.functional_parameters(z) | areal_parameters.height_parameters(z)
+    theirs = Surface(z.copy(), PIXEL_UM, PIXEL_UM)
+    assert ours["Sk"] == pytest.approx(2.5, rel=2e-3)  # the core line from 1.25 to -1.25 µm (test_areal_parameters)
+    for name in FUNCTIONAL:
+        assert ours[name] == pytest.approx(getattr(theirs, name)(), rel=FUNCTIONAL_REL, abs=1e-4), name
+    for name in ("Sa", "Sq", "Ssk", "Sku", "Sp", "Sv", "Sz"):
+        assert ours[name] == pytest.approx(getattr(theirs, name)(), rel=1e-9), name

@@ -23,7 +23,7 @@ from fractoscope.surface.profile_parameters import UNITS as PROFILE_UNITS
 __all__ = ["MEDIA_TYPES", "ReportContent", "report_content", "write_report"]
 
 MEDIA_TYPES = {"html": "text/html; charset=utf-8", "pdf": "application/pdf"}
-# The API's profile parameters (queries.profile_along), before the ISO 21920-3 chain.
+_METHOD_NAMES = {"hhc": "height-height correlation", "psd": "profile PSD"}
 
 
 def write_report(specimen: Specimen, directory: Path, *, file_format: str = "html", roi: str | None = None, region_um=None) -> Path:
@@ -138,15 +138,30 @@ def _scaling(document: Document, content: ReportContent, figures) -> None:
     document.add(
         Heading("Scaling", "scaling"),
         Table(["quantity", "value", "unit"], [
-            [Cell("Hurst exponent H"), Cell(number(values["hurst_exponent"], 3), values["hurst_exponent"], "hurst_exponent"), Cell("1")],
-            [Cell("fit from"), Cell(number(values["hurst_fit_min_um"]), values["hurst_fit_min_um"], "hurst_fit_min_um"), Cell("µm")],
-            [Cell("fit to"), Cell(number(values["hurst_fit_max_um"]), values["hurst_fit_max_um"], "hurst_fit_max_um"), Cell("µm")],
-            [Cell("fractal dimension 3 - H"), Cell(number(values["fractal_dimension"], 3), values["fractal_dimension"], "fractal_dimension"), Cell("1")],
+            [Cell("Hurst exponent H"), Cell(number(values["hurst_exponent"], 3), _finite(values["hurst_exponent"]), "hurst_exponent"), Cell("1")],
+            [Cell("fit from"), Cell(number(values["hurst_fit_min_um"]), _finite(values["hurst_fit_min_um"]), "hurst_fit_min_um"), Cell("µm")],
+            [Cell("fit to"), Cell(number(values["hurst_fit_max_um"]), _finite(values["hurst_fit_max_um"]), "hurst_fit_max_um"), Cell("µm")],
+            [Cell("fractal dimension 3 - H"), Cell(number(values["fractal_dimension"], 3), _finite(values["fractal_dimension"]), "fractal_dimension"), Cell("1")],
         ], anchor="scaling-table", caption="The slope of log h(r) against log r, h(r) the height-height correlation (second "
-                                           "differences) along x, over the fit range below."),
+                                           f"differences) along {content.roughness.chain.direction_deg:g}° from +x, over the fit range below."),
         Paragraph(f"Fit range: {content.trustworthy_note}."),
         FigureBlock(figures.hurst_figure(content), "The height-height correlation and its power-law fit.", "hurst-figure"),
     )
+    fits = content.roughness.hurst.fits
+    if fits:
+        document.add(Table(["method", "direction (°)", "H", "standard error", "fit from (µm)", "fit to (µm)"], [
+            [Cell(_METHOD_NAMES[method]), Cell(f"{fit.direction_deg:g} ({side})"),
+             *(Cell(number(value, 3 if key in ("hurst", "hurst_stderr") else 4), value if math.isfinite(value) else None,
+                    f"hurst.{method}.{side}.{key}") for key, value in (("hurst", fit.hurst), ("hurst_stderr", fit.hurst_stderr),
+                                                                    ("fit_min_um", fit.fit_min_um), ("fit_max_um", fit.fit_max_um)))]
+            for method, sides in fits.items() for side, fit in sides.items()
+        ], anchor="hurst-table", caption="Both methods along the chain's direction and across it (90° more); standard errors by "
+                                         "jackknife over bands of profiles. The PSD's fit range is in wavelengths (twice the lags)."))
+    if content.roughness.hurst.note:
+        note = content.roughness.hurst.note
+        document.add(Paragraph(note[:1].upper() + note[1:] + ".", emphasis=not fits))
+    document.add(FigureBlock(figures.psd_figure(content), "The power spectral densities of the surface after form removal and "
+                             "S-filter (the API's psd and the PSD fits' curves), and the power laws fitted.", "psd-figure"))
 
 
 def _profiles(document: Document, content: ReportContent, figures) -> None:

@@ -72,7 +72,7 @@ h1 { font-size: 1.6em; } h2 { font-size: 1.2em; border-bottom: 1px solid #ccc; m
 table { border-collapse: collapse; margin: 0.8em 0; font-size: 0.9em; }
 th, td { border: 1px solid #ccc; padding: 0.2em 0.6em; text-align: left; }
 td.number { text-align: right; font-variant-numeric: tabular-nums; }
-caption { caption-side: bottom; text-align: left; font-size: 0.85em; color: #555; padding-top: 0.3em; }
+p.caption { font-size: 0.85em; color: #555; margin: -0.5em 0 1em 0; max-width: 50em; }
 figure { margin: 1em 0; } figure img { max-width: 100%; } figcaption { font-size: 0.85em; color: #555; }
 p.emphasis { border-left: 4px solid #c60; background: #fff4e8; padding: 0.4em 0.8em; }
 """
@@ -106,13 +106,14 @@ def _html_table(table: Table, anchor: str) -> str:
     for row in table.rows:
         cells = []
         for cell in row:
-            if cell.value is None:
-                cells.append(f"<td>{html.escape(cell.text)}</td>")
+            if cell.value is None:  # a number's cell stays right-aligned when it has none ("—")
+                cells.append(('<td class="number">' if cell.name else "<td>") + f"{html.escape(cell.text)}</td>")
             else:
                 cells.append(f'<td class="number" data-name="{html.escape(cell.name)}" data-value="{float(cell.value)!r}">{html.escape(cell.text)}</td>')
         rows.append("<tr>" + "".join(cells) + "</tr>")
-    caption = f"<caption>{html.escape(table.caption)}</caption>" if table.caption else ""
-    return f"<table{anchor}>{caption}{head}<tbody>{''.join(rows)}</tbody></table>\n"
+    # The caption below the table as a paragraph: a <caption> would wrap to the table's width.
+    caption = f'<p class="caption">{html.escape(table.caption)}</p>\n' if table.caption else ""
+    return f"<table{anchor}>{head}<tbody>{''.join(rows)}</tbody></table>\n{caption}"
 
 
 # A4 portrait, inches, and the layout of its pages.

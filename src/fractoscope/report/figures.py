@@ -1,6 +1,6 @@
 """The report's matplotlib figures (no display needed): the SEM images, the height map with a
 colour bar and a scale bar, the coverage and uncertainty maps, the height-height correlation with
-its fit, and the profiles. Axes are micrometres in the specimen frame (x right, y down)."""
+its fit, the PSDs with theirs, and the profiles. Axes are micrometres in the specimen frame (x right, y down)."""
 
 from __future__ import annotations
 
@@ -13,6 +13,7 @@ import matplotlib.pyplot as plt  # noqa: E402 - after choosing the backend
 import numpy as np  # noqa: E402
 from matplotlib.colors import BoundaryNorm, LightSource, ListedColormap, Normalize  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
+from matplotlib.ticker import LogFormatter  # noqa: E402
 from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar  # noqa: E402
 
 from fractoscope.report.content import ReportContent, ReportProfile, View  # noqa: E402
@@ -109,8 +110,42 @@ def hurst_figure(content: ReportContent) -> Figure:
         ax.axvspan(*content.trustworthy_range_um, color="C2", alpha=0.15, label="trustworthy lags (scaling)")
     ax.set_xlabel("lag r (µm)")
     ax.set_ylabel("h(r) (µm)")
+    for axis in (ax.xaxis, ax.yaxis):  # plain numbers ("8", not "8 × 10⁰"): a fit range often spans less than a decade
+        axis.set_major_formatter(LogFormatter())
+        axis.set_minor_formatter(LogFormatter(labelOnlyBase=False))
     ax.legend(fontsize=7)
     ax.grid(True, which="both", alpha=0.3)
+    return figure
+
+
+def psd_figure(content: ReportContent) -> Figure:
+    """Left: the radially averaged areal PSD C(q) of the S-F surface. Right: the profile PSDs along
+    and across the direction, the PSD Hurst fits drawn over the wavelengths they were fitted on."""
+    analysis = content.roughness
+    figure, (areal_ax, profile_ax) = plt.subplots(1, 2, figsize=(WIDTH_IN, 3.4), layout="constrained")
+    shown = np.isfinite(analysis.psd_um4) & (analysis.psd_um4 > 0)
+    areal_ax.loglog(analysis.psd_q_per_um[shown], analysis.psd_um4[shown], "-", color="0.3", linewidth=1.0, label="C(q)")
+    areal_ax.set_xlabel("spatial frequency q (1/µm)")
+    areal_ax.set_ylabel("C(q) (µm⁴)")
+    areal_ax.set_title("Areal PSD (radially averaged)", fontsize=9)
+    for side, fit in analysis.hurst.fits.get("psd", {}).items():
+        k = 1.0 / fit.scale_um
+        line, = profile_ax.loglog(k, fit.value, ".", markersize=2, label=f"{side} ({fit.direction_deg:g}°)")
+        band = np.array([1.0 / fit.fit_max_um, 1.0 / fit.fit_min_um])
+        profile_ax.loglog(band, fit.prefactor * band ** -(1.0 + 2.0 * fit.hurst), "-", color=line.get_color(), linewidth=1.5,
+                          label=f"fit: H = {fit.hurst:.3f} ± {fit.hurst_stderr:.2g}")
+        if side == "along":
+            areal_ax.axvspan(*band, color="C2", alpha=0.15, label="fitted frequencies")
+    profile_ax.set_xlabel("spatial frequency k (1/µm)")
+    profile_ax.set_ylabel("P(k) (µm³)")
+    profile_ax.set_title("Profile PSD and its fits", fontsize=9)
+    if not analysis.hurst.fits:
+        profile_ax.text(0.5, 0.5, "no PSD fit: the field is too small", ha="center", va="center", transform=profile_ax.transAxes, fontsize=8)
+    for ax in (areal_ax, profile_ax):
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=6)
+        ax.grid(True, which="both", alpha=0.3)
+        ax.tick_params(labelsize=7)
     return figure
 
 
