@@ -154,13 +154,17 @@ def iter_tiles(
     within one cell of a full-resolution wall (a level places a cliff only to within its cell,
     and that sideways error would read as a vertical one of the cliff's whole height), and counts
     at each pixel only what exceeds three of its sigmas (within which the full-resolution data
-    does not know its own surface better). Tiles without triangles are skipped."""
+    does not know its own surface better), and is at least the errors of the finer level's tiles
+    under it (those leave out less around walls; a viewer that refines a tile must not find its
+    children worse). Tiles without triangles are skipped."""
     if z_um.shape != texture.shape or z_um.ndim != 2:
         raise ValueError(f"z_um and texture must be 2D of one shape, got {z_um.shape} and {texture.shape}")
     count = level_count or level_count_for(z_um.shape)
     tolerance_um = None if sigma_um is None else WALL_SIGMA_FACTOR * np.nan_to_num(sigma_um).astype(np.float32)
     full_resolution_walls = None
+    finer_errors: dict[tuple[int, int], float] = {}  # the finer level's tiles' errors by (row, col)
     for level, cluster in enumerate(cluster_levels(z_um, texture, count=count, sigma_um=sigma_um)):
+        errors: dict[tuple[int, int], float] = {}
         grid_walls = grid_wall_triangles(
             cluster.col_px * pixel_size_um, cluster.row_px * pixel_size_um, cluster.z_um, max_slope=max_slope, sigma_um=cluster.sigma_um
         )
@@ -190,6 +194,8 @@ def iter_tiles(
                     error = _nanmax(deviation[footprint] if tolerance_um is None else deviation[footprint] - tolerance_um[footprint])
                 else:
                     error = _mesh_deviation(positions, triangles[~walls], surface_um, footprint, tolerance_um=tolerance_um)
+                children = [finer_errors.get((2 * tile_row + i, 2 * tile_col + j), 0.0) for i in (0, 1) for j in (0, 1)]
+                error = errors[(tile_row, tile_col)] = max(error, *children)
                 block = cluster.texture[row_cells[0] : row_cells[1] + 1, col_cells[0] : col_cells[1] + 1]
                 yield LodTile(
                     level=level,
@@ -203,6 +209,7 @@ def iter_tiles(
                     geometric_error_um=error,
                     walls=walls,
                 )
+        finer_errors = errors
 
 
 def tile_count(shape: tuple[int, int], level_count: int | None = None) -> int:
