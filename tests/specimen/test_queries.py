@@ -5,7 +5,7 @@ import pytest
 
 from fractoscope.errors import InvalidInputError
 from fractoscope.specimen.fusion import PlacedRoi
-from fractoscope.specimen.queries import height_statistics
+from fractoscope.specimen.queries import height_statistics, roughness_of
 from fractoscope.specimen.quadtree import OPTICAL, QuadtreeLayout, TileKey, TileRecord
 from fractoscope.specimen.store import RoiEntry, SpecimenStore, write_description, write_roi_arrays
 
@@ -43,3 +43,14 @@ def test_a_point_and_an_unmeasured_area(step_specimen):
     assert nothing["count"] == 0 and nothing["mean_um"] is None and nothing["measured_fraction"] == 0.0
     with pytest.raises(InvalidInputError):
         height_statistics(step_specimen, (30.0, 20.0, 29.0, 21.0))
+
+
+def test_a_region_far_beyond_the_specimen_is_clipped_to_it(step_specimen):
+    """What the fuzzed API sent (a region 1e31 µm wide) is measured where the specimen is: the same
+    statistics and roughness as the specimen's own extent, not an allocation of petabytes."""
+    huge = (-2.7e31, -4.6e6, 8.8e6, 3.8e8)
+    whole = (0.0, 0.0, 39.5, 29.5)
+    assert height_statistics(step_specimen, huge) == height_statistics(step_specimen, whole)
+    assert roughness_of(step_specimen, region_um=huge).parameters["Sq"] == pytest.approx(roughness_of(step_specimen, region_um=whole).parameters["Sq"])
+    with pytest.raises(InvalidInputError, match="does not meet the specimen"):
+        roughness_of(step_specimen, region_um=(1e6, 1e6, 2e6, 2e6))

@@ -147,25 +147,24 @@ def height_statistics(specimen: Specimen, region_um) -> dict:
 
 def roughness_of(specimen: Specimen, *, roi: str | None = None, region_um=None, chain: ChainRequest = ChainRequest()) -> roughness.SurfaceAnalysis:
     """The surface texture chain on one ROI as measured, or on a region of the fused surface
-    sampled at the finest pixel size there (coarser if that would exceed MAX_REGION_SAMPLES). The
-    matching noise is each ROI's stored sigma map (for a region: the median of the ROI each
-    sample comes from), the tilt uncertainty that of the ROI (for a region: the largest of those it
-    draws on)."""
+    (clipped to the specimen) sampled at the finest pixel size there (coarser if that would exceed
+    MAX_REGION_SAMPLES; `surface_area`). The matching noise is each ROI's stored sigma map (for a
+    region: fused as the heights are; the median where a measured point has none), the tilt
+    uncertainty that of the ROI (for a region: the largest of those it draws on)."""
     if region_um is not None:
-        x0, y0, x1, y1 = checked_region(region_um)
-        finest_um = specimen.finest_pixel_size_um((x0, y0, x1, y1))
-        cell_um = max(finest_um, math.sqrt((x1 - x0) * (y1 - y0) / MAX_REGION_SAMPLES))
-        x_um, y_um = np.meshgrid(np.arange(x0, x1 + 1e-9, cell_um), np.arange(y0, y1 + 1e-9, cell_um))
-        samples = specimen.surface.sample(x_um, y_um, cell_um=cell_um)
-        z_um, pixel_size_um, origin_um = samples.z_um, cell_um, (x0, y0)
-        used = [specimen.surface.rois[i] for i in np.unique(samples.source[samples.source >= 0])]
-        window_px = DEFAULT_WINDOW_PX * finest_um / cell_um
+        area = surface_area(specimen, region_um=region_um)
+        z_um, pixel_size_um, origin_um = area.z_um, area.pixel_size_um, area.origin_um
+        x0, y0 = origin_um
+        rows, cols = z_um.shape
+        finest_um = specimen.finest_pixel_size_um((x0, y0, x0 + (cols - 1) * pixel_size_um, y0 + (rows - 1) * pixel_size_um))
+        window_px = DEFAULT_WINDOW_PX * finest_um / pixel_size_um
+        used = [specimen.roi(area.sources[i]) for i in np.unique(area.source[area.source >= 0])]
+        measured = np.isfinite(z_um)
+        with_sigma = measured & np.isfinite(area.sigma_um)
         sigma_um = None
-        if used and all(placed.sigma_um is not None for placed in used):
-            medians = np.array([np.nanmedian(placed.sigma_um) if placed.sigma_um is not None else np.nan for placed in specimen.surface.rois])
-            # Samples that no ROI contributes half of take the largest of the medians.
-            sigma_um = np.append(medians, np.nanmax(medians))[samples.source]
-        tilt = [specimen.roi(placed.id).tilt_rel_uncertainty for placed in used]
+        if with_sigma.any():
+            sigma_um = np.where(measured & ~with_sigma, np.median(area.sigma_um[with_sigma]), area.sigma_um)
+        tilt = [entry.tilt_rel_uncertainty for entry in used]
         tilt_rel = max(tilt) if tilt and None not in tilt else None
     else:
         if roi is None:
