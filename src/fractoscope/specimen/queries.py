@@ -132,12 +132,8 @@ def height_statistics(specimen: Specimen, region_um) -> dict:
     µm, sampled at the finest pixel size there (coarser if that would exceed MAX_REGION_SAMPLES):
     mean, median, std, min, max (µm; None when nothing is measured), the number of measured
     samples, their share of all samples and the sampling pixel size."""
-    x0, y0, x1, y1 = _within_specimen(specimen, checked_region(region_um, allow_point=True), allow_point=True)
-    cell_um = specimen.finest_pixel_size_um((x0, y0, x1, y1))
-    cell_um = max(cell_um, math.sqrt((x1 - x0) * (y1 - y0) / MAX_REGION_SAMPLES))
-    cols, rows = int((x1 - x0) / cell_um + 1e-9) + 1, int((y1 - y0) / cell_um + 1e-9) + 1
-    x_um, y_um = np.meshgrid(x0 + np.arange(cols) * cell_um, y0 + np.arange(rows) * cell_um)
-    z_um = specimen.surface.sample(x_um, y_um, cell_um=cell_um).z_um
+    area = surface_area(specimen, region_um=region_um, allow_point=True)
+    z_um, cell_um = area.z_um, area.pixel_size_um
     known = z_um[np.isfinite(z_um)].astype(np.float64)
     figures = (known.mean(), np.median(known), known.std(), known.min(), known.max()) if known.size else (None,) * 5
     names = ("mean_um", "median_um", "std_um", "min_um", "max_um")
@@ -267,17 +263,17 @@ class SurfaceArea:
 
 def surface_area(
     specimen: Specimen, *, roi: str | None = None, region_um=None, pixel_size_um: float | None = None,
-    max_samples: int = MAX_REGION_SAMPLES,
+    max_samples: int = MAX_REGION_SAMPLES, allow_point: bool = False,
 ) -> SurfaceArea:
     """An ROI as measured (`pixel_size_um`, if given, at least its own: area-averaged onto it), or a
     region (x0, y0, x1, y1) µm of the fused surface, clipped to the specimen, sampled at
     `pixel_size_um` (default: the finest there, coarser where that would exceed `max_samples`; a
     given one that exceeds it is an error).
-    The default area is the overview ROI."""
+    The default area is the overview ROI; `allow_point` takes a region of no extent (a point)."""
     if pixel_size_um is not None:
         positive(pixel_size_um, "pixel_size_um")
     if region_um is not None:
-        return _region_area(specimen, checked_region(region_um), pixel_size_um, max_samples)
+        return _region_area(specimen, checked_region(region_um, allow_point=allow_point), pixel_size_um, max_samples, allow_point)
     entry = specimen.roi(roi) if roi is not None else specimen.rois[0]
     placed = specimen.heights(entry.id)
     z_um = placed.z_um
@@ -298,8 +294,8 @@ def surface_area(
     return SurfaceArea(z_um, sigma_um, texture, source, [r.id for r in specimen.surface.rois], step, placed.origin_um, entry)
 
 
-def _region_area(specimen: Specimen, region, pixel_size_um: float | None, max_samples: int) -> SurfaceArea:
-    x0, y0, x1, y1 = _within_specimen(specimen, region)
+def _region_area(specimen: Specimen, region, pixel_size_um: float | None, max_samples: int, allow_point: bool) -> SurfaceArea:
+    x0, y0, x1, y1 = _within_specimen(specimen, region, allow_point=allow_point)
     if pixel_size_um is None:
         cell_um = max(specimen.finest_pixel_size_um(region), math.sqrt((x1 - x0) * (y1 - y0) / max_samples))
     else:
