@@ -16,6 +16,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
+import numba
 import numpy as np
 
 from fractoscope.stereo import correlation
@@ -174,30 +175,50 @@ def residual_search(left, left_stats, right, disparity, window_px, radius) -> Re
     disparity = cv2.GaussianBlur(disparity, (0, 0), window_px / 4.0)
     warped = correlation.warp_along_rows(right, disparity)
     scores = correlation.zncc_scores(left, left_stats, warped, window_px, radius)
-    if radius == 1:  # the full-resolution case, kept lean: three scores, no index bookkeeping
-        before, centre, after = scores
-        best = np.maximum(np.maximum(before, centre), after)
-        offset = (after == best).astype(np.float32) - (before == best) * (after != best)
-        curvature = before - 2.0 * centre + after
-        at_centre = (centre == best) & (curvature < 0)
-    else:
-        best, best_index = scores[0].copy(), np.zeros(left.shape, np.int16)
-        for index, score in enumerate(scores[1:], start=1):
-            better = score > best
-            np.copyto(best, score, where=better)
-            np.copyto(best_index, index, where=better)
-        before, after = np.zeros_like(best), np.zeros_like(best)
-        for index in range(1, 2 * radius):
-            at_index = best_index == index
-            np.copyto(before, scores[index - 1], where=at_index)
-            np.copyto(after, scores[index + 1], where=at_index)
-        curvature = before - 2.0 * best + after
-        at_centre = (best_index > 0) & (best_index < 2 * radius) & (curvature < 0)
-        offset = best_index.astype(np.float32) - radius
+    if radius == 1:  # the full-resolution case, run most often: one compiled pass
+        return Refinement(*_peak_of_three(*scores, disparity))
+    best, best_index = scores[0].copy(), np.zeros(left.shape, np.int16)
+    for index, score in enumerate(scores[1:], start=1):
+        better = score > best
+        np.copyto(best, score, where=better)
+        np.copyto(best_index, index, where=better)
+    before, after = np.zeros_like(best), np.zeros_like(best)
+    for index in range(1, 2 * radius):
+        at_index = best_index == index
+        np.copyto(before, scores[index - 1], where=at_index)
+        np.copyto(after, scores[index + 1], where=at_index)
+    curvature = before - 2.0 * best + after
+    at_centre = (best_index > 0) & (best_index < 2 * radius) & (curvature < 0)
+    offset = best_index.astype(np.float32) - radius
     with np.errstate(invalid="ignore", divide="ignore"):
         fraction = np.where(at_centre, 0.5 * (before - after) / curvature, 0.0)
     fraction = np.clip(fraction, -0.5, 0.5)
     return Refinement((disparity + offset + fraction).astype(np.float32), best, curvature)
+
+
+@numba.njit(nogil=True, cache=True, boundscheck=False, error_model="numpy")
+def _peak_of_three(before, centre, after, disparity):  # pragma: no cover
+    """`residual_search` at radius 1 in one pass: the best of the scores at -1, 0 and +1 px
+    (ties go to +1, then -1), the parabola's sub-pixel fraction where the centre is a peak
+    (within ±0.5 px); returns (disparity, best score, second difference), (rows, cols) float32."""
+    rows, cols = centre.shape
+    refined = np.empty((rows, cols), np.float32)
+    best_score = np.empty((rows, cols), np.float32)
+    curvature = np.empty((rows, cols), np.float32)
+    zero, one, half, two = np.float32(0.0), np.float32(1.0), np.float32(0.5), np.float32(2.0)
+    for i in range(rows):
+        for j in range(cols):
+            b, c, a = before[i, j], centre[i, j], after[i, j]
+            best = max(max(b, c), a)
+            offset = one if a == best else (-one if b == best else zero)
+            second = b - two * c + a
+            fraction = zero
+            if c == best and second < zero:
+                fraction = min(max(half * (b - a) / second, -half), half)
+            refined[i, j] = disparity[i, j] + offset + fraction
+            best_score[i, j] = best
+            curvature[i, j] = second
+    return refined, best_score, curvature
 
 
 def _propagate(left, left_stats, right, refined: Refinement, window_px) -> Refinement:
