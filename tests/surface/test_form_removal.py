@@ -124,3 +124,26 @@ def test_bad_arguments_are_named(roughness, options, message):
     arguments = {"pixel_size_um": PIXEL_UM, "form": "plane"} | options
     with pytest.raises(ValueError, match=message):
         form_removal.remove_form(roughness, **arguments)
+
+
+@pytest.mark.parametrize("form", ["sphere", "cylinder"])
+@pytest.mark.parametrize("robust", [False, True])
+def test_a_flat_or_tilted_surface_is_the_curved_forms_limit(form, robust):
+    """A least-squares sphere or cylinder includes the plane as its infinite-radius limit, so it
+    never leaves more than the plane does: on a tilted plane a cylinder fit started at the
+    quadratic fit alone left 2.5 µm RMS, a sphere on a constant map 12 µm."""
+    x, y = (values[:128, :128] for values in _grid())
+    for z in (0.3 * x - 0.1 * y + 2.0, np.full(x.shape, 5.0)):
+        fit = form_removal.remove_form(z, pixel_size_um=PIXEL_UM, form=form, robust=robust)
+        assert np.isfinite(fit.residual_um).all()
+        assert np.abs(fit.residual_um).max() < 1e-4
+        assert fit.parameters["radius_um"] > 1e4
+
+
+@pytest.mark.parametrize("form", ["sphere", "cylinder"])
+def test_a_straight_profile_is_the_arcs_limit(form):
+    x_um = np.arange(400) * PIXEL_UM
+    for profile in (0.3 * x_um + 2.0, np.full(x_um.shape, 3.0)):
+        assert np.abs(form_removal.remove_profile_form(profile, spacing_um=PIXEL_UM, form=form)).max() < 1e-6
+    arc = np.sqrt(500.0**2 - (x_um - 90.0) ** 2) - 500.0
+    assert np.abs(form_removal.remove_profile_form(arc, spacing_um=PIXEL_UM, form=form)).max() < 1e-6

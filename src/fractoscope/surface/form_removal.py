@@ -112,9 +112,14 @@ def _normalised(index: np.ndarray, length: int) -> np.ndarray:
     return 2.0 * index / max(length - 1, 1) - 1.0
 
 
+# Residuals spread less than this (1e-6 nm) are rounding, not data: no point is an outlier among
+# them (on a constant map, reweighting by such a scale left too few points to solve for a plane).
+_ROUNDING_SCALE_UM = 1e-9
+
+
 def _robust_weights(residual: np.ndarray, iteration: int) -> np.ndarray:
     scale = 1.4826 * np.median(np.abs(residual - np.median(residual)))
-    if scale <= 0:
+    if scale <= _ROUNDING_SCALE_UM:
         return np.ones_like(residual)
     u = residual / scale
     if iteration < _HUBER_ITERATIONS:
@@ -185,112 +190,163 @@ def _weighted_least_squares(residuals):
 
 
 def _remove_sphere(z: np.ndarray, points: np.ndarray, pixel_size_um: float, robust: bool) -> FormFit:
-    """Sphere by orthogonal distance |p - c| - R, started from the algebraic (linear) fit
-    x² + y² + z² + D x + E y + F z + G = 0."""
+    """Sphere through the point above the field centre at height a, with normal (-b, -c, 1)/|·| and
+    curvature κ there (`_tangent_quadric`): a flat or tilted surface is its κ = 0 limit, which
+    the fit reaches as smoothly as any sphere. Started from the least-squares plane with κ = 0 and
+    with the quadratic fit's mean curvature."""
     shift = points.mean(axis=0)
     p = points - shift
-    algebraic = np.column_stack([p, np.ones(len(p))])
-    d, e, f, g = np.linalg.lstsq(algebraic, -(p**2).sum(axis=1), rcond=None)[0]
-    centre0 = -0.5 * np.array([d, e, f])
-    radius0 = np.sqrt(max(centre0 @ centre0 - g, 1e-12))
-    start = np.concatenate([centre0, [radius0]])
-
-    def residuals(params):
-        return np.linalg.norm(p - params[:3], axis=1) - params[3]
-
-    params, weights = _irls(_weighted_least_squares(residuals), residuals, start, robust)
-    centre = params[:3] + shift
-    radius = abs(params[3])
-    # The measured cap is the upper half of the sphere if the data lies above its centre (a dome).
-    branch = 1.0 if np.median(points[:, 2]) >= centre[2] else -1.0
+    a, b, c, curvatures, _ = _plane_and_curvatures(p)
+    params, weights = _fit_tangent_quadric(p, [np.array([a, b, c, 0.0]), np.array([a, b, c, np.mean(curvatures)])], robust)
+    quadric = _tangent_quadric(params)
     n_rows, n_cols = z.shape
-    gx = np.arange(n_cols) * pixel_size_um - centre[0]
-    gy = np.arange(n_rows) * pixel_size_um - centre[1]
-    under = radius**2 - gy[:, None] ** 2 - gx[None, :] ** 2
-    with np.errstate(invalid="ignore"):
-        form_um = centre[2] + branch * np.sqrt(under)
+    form_um = shift[2] + quadric.height((np.arange(n_cols) * pixel_size_um - shift[0])[None, :],
+                                        (np.arange(n_rows) * pixel_size_um - shift[1])[:, None])
     return FormFit(
         residual_um=z - form_um,
         form_um=form_um,
         form="sphere",
-        parameters={"radius_um": float(radius), "centre_um": centre.tolist(), "convex": bool(branch > 0)},
+        parameters={"radius_um": quadric.radius_um, "centre_um": (quadric.axis_point_um + shift).tolist(), "convex": quadric.convex},
         fit_points=len(points),
         inlier_fraction=float(np.mean(weights > 0)),
     )
 
 
-def _axis_direction(azimuth: float, elevation: float) -> np.ndarray:
-    return np.array([np.cos(azimuth) * np.cos(elevation), np.sin(azimuth) * np.cos(elevation), np.sin(elevation)])
-
-
 def _remove_cylinder(z: np.ndarray, points: np.ndarray, pixel_size_um: float, robust: bool) -> FormFit:
-    """Cylinder with its axis near the image plane: axis azimuth and elevation, the axis point's offset
-    across the axis from the field centre and its height, and the radius, by orthogonal distance
-    |(p - a) x u| - R. Started from a quadratic fit: the axis runs along its direction of least
-    curvature and the radius is the inverse of the largest."""
+    """Cylinder touching the point above the field centre at height a, with normal (-b, -c, 1)/|·|
+    there, its axis along the tangent plane at angle θ, curvature κ across it (`_tangent_quadric`):
+    a flat or tilted surface is its κ = 0 limit. Started from the least-squares plane with κ = 0
+    and with the quadratic fit's largest curvature, the axis along the least curved direction."""
     shift = points.mean(axis=0)
     p = points - shift
-    x, y, h = p.T
-    quad = np.column_stack([x * x, x * y, y * y, x, y, np.ones_like(x)])
-    a, b, c, d, e, f = np.linalg.lstsq(quad, h, rcond=None)[0]
-    eigenvalues, eigenvectors = np.linalg.eigh(np.array([[2 * a, b], [b, 2 * c]]))
-    curved = int(np.argmax(np.abs(eigenvalues)))
-    curvature = eigenvalues[curved]
-    if abs(curvature) < 1e-15:
-        raise ValueError("form: the surface has no curvature to fit a cylinder to")
-    across = eigenvectors[:, curved]
-    along = eigenvectors[:, 1 - curved]
-    radius0 = 1.0 / abs(curvature)
-    azimuth0 = np.arctan2(along[1], along[0])
-    # The quadratic's vertex along the curved direction is where the axis passes below a dome (a
-    # positive-up bulge, negative curvature) or above a trough.
-    slope = np.array([d, e]) @ across
-    vertex = -slope / curvature
-    apex = f + slope * vertex + 0.5 * curvature * vertex**2
-    height0 = apex + radius0 if curvature > 0 else apex - radius0
-    offset0 = vertex * (across @ np.array([-np.sin(azimuth0), np.cos(azimuth0)]))
-    start = np.array([azimuth0, 0.0, offset0, height0, radius0])
-
-    def axis_point(params):
-        azimuth, _, offset, height, _ = params
-        return np.array([-np.sin(azimuth) * offset, np.cos(azimuth) * offset, height])
-
-    def residuals(params):
-        u = _axis_direction(params[0], params[1])
-        return np.linalg.norm(np.cross(p - axis_point(params), u), axis=1) - params[4]
-
-    params, weights = _irls(_weighted_least_squares(residuals), residuals, start, robust)
-    u = _axis_direction(params[0], params[1])
-    anchor = axis_point(params) + shift
-    radius = abs(params[4])
-    convex = bool(np.median(points[:, 2] - (anchor[2] + (points[:, :2] - anchor[:2]) @ u[:2] * u[2])) >= 0)
+    a, b, c, curvatures, directions = _plane_and_curvatures(p)
+    curved = int(np.argmax(np.abs(curvatures)))
+    along = directions[:, 1 - curved]
+    basis = _tangent_basis(b, c)
+    # The least curved direction, lifted into the tangent plane, as an angle from its first axis.
+    lifted = np.array([along[0], along[1], b * along[0] + c * along[1]])
+    theta0 = float(np.arctan2(lifted @ basis[1], lifted @ basis[0]))
+    # Also the axis turned by 90°: on a doubly curved surface either direction may fit best.
+    starts = [np.array([a, b, c, theta0, 0.0]), np.array([a, b, c, theta0, curvatures[curved]]),
+              np.array([a, b, c, theta0 + np.pi / 2, curvatures[1 - curved]])]
+    params, weights = _fit_tangent_quadric(p, starts, robust)
+    quadric = _tangent_quadric(params)
     n_rows, n_cols = z.shape
-    dx = (np.arange(n_cols) * pixel_size_um - anchor[0])[None, :]
-    dy = (np.arange(n_rows) * pixel_size_um - anchor[1])[:, None]
-    # Vertical line through (x, y) meets the cylinder where |w x u|² = |w|² - (w.u)² = R², w = (dx, dy, dz):
-    # dz² (1 - uz²) - 2 dz uz (dx ux + dy uy) + dx² + dy² - (dx ux + dy uy)² - R² = 0.
-    lateral = dx * u[0] + dy * u[1]
-    qa = 1.0 - u[2] ** 2
-    qb = -2.0 * u[2] * lateral
-    qc = dx**2 + dy**2 - lateral**2 - radius**2
-    with np.errstate(invalid="ignore"):
-        root = np.sqrt(qb**2 - 4 * qa * qc)
-    dz = (-qb + (1.0 if convex else -1.0) * root) / (2 * qa)
-    form_um = anchor[2] + dz
+    form_um = shift[2] + quadric.height((np.arange(n_cols) * pixel_size_um - shift[0])[None, :],
+                                        (np.arange(n_rows) * pixel_size_um - shift[1])[:, None])
+    axis = quadric.axis if quadric.axis[0] >= 0 or (quadric.axis[0] == 0 and quadric.axis[1] >= 0) else -quadric.axis
     return FormFit(
         residual_um=z - form_um,
         form_um=form_um,
         form="cylinder",
         parameters={
-            "radius_um": float(radius),
-            "axis_azimuth_deg": float(np.degrees(params[0]) % 180.0),
-            "axis_elevation_deg": float(np.degrees(params[1])),
-            "axis_point_um": anchor.tolist(),
-            "convex": convex,
+            "radius_um": quadric.radius_um,
+            "axis_azimuth_deg": float(np.degrees(np.arctan2(axis[1], axis[0])) % 180.0),
+            "axis_elevation_deg": float(np.degrees(np.arcsin(np.clip(axis[2], -1.0, 1.0)))),
+            "axis_point_um": (quadric.axis_point_um + shift).tolist(),
+            "convex": quadric.convex,
         },
         fit_points=len(points),
         inlier_fraction=float(np.mean(weights > 0)),
     )
+
+
+def _plane_and_curvatures(p: np.ndarray):
+    """For points p (n, 3) centred on their mean: the least-squares plane h = a + b x + c y, and the
+    principal curvatures (2,) and directions (2, 2, columns) of a quadratic fit, 1/µm, positive
+    for a dome."""
+    x, y, h = p.T
+    a, b, c = np.linalg.lstsq(np.column_stack([np.ones_like(x), x, y]), h, rcond=None)[0]
+    q_xx, q_xy, q_yy = np.linalg.lstsq(np.column_stack([x * x, x * y, y * y, x, y, np.ones_like(x)]), h, rcond=None)[0][:3]
+    curvatures, directions = np.linalg.eigh(np.array([[2 * q_xx, q_xy], [q_xy, 2 * q_yy]]))
+    return a, b, c, -curvatures, directions
+
+
+def _tangent_basis(b: float, c: float) -> np.ndarray:
+    """Orthonormal (2, 3) basis of the plane h = a + b x + c y: its x direction and the one across."""
+    along_x = np.array([1.0, 0.0, b]) / np.hypot(1.0, b)
+    normal = np.array([-b, -c, 1.0]) / np.sqrt(1.0 + b * b + c * c)
+    return np.array([along_x, np.cross(normal, along_x)])
+
+
+@dataclass(frozen=True)
+class _TangentQuadric:
+    """A sphere (axis None) or a cylinder (unit axis) through q = (0, 0, a) with unit normal n there
+    (n_z > 0) and curvature κ (1/µm, > 0 a dome): its centre, or a point of its axis, is q - n/κ.
+    Coordinates are relative to the fitted points' mean."""
+
+    point: np.ndarray
+    normal: np.ndarray
+    curvature: float
+    axis: np.ndarray | None
+
+    def residuals(self, p: np.ndarray) -> np.ndarray:
+        """Signed orthogonal distance of the points p (n, 3), µm, written so that it stays exact
+        as κ → 0 (where it becomes the distance to the tangent plane): for w = p - q with the axis
+        component removed, (κ|w|² + 2 w·n) / (|κ w + n| + 1)."""
+        w = p - self.point
+        across = w if self.axis is None else w - np.outer(w @ self.axis, self.axis)
+        return (self.curvature * np.einsum("ij,ij->i", across, across) + 2.0 * (w @ self.normal)) / (
+            np.linalg.norm(self.curvature * across + self.normal, axis=1) + 1.0
+        )
+
+    def height(self, x_um: np.ndarray, y_um: np.ndarray) -> np.ndarray:
+        """Height of the surface above (x_um, y_um) (broadcast), on the branch through q; NaN where a
+        vertical line misses it. The root of A t² + B t + C = 0 for t = h - a, in the form that
+        stays exact as κ → 0."""
+        u = np.zeros(3) if self.axis is None else self.axis
+        lateral = x_um * u[0] + y_um * u[1]
+        k, n = self.curvature, self.normal
+        a2 = k * (1.0 - u[2] ** 2)
+        b1 = 2.0 * n[2] - 2.0 * k * u[2] * lateral
+        c0 = k * (x_um**2 + y_um**2 - lateral**2) + 2.0 * (n[0] * x_um + n[1] * y_um)
+        with np.errstate(invalid="ignore"):
+            return self.point[2] - 2.0 * c0 / (b1 + np.sqrt(b1 * b1 - 4.0 * a2 * c0))
+
+    @property
+    def radius_um(self) -> float:
+        return float(1.0 / abs(self.curvature)) if self.curvature else float("inf")
+
+    @property
+    def convex(self) -> bool:
+        return bool(self.curvature >= 0)
+
+    @property
+    def axis_point_um(self) -> np.ndarray:
+        """The centre (sphere) or the axis point below q (cylinder), µm."""
+        return self.point - self.normal / self.curvature if self.curvature else np.full(3, np.inf)
+
+
+def _tangent_quadric(params: np.ndarray) -> _TangentQuadric:
+    """Parameters (a, b, c, κ) of a sphere or (a, b, c, θ, κ) of a cylinder as a _TangentQuadric."""
+    a, b, c = params[:3]
+    normal = np.array([-b, -c, 1.0]) / np.sqrt(1.0 + b * b + c * c)
+    axis = None
+    if len(params) == 5:
+        basis = _tangent_basis(b, c)
+        axis = np.cos(params[3]) * basis[0] + np.sin(params[3]) * basis[1]
+    return _TangentQuadric(np.array([0.0, 0.0, a]), normal, float(params[-1]), axis)
+
+
+def _fit_tangent_quadric(p: np.ndarray, starts: list[np.ndarray], robust: bool, quadric_of=_tangent_quadric):
+    """A tangent quadric (``quadric_of(parameters)``) fitted to points p (n, 3) by IRLS on the
+    orthogonal distances from each start; of those fits and the starts themselves (the first is
+    the least-squares plane, κ = 0), the one whose heights leave the smallest vertical residuals
+    (RMS, or with ``robust`` the median absolute value) is kept, so the form never leaves more
+    than the plane does. Returns (parameters, weights)."""
+
+    def residuals(params):
+        return quadric_of(params).residuals(p)
+
+    def vertical_spread(params):
+        quadric = quadric_of(params)
+        vertical = p[:, 2] - quadric.height(p[:, 0], p[:, 1])
+        vertical = np.where(np.isfinite(vertical), vertical, quadric.residuals(p))  # off its footprint
+        return np.median(np.abs(vertical)) if robust else np.sqrt(np.mean(vertical**2))
+
+    candidates = [(start, np.ones(len(p))) for start in starts]
+    candidates += [_irls(_weighted_least_squares(residuals), residuals, start, robust) for start in starts]
+    return min(candidates, key=lambda candidate: vertical_spread(candidate[0]))
 
 
 def remove_profile_form(z_um: np.ndarray, *, spacing_um: float, form: str = "plane", robust: bool = True) -> np.ndarray:
@@ -313,21 +369,17 @@ def remove_profile_form(z_um: np.ndarray, *, spacing_um: float, form: str = "pla
     values = z[index]
     if form in ("sphere", "cylinder"):
         x_um = index * spacing_um
-        shift = np.array([x_um.mean(), values.mean()])
-        p = np.column_stack([x_um, values]) - shift
-        d, e, g = np.linalg.lstsq(np.column_stack([p, np.ones(len(p))]), -(p**2).sum(axis=1), rcond=None)[0]
-        centre0 = -0.5 * np.array([d, e])
-        start = np.concatenate([centre0, [np.sqrt(max(centre0 @ centre0 - g, 1e-12))]])
+        shift = np.array([x_um.mean(), 0.0, values.mean()])
+        p = np.column_stack([x_um, np.zeros_like(x_um), values]) - shift
+        parabola = np.polyfit(p[:, 0], p[:, 2], 2)
 
-        def residuals(params):
-            return np.linalg.norm(p - params[:2], axis=1) - params[2]
+        def arc(params):  # (a, b, κ): the circle in the profile's plane, a sphere's section
+            return _tangent_quadric(np.array([params[0], params[1], 0.0, params[2]]))
 
-        params, _ = _irls(_weighted_least_squares(residuals), residuals, start, robust)
-        centre = params[:2] + shift
-        branch = 1.0 if np.median(values) >= centre[1] else -1.0
-        with np.errstate(invalid="ignore"):
-            form_um = centre[1] + branch * np.sqrt(params[2] ** 2 - (np.arange(z.size) * spacing_um - centre[0]) ** 2)
-        return z - form_um
+        starts = [np.array([p[:, 2].mean(), np.polyfit(p[:, 0], p[:, 2], 1)[0], 0.0]),
+                  np.array([parabola[2], parabola[1], -2.0 * parabola[0]])]
+        params, _ = _fit_tangent_quadric(p, starts, robust, quadric_of=arc)
+        return z - (shift[2] + arc(params).height(np.arange(z.size) * spacing_um - shift[0], 0.0))
     design = legendre.legvander(_normalised(index, z.size), degree)
 
     def solve(weights, _previous):
