@@ -1,0 +1,75 @@
+"""What a user who feeds `fracto` bad files and flags sees: one line on stderr naming the file or
+the flag, exit code 2, never a traceback; and --json output that is JSON."""
+
+import json
+import zipfile
+
+import numpy as np
+import pytest
+
+from fractoscope.cli.main import main
+from fractoscope.formats.calibration import Calibration
+from fractoscope.formats.height_npz import write_height_npz
+from fractoscope.formats.x3p import write_x3p
+
+CALIBRATION = Calibration((-5.0, 5.0), ("argument", "tilt_calibration"), (0.5, 0.04), 0.5, "argument")
+
+
+def _fracto(capsys, *args) -> tuple[int, str, str]:
+    """(exit code, stdout, stderr) of `fracto ARGS`, run in this process."""
+    with pytest.raises(SystemExit) as exited:
+        main([str(arg) for arg in args])
+    out, err = capsys.readouterr()
+    return exited.value.code, out, err
+
+
+def _one_error_line(err: str) -> str:
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ") and "Traceback" not in err, err
+    return lines[0]
+
+
+def _height_map(path, z_um, **options) -> None:
+    sigma_um = np.full(z_um.shape, 0.01, np.float32)
+    write_height_npz(path, z_um=z_um, sigma_um=sigma_um, confidence=np.ones_like(sigma_um), local_sigma_um=sigma_um,
+                     calibration=CALIBRATION, record={"tilt_axis_deg": 90.0}, **options)
+
+
+def _noise(shape=(64, 64), scale_um=1.0) -> np.ndarray:
+    return (np.random.default_rng(1).normal(size=shape) * scale_um).astype(np.float32)
+
+
+def _unreadable(path) -> None:
+    """Writes at `path` the unreadable file its name says."""
+    kind = path.stem
+    if kind == "empty":
+        path.write_bytes(b"")
+    elif kind == "text":
+        path.write_text("hello")
+    elif kind == "truncated":
+        whole = path.with_name(f"whole{path.suffix}")
+        if path.suffix == ".x3p":
+            write_x3p(whole, _noise(), pixel_size_um=0.5)
+        else:
+            _height_map(whole, _noise())
+        path.write_bytes(whole.read_bytes()[: whole.stat().st_size // 2])
+    elif kind == "not_npy":
+        with zipfile.ZipFile(path, "w") as archive:
+            archive.writestr("z_um.npy", b"not a npy")
+    elif kind == "record_list":
+        np.savez(path, z_um=_noise(), record=np.str_("[1, 2]"))
+    elif kind == "sigma_shape":
+        np.savez(path, z_um=_noise(), sigma_um=np.zeros((3, 3), np.float32))
+    elif kind == "bad_xml":
+        with zipfile.ZipFile(path, "w") as archive:
+            archive.writestr("main.xml", b"<?xml version='1.0'?><p:ISO5436_2 xmlns:p='x'><Record1>")
+
+
+@pytest.mark.parametrize("name", ["empty.npz", "text.npz", "truncated.npz", "not_npy.npz", "record_list.npz", "sigma_shape.npz",
+                                  "empty.x3p", "text.x3p", "truncated.x3p", "bad_xml.x3p"])
+def test_an_unreadable_file_is_named_once_with_exit_code_2(capsys, tmp_path, name):
+    path = tmp_path / name
+    _unreadable(path)
+    code, out, err = _fracto(capsys, "roughness", path, "--json")
+    line = _one_error_line(err)
+    assert code == 2 and out == "" and line.startswith(f"error: {path}: ") and line.count(str(path)) == 1
