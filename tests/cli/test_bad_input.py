@@ -73,3 +73,36 @@ def test_an_unreadable_file_is_named_once_with_exit_code_2(capsys, tmp_path, nam
     code, out, err = _fracto(capsys, "roughness", path, "--json")
     line = _one_error_line(err)
     assert code == 2 and out == "" and line.startswith(f"error: {path}: ") and line.count(str(path)) == 1
+
+
+@pytest.mark.parametrize("value", ["0", "-1", "nan", "inf", "1e-300", "1e300"])
+@pytest.mark.parametrize("recorded", [True, False])
+def test_a_bad_pixel_size_flag_is_refused_whether_or_not_the_map_records_one(capsys, tmp_path, value, recorded):
+    path = tmp_path / "map.npz"
+    if recorded:
+        _height_map(path, _noise())
+    else:
+        np.savez(path, z_um=_noise())
+    code, out, err = _fracto(capsys, "roughness", path, "--pixel-size-um", value, "--json")
+    assert code == 2 and _one_error_line(err).startswith("error: --pixel-size-um: must be between 1e-5 and 1e4 µm")
+
+
+def test_a_bad_pixel_size_flag_is_refused_by_export(capsys, tmp_path):
+    _height_map(tmp_path / "map.npz", _noise())
+    code, _, err = _fracto(capsys, "export", tmp_path / "map.npz", "--pixel-size-um", "0", "-o", tmp_path / "map.csv", "--data", tmp_path)
+    assert code == 2 and _one_error_line(err).startswith("error: --pixel-size-um: must be between")
+
+
+def test_a_map_with_a_pixel_size_array_and_no_record_needs_no_flag(capsys, tmp_path):
+    np.savez(tmp_path / "numpy.npz", z_um=_noise(), pixel_size_um=np.float64(0.25))
+    code, out, err = _fracto(capsys, "roughness", tmp_path / "numpy.npz", "--json")
+    assert code == 0, err
+    assert json.loads(out)["pixel_size_um"] == 0.25
+
+
+def test_an_absurd_recorded_pixel_size_names_the_file(capsys, tmp_path):
+    path = tmp_path / "huge.npz"
+    np.savez(path, z_um=_noise(), pixel_size_um=np.float64(1e300))
+    code, _, err = _fracto(capsys, "roughness", path, "--json")
+    assert code == 2 and _one_error_line(err) == (f"error: {path}: its pixel size must be between 1e-5 and 1e4 µm, got 1e+300; "
+                                                  "give --pixel-size-um")

@@ -16,6 +16,7 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
 from fractoscope.client import FractoscopeClient
+from fractoscope.stereo.geometry import validate_pixel_size_um
 
 EXIT_FAILURE, EXIT_BAD_INPUT, EXIT_UNAVAILABLE, EXIT_NOT_FOUND = 1, 2, 3, 4
 EXIT_CODES = {
@@ -72,6 +73,12 @@ def existing_file(text: str) -> Path:
     if not path.is_file():
         raise UsageError(f"cannot read {text}: no such file")
     return path
+
+
+def given_pixel_size_um(value: float | None) -> float | None:
+    """--pixel-size-um checked as every command checks it (InvalidInputError naming it), None when
+    not given."""
+    return None if value is None else validate_pixel_size_um(value)
 
 
 # Request fields (as errors name them) that stand for a command-line flag.

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fractoscope.cli.common import SERVER_HELP, UsageError, connected, region_argument
+from fractoscope.cli.common import SERVER_HELP, UsageError, connected, given_pixel_size_um, region_argument
 
 
 def add_parsers(commands) -> None:
@@ -33,6 +33,7 @@ def command_export(args) -> int:
     out = Path(args.output)
     out.parent.mkdir(parents=True, exist_ok=True)
     options = {"solid": args.solid, "units": args.units}
+    given_pixel_size_um(args.pixel_size_um)
     with connected(args.server, args.data) as client:
         if args.source.lower().endswith(".npz"):
             if args.roi or args.region:

@@ -9,10 +9,14 @@ from pathlib import Path
 
 import numpy as np
 
-from fractoscope.cli.common import SERVER_HELP, UsageError, connected, err, existing_file, progress_bar, region_argument
+from fractoscope.cli.common import (
+    SERVER_HELP, UsageError, connected, err, existing_file, given_pixel_size_um, progress_bar, region_argument,
+)
 from fractoscope.client.manifest import load_manifest
+from fractoscope.errors import InvalidInputError
 from fractoscope.formats.tileset import content_uris
 from fractoscope.rpc import wire
+from fractoscope.stereo.geometry import validate_pixel_size_um
 
 FORMS = tuple(wire.FORMS)
 
@@ -62,7 +66,7 @@ def add_parsers(commands) -> None:
     rough.add_argument("--min-windows", type=float, help="the Hurst fit starts this many windows up (default 4)")
     rough.add_argument("--robust-form", action="store_true", default=None,
                        help="fit the form robustly, so that outliers (dust, spikes) do not pull it (default: least squares)")
-    rough.add_argument("--pixel-size-um", type=float, help="pixel size of an npz map that does not record it, µm")
+    rough.add_argument("--pixel-size-um", type=float, help="pixel size of the file, µm (default: the one it records)")
 
     zoom = specimen_command("zoom", "tiles that show a region at a magnification, optical or digital", command_zoom)
     zoom.add_argument("specimen")
@@ -161,10 +165,11 @@ def command_roughness(args) -> int:
         "levelling_region_um": args.levelling_region, "window_px": args.window_px, "min_windows": args.min_windows,
         "robust_form": args.robust_form,
     }  # fmt: skip
+    pixel_size_um = given_pixel_size_um(args.pixel_size_um)
     if Path(args.source).suffix.lower() in (".npz", ".x3p"):
         if args.roi or args.region:
             raise UsageError("--roi and --region are for specimens; a file is analysed whole")
-        values = roughness_of_file(existing_file(args.source), chain, pixel_size_um=args.pixel_size_um)
+        values = roughness_of_file(existing_file(args.source), chain, pixel_size_um=pixel_size_um)
     else:
         with connected(args.server, args.data) as client:
             values = client.roughness(args.source, roi=args.roi, region_um=args.region, **chain)
@@ -218,17 +223,23 @@ def roughness_of_file(path: Path, chain: dict, *, pixel_size_um: float | None) -
         if sigma_um is not None:
             known = np.isfinite(sigma_um) & np.isfinite(z_um)
             sigma_um = np.where(known, sigma_um, np.median(sigma_um[known]) if known.any() else 0.0)
-    if pixel_size_um is None and file_pixel_um is None:
-        raise UsageError(f"{path} does not record its pixel size: give --pixel-size-um")
-    pixel_um = pixel_size_um or file_pixel_um
-    if not (np.isfinite(pixel_um) and pixel_um > 0):
-        raise UsageError(f"--pixel-size-um must be positive, got {pixel_um}")
+    pixel_um = pixel_size_um if pixel_size_um is not None else _recorded_pixel_size_um(path, file_pixel_um)
     request = ChainRequest(**chain)
     analysis = roughness_of_map(
         z_um, pixel_size_um=pixel_um, origin_um=origin_um, sigma_um=sigma_um, tilt_rel_uncertainty=tilt_rel, chain=request,
         default_window_px=window_px,
     )  # fmt: skip
     return wire.response_to_roughness(roughness_response(analysis, request))
+
+
+def _recorded_pixel_size_um(path: Path, recorded_um: float | None) -> float:
+    """The pixel size file `path` records, checked as --pixel-size-um is."""
+    if recorded_um is None:
+        raise UsageError(f"{path} does not record its pixel size: give --pixel-size-um")
+    try:
+        return validate_pixel_size_um(recorded_um)
+    except InvalidInputError as error:
+        raise InvalidInputError(str(path), f"its pixel size {error.message}; give --pixel-size-um") from None
 
 
 def command_zoom(args) -> int:
