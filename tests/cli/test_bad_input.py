@@ -106,3 +106,12 @@ def test_an_absurd_recorded_pixel_size_names_the_file(capsys, tmp_path):
     code, _, err = _fracto(capsys, "roughness", path, "--json")
     assert code == 2 and _one_error_line(err) == (f"error: {path}: its pixel size must be between 1e-5 and 1e4 µm, got 1e+300; "
                                                   "give --pixel-size-um")
+
+
+def test_json_output_writes_non_finite_numbers_as_null(capsys, tmp_path):
+    path = tmp_path / "big.npz"
+    _height_map(path, _noise(scale_um=1e30))  # psd.c_um4 overflows to infinity
+    code, out, err = _fracto(capsys, "roughness", path, "--json")
+    assert code == 0, err
+    values = json.loads(out, parse_constant=lambda name: pytest.fail(f"{name} is not JSON (RFC 8259)"))
+    assert None in values["psd"]["c_um4"]

@@ -16,6 +16,7 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
 from fractoscope.client import FractoscopeClient
+from fractoscope.formats import strict_json
 from fractoscope.stereo.geometry import validate_pixel_size_um
 
 EXIT_FAILURE, EXIT_BAD_INPUT, EXIT_UNAVAILABLE, EXIT_NOT_FOUND = 1, 2, 3, 4
@@ -66,6 +67,11 @@ def progress_bar(description: str, enabled: bool):
     with Progress(*columns, console=err, transient=True) as bar:
         task = bar.add_task(description, total=1.0)
         yield lambda fraction, message: bar.update(task, completed=fraction, description=f"{description}: {message}")
+
+
+def print_json(document) -> None:
+    """Prints a --json answer: strict JSON, unknown and infinite numbers null."""
+    print(strict_json.dumps(document))
 
 
 def existing_file(text: str) -> Path:

@@ -3,12 +3,11 @@ or OBJ (the format follows the output's extension)."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
-from fractoscope.cli.common import SERVER_HELP, UsageError, connected, given_pixel_size_um, region_argument
+from fractoscope.cli.common import SERVER_HELP, UsageError, connected, given_pixel_size_um, print_json, region_argument
 
 
 def add_parsers(commands) -> None:
@@ -46,7 +45,7 @@ def command_export(args) -> int:
             grid = client.export_area(args.source, out, roi=args.roi, region_um=args.region, pixel_size_um=args.pixel_size_um, **options)
     summary = {"output": str(out), "bytes": out.stat().st_size, **grid}
     if args.json:
-        print(json.dumps(summary))
+        print_json(summary)
     else:
         print(f"wrote {out}: {grid['cols']}x{grid['rows']} points at {grid['pixel_size_um']:.4g} µm, {summary['bytes']} bytes")
     return 0

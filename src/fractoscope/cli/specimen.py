@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from fractoscope.cli.common import (
-    SERVER_HELP, UsageError, connected, err, existing_file, given_pixel_size_um, progress_bar, region_argument,
+    SERVER_HELP, UsageError, connected, err, existing_file, given_pixel_size_um, print_json, progress_bar, region_argument,
 )
 from fractoscope.client.manifest import load_manifest
 from fractoscope.errors import InvalidInputError
@@ -93,7 +93,7 @@ def command_reconstruct(args) -> int:
     with connected(args.server, args.data) as client, progress_bar("reconstructing", enabled=not args.json and err.is_terminal) as advance:
         summary = client.reconstruct_specimen(specimen_id, rois, request_id=args.request_id or "", on_progress=advance)
     if args.json:
-        print(json.dumps(summary))
+        print_json(summary)
         return 0
     print(summary["id"])
     for roi in summary["rois"]:
@@ -129,7 +129,7 @@ def command_profile(args) -> int:
     if args.plot:
         plot_profile(result, Path(args.plot), title=f"{args.specimen}: {args.start} to {args.end} µm")
     if args.json:
-        print(json.dumps({"output": str(out), "samples": len(result.z_um), **result.parameters, "chain": result.chain}))
+        print_json({"output": str(out), "samples": len(result.z_um), **result.parameters, "chain": result.chain})
     else:
         figures = ", ".join(f"{k} {v:.4g}" for k, v in result.parameters.items() if v is not None)
         chain = result.chain
@@ -174,7 +174,7 @@ def command_roughness(args) -> int:
         with connected(args.server, args.data) as client:
             values = client.roughness(args.source, roi=args.roi, region_um=args.region, **chain)
     if args.json:
-        print(json.dumps(values))
+        print_json(values)
         return 0
     used = values["chain"]
     filters = ", ".join(f"{name} {used[key]:g} µm" for name, key in (("λs", "s_filter_um"), ("λc", "l_filter_um")) if used[key]) or "no filters"
@@ -246,7 +246,7 @@ def command_zoom(args) -> int:
     with connected(args.server, args.data) as client:
         tiles = client.zoom(args.specimen, args.region, magnification=args.magnification)
     if args.json:
-        print(json.dumps({"tiles": tiles}))
+        print_json({"tiles": tiles})
     else:
         for tile in tiles:
             print(f"{tile['uri']}  {tile['zoom']:8} ROI {tile['roi']} ({tile['magnification']:g}x)")
@@ -264,7 +264,10 @@ def command_tiles(args) -> int:
             path = out / uri
             path.parent.mkdir(parents=True, exist_ok=True)
             path.write_bytes(client.get_tile(args.specimen, uri))
-    print(json.dumps({"output": str(out), "tiles": len(uris)}) if args.json else f"wrote tileset.json and {len(uris)} tiles to {out}")
+    if args.json:
+        print_json({"output": str(out), "tiles": len(uris)})
+    else:
+        print(f"wrote tileset.json and {len(uris)} tiles to {out}")
     return 0
 
 
@@ -272,7 +275,7 @@ def command_list(args) -> int:
     with connected(args.server, args.data) as client:
         specimens = client.list_specimens()
     if args.json:
-        print(json.dumps({"specimens": specimens}))
+        print_json({"specimens": specimens})
         return 0
     for specimen in specimens:
         rois = ", ".join(f"{roi['id']} ({roi['pixel_size_um']:.4g} µm/px)" for roi in specimen["rois"])
@@ -290,7 +293,7 @@ def command_report(args) -> int:
         for path in outputs:
             client.report(args.specimen, path, roi=args.roi, region_um=args.region)
     if args.json:
-        print(json.dumps({"outputs": [str(path) for path in outputs]}))
+        print_json({"outputs": [str(path) for path in outputs]})
     else:
         print("wrote " + " and ".join(str(path) for path in outputs))
     return 0

@@ -31,6 +31,7 @@ import numpy as np
 
 from fractoscope.errors import InvalidInputError
 from fractoscope.formats.calibration import Calibration, software
+from fractoscope.formats.strict_json import json_ready
 
 
 @dataclass(frozen=True)
@@ -70,7 +71,7 @@ def write_height_npz(
 ) -> None:
     """Writes the file; `record` holds tilt_axis_deg, max_slope, method, parameters, report and
     datum (see the module's docstring), to which the software and calibration are added."""
-    document = _json_ready({"software": software(), "calibration": calibration.to_dict(), **record})
+    document = json_ready({"software": software(), "calibration": calibration.to_dict(), **record})
     arrays = {
         "z_um": np.asarray(z_um, np.float32), "sigma_um": np.asarray(sigma_um, np.float32),
         "confidence": np.asarray(confidence, np.float32), "local_sigma_um": np.asarray(local_sigma_um, np.float32),
@@ -152,13 +153,3 @@ def _array_pixel_size_um(values: dict[str, np.ndarray], field: str) -> float | N
         raise InvalidInputError(field, f"its pixel_size_um array must hold one positive finite number (µm), got {array.tolist()!r}")
     return value
 
-
-def _json_ready(value):
-    """`value` with NaN and infinite numbers (unknown figures of a report) as None."""
-    if isinstance(value, dict):
-        return {key: _json_ready(item) for key, item in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_ready(item) for item in value]
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value
