@@ -115,3 +115,56 @@ def test_json_output_writes_non_finite_numbers_as_null(capsys, tmp_path):
     assert code == 0, err
     values = json.loads(out, parse_constant=lambda name: pytest.fail(f"{name} is not JSON (RFC 8259)"))
     assert None in values["psd"]["c_um4"]
+
+
+@pytest.mark.parametrize(
+    ("flags", "message"),
+    [
+        (["--s-filter-um", "-1"], "error: --s-filter-um: must be a cut-off in µm >= 0"),
+        (["--l-filter-um", "nan"], "error: --l-filter-um: must be a cut-off in µm >= 0"),
+        (["--window-px", "0"], "error: --window-px: must be 1 to 1000 pixels"),
+        (["--min-windows", "0"], "error: --min-windows: must be 0.5 to 100"),
+        (["--direction-deg", "inf"], "error: --direction-deg: must be finite"),
+        (["--levelling-region", "10,10,0,0"], "error: --levelling-region: min must be smaller than max"),
+        (["--levelling-region", "500,500,600,600"], "error: --levelling-region: does not meet the analysed area"),
+    ],
+)
+def test_a_bad_chain_setting_names_its_flag(capsys, tmp_path, flags, message):
+    _height_map(tmp_path / "map.npz", _noise())
+    code, _, err = _fracto(capsys, "roughness", tmp_path / "map.npz", *flags, "--json")
+    assert code == 2 and _one_error_line(err).startswith(message)
+
+
+@pytest.mark.parametrize(("z_um", "message"), [(np.full((64, 64), np.nan), "holds fewer than 64 measured points"),
+                                               (np.zeros((1, 4096)), "needs at least 16 x 16 points")])
+def test_a_file_too_small_to_analyse_is_named_not_a_region(capsys, tmp_path, z_um, message):
+    path = tmp_path / "small.npz"
+    _height_map(path, z_um)
+    code, _, err = _fracto(capsys, "roughness", path, "--json")
+    assert code == 2 and _one_error_line(err).startswith(f"error: {path}: {message}")
+
+
+def test_a_bad_sigma_map_names_the_file(capsys, tmp_path):
+    path = tmp_path / "map.npz"
+    z_um = _noise()
+    np.savez(path, z_um=z_um, sigma_um=np.full_like(z_um, -1.0), pixel_size_um=np.float64(0.5))
+    code, _, err = _fracto(capsys, "roughness", path, "--json")
+    assert code == 2 and _one_error_line(err).startswith(f"error: {path}: sigma_um must be finite and non-negative")
+
+
+@pytest.mark.parametrize(
+    ("field", "argv", "named"),
+    [
+        ("chain.s_filter_um", ["roughness", "synthetic"], "--s-filter-um"),
+        ("chain.levelling_region", ["roughness", "synthetic"], "--levelling-region"),
+        ("area.region", ["roughness", "synthetic", "--region", "0,0,1,1"], "--region"),
+        ("region", ["roughness", "synthetic", "--roi", "zoom"], "synthetic"),
+        ("spacing_um", ["profile", "synthetic", "--from", "0,0", "--to", "1,1", "-o", "p.csv"], "--spacing-um"),
+    ],
+)
+def test_request_fields_of_server_errors_are_named_as_flags(field, argv, named):
+    from fractoscope.cli.common import in_command_line_terms
+    from fractoscope.cli.main import build_parser
+
+    args = build_parser().parse_args(argv)
+    assert in_command_line_terms(field, f"{field}: is wrong", args) == f"{named}: is wrong"
