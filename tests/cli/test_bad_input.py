@@ -168,3 +168,14 @@ def test_request_fields_of_server_errors_are_named_as_flags(field, argv, named):
 
     args = build_parser().parse_args(argv)
     assert in_command_line_terms(field, f"{field}: is wrong", args) == f"{named}: is wrong"
+
+
+def test_export_of_an_npz_to_x3p_carries_its_calibration(capsys, tmp_path):
+    from fractoscope.formats.x3p import read_x3p
+
+    _height_map(tmp_path / "map.npz", _noise(shape=(20, 30)))
+    code, out, err = _fracto(capsys, "export", tmp_path / "map.npz", "-o", tmp_path / "map.x3p", "--data", tmp_path / "data", "--json")
+    assert code == 0, err
+    surface = read_x3p(tmp_path / "map.x3p")
+    assert surface.z_um.shape == (20, 30) and surface.step_x_um == pytest.approx(0.5)
+    assert Calibration.from_dict(json.loads(surface.comment)["calibration"]) == CALIBRATION

@@ -16,6 +16,7 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
 from fractoscope.client import FractoscopeClient
+from fractoscope.errors import InvalidInputError
 from fractoscope.formats import strict_json
 from fractoscope.stereo.geometry import validate_pixel_size_um
 
@@ -85,6 +86,16 @@ def given_pixel_size_um(value: float | None) -> float | None:
     """--pixel-size-um checked as every command checks it (InvalidInputError naming it), None when
     not given."""
     return None if value is None else validate_pixel_size_um(value)
+
+
+def recorded_pixel_size_um(path: Path | str, recorded_um: float | None) -> float:
+    """The pixel size file `path` records, checked as --pixel-size-um is."""
+    if recorded_um is None:
+        raise UsageError(f"{path} does not record its pixel size: give --pixel-size-um")
+    try:
+        return validate_pixel_size_um(recorded_um)
+    except InvalidInputError as error:
+        raise InvalidInputError(str(path), f"its pixel size {error.message}; give --pixel-size-um") from None
 
 
 # Request fields (as errors name them) that stand for a command-line flag.

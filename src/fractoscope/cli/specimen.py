@@ -10,13 +10,12 @@ from pathlib import Path
 import numpy as np
 
 from fractoscope.cli.common import (
-    SERVER_HELP, UsageError, connected, err, existing_file, given_pixel_size_um, print_json, progress_bar, region_argument,
+    SERVER_HELP, UsageError, connected, err, existing_file, given_pixel_size_um, print_json, progress_bar, recorded_pixel_size_um,
+    region_argument,
 )
 from fractoscope.client.manifest import load_manifest
-from fractoscope.errors import InvalidInputError
 from fractoscope.formats.tileset import content_uris
 from fractoscope.rpc import wire
-from fractoscope.stereo.geometry import validate_pixel_size_um
 
 FORMS = tuple(wire.FORMS)
 
@@ -213,7 +212,7 @@ def roughness_of_file(path: Path, chain: dict, *, pixel_size_um: float | None) -
             raise UsageError(f"{path}: pixels of {surface.step_x_um:g} x {surface.step_y_um:g} µm are not square")
         z_um, file_pixel_um, origin_um, window_px = surface.z_um, surface.step_x_um, surface.origin_um, 1.0
     else:
-        stored = read_height_npz(path, field=str(path))
+        stored = read_height_npz(path)
         z_um, file_pixel_um, window_px = stored.z_um.astype(np.float64), stored.pixel_size_um, DEFAULT_WINDOW_PX
         # The matching noise alone: the chain propagates the tilt part (which scales all heights together) apart.
         sigma_um = stored.local_sigma_um if stored.local_sigma_um is not None else stored.sigma_um
@@ -223,23 +222,13 @@ def roughness_of_file(path: Path, chain: dict, *, pixel_size_um: float | None) -
         if sigma_um is not None:
             known = np.isfinite(sigma_um) & np.isfinite(z_um)
             sigma_um = np.where(known, sigma_um, np.median(sigma_um[known]) if known.any() else 0.0)
-    pixel_um = pixel_size_um if pixel_size_um is not None else _recorded_pixel_size_um(path, file_pixel_um)
+    pixel_um = pixel_size_um if pixel_size_um is not None else recorded_pixel_size_um(path, file_pixel_um)
     request = ChainRequest(**chain)
     analysis = roughness_of_map(
         z_um, pixel_size_um=pixel_um, origin_um=origin_um, sigma_um=sigma_um, tilt_rel_uncertainty=tilt_rel, chain=request,
         default_window_px=window_px,
     )  # fmt: skip
     return wire.response_to_roughness(roughness_response(analysis, request))
-
-
-def _recorded_pixel_size_um(path: Path, recorded_um: float | None) -> float:
-    """The pixel size file `path` records, checked as --pixel-size-um is."""
-    if recorded_um is None:
-        raise UsageError(f"{path} does not record its pixel size: give --pixel-size-um")
-    try:
-        return validate_pixel_size_um(recorded_um)
-    except InvalidInputError as error:
-        raise InvalidInputError(str(path), f"its pixel size {error.message}; give --pixel-size-um") from None
 
 
 def command_zoom(args) -> int:
