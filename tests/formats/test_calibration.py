@@ -28,3 +28,8 @@ def test_a_report_without_sources_gives_no_calibration():
     unknown_sigma = Calibration.from_report({"tilt_deg": [-5.0, 5.0], "tilt_source": ["metadata"] * 2, "pixel_size_um": 0.1,
                                              "pixel_size_source": "metadata"})
     assert all(math.isnan(s) for s in unknown_sigma.tilt_sigma_deg)
+
+
+def test_a_calibration_reads_back_from_the_report_it_states():
+    calibration = Calibration((-5.0, 0.0, 5.0), ("argument", "tilt_calibration", "tilt_calibration"), (0.5, 0.03, 0.04), 0.2, "metadata")
+    assert Calibration.from_report(calibration.to_report()) == calibration

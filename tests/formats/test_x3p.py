@@ -206,9 +206,50 @@ def test_reader_rejects_point_data_whose_checksum_differs(tmp_path):
         for item in source.infolist():
             content = source.read(item)
             target.writestr(item, content[:-1] + b"\x01" if item.filename == "bindata/data.bin" else content)
-    with pytest.raises(InvalidInputError, match="MD5") as raised:
+    with pytest.raises(InvalidInputError, match="bindata/data.bin: MD5") as raised:
         read_x3p(bad)
-    assert raised.value.field == "bindata/data.bin"
+    assert raised.value.field == str(bad)
+
+
+def _rewritten(good, path, member: str, edit) -> None:
+    """A copy of the X3P file `good` at `path` with `member`'s content passed through `edit`."""
+    with zipfile.ZipFile(good) as source, zipfile.ZipFile(path, "w") as target:
+        for item in source.infolist():
+            content = source.read(item)
+            target.writestr(item, edit(content) if item.filename == member else content)
+
+
+@pytest.mark.parametrize(
+    ("damage", "message"),
+    [
+        ("empty", "is not a readable X3P file (a zip archive)"),
+        ("text", "is not a readable X3P file (a zip archive)"),
+        ("truncated", "is not a readable X3P file (a zip archive)"),
+        ("malformed_xml", "main.xml: malformed XML"),
+        ("zero_step", "Record1/Axes/CX/Increment: the grid step must be positive and finite, got 0.0 m"),
+        ("negative_step", "Record1/Axes/CY/Increment: the grid step must be positive and finite, got -1e-07 m"),
+        ("size_not_a_number", "Record3/MatrixDimension/SizeX: expected an integer, got 'many'"),
+    ],
+)
+def test_unreadable_files_are_named_with_what_is_wrong(tmp_path, damage, message):
+    good, bad = tmp_path / "good.x3p", tmp_path / f"{damage}.x3p"
+    write_x3p(good, sine_surface(rows=4, cols=4), pixel_size_um=PIXEL_SIZE_UM)
+    xml = zipfile.ZipFile(good).read("main.xml")
+    rewritten = {
+        "malformed_xml": lambda content: content[:40],
+        "zero_step": lambda content: content.replace(b"<Increment>1.25e-07</Increment>", b"<Increment>0</Increment>", 1),
+        "negative_step": lambda content: content.replace(b"<Increment>1.25e-07</Increment>", b"<Increment>-1e-07</Increment>").replace(
+            b"<Increment>-1e-07</Increment>", b"<Increment>1.25e-07</Increment>", 1),
+        "size_not_a_number": lambda content: content.replace(b"<SizeX>4</SizeX>", b"<SizeX>many</SizeX>"),
+    }
+    if damage in rewritten:
+        assert rewritten[damage](xml) != xml
+        _rewritten(good, bad, "main.xml", rewritten[damage])
+    else:
+        bad.write_bytes({"empty": b"", "text": b"heights, one per line\n", "truncated": good.read_bytes()[:300]}[damage])
+    with pytest.raises(InvalidInputError) as raised:
+        read_x3p(bad)
+    assert raised.value.field == str(bad) and message in raised.value.message
 
 
 @pytest.mark.parametrize(

@@ -16,6 +16,9 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
 from fractoscope.client import FractoscopeClient
+from fractoscope.errors import InvalidInputError
+from fractoscope.formats import strict_json
+from fractoscope.stereo.geometry import validate_pixel_size_um
 
 EXIT_FAILURE, EXIT_BAD_INPUT, EXIT_UNAVAILABLE, EXIT_NOT_FOUND = 1, 2, 3, 4
 EXIT_CODES = {
@@ -67,11 +70,32 @@ def progress_bar(description: str, enabled: bool):
         yield lambda fraction, message: bar.update(task, completed=fraction, description=f"{description}: {message}")
 
 
+def print_json(document) -> None:
+    """Prints a --json answer: strict JSON, unknown and infinite numbers null."""
+    print(strict_json.dumps(document))
+
+
 def existing_file(text: str) -> Path:
     path = Path(text)
     if not path.is_file():
         raise UsageError(f"cannot read {text}: no such file")
     return path
+
+
+def given_pixel_size_um(value: float | None) -> float | None:
+    """--pixel-size-um checked as every command checks it (InvalidInputError naming it), None when
+    not given."""
+    return None if value is None else validate_pixel_size_um(value)
+
+
+def recorded_pixel_size_um(path: Path | str, recorded_um: float | None) -> float:
+    """The pixel size file `path` records, checked as --pixel-size-um is."""
+    if recorded_um is None:
+        raise UsageError(f"{path} does not record its pixel size: give --pixel-size-um")
+    try:
+        return validate_pixel_size_um(recorded_um)
+    except InvalidInputError as error:
+        raise InvalidInputError(str(path), f"its pixel size {error.message}; give --pixel-size-um") from None
 
 
 # Request fields (as errors name them) that stand for a command-line flag.
@@ -83,7 +107,14 @@ _FIELD_FLAGS = [
     (re.compile(r"^parameters\.normalize_local_contrast$"), "--local-contrast"),
     (re.compile(r"^level_count$"), "--levels"),
 ]
+# Request fields whose flag is their name with dashes (s_filter_um: --s-filter-um), the chain's
+# also as members of `chain`.
+_DASHED_FIELD = re.compile(r"^(chain\.)?(form|s_filter_um|l_filter_um|direction_deg|levelling_region|window_px|min_windows|robust_form)$"
+                           r"|^(spacing_um|magnification)$")
 _IMAGE_FIELD = re.compile(r"^images\[(\d+)\](\.image)?$")
+# Request fields about the analysed data: the region, or the file or specimen analysed.
+_AREA_FIELD = re.compile(r"^((area|specimen)\.)?region$")
+_DATA_FIELD = re.compile(r"^(sigma_um|z_um)$")
 
 
 def in_command_line_terms(field: str | None, message: str, args) -> str:
@@ -92,14 +123,27 @@ def in_command_line_terms(field: str | None, message: str, args) -> str:
     if not field:
         return message
     detail = message.split(": ", 1)[1] if message.startswith(f"{field}: ") else message
+    named = _flag_or_file(field, args)
+    return f"{named}: {detail}" if named else message
+
+
+def _flag_or_file(field: str, args) -> str | None:
+    """The flag or file that request `field` stands for in this command line, None if none."""
     for pattern, flag in _FIELD_FLAGS:
         if pattern.match(field):
-            return f"{flag}: {detail}"
+            return flag
+    dashed = _DASHED_FIELD.match(field)
+    if dashed:
+        return "--" + (dashed[2] or dashed[3]).replace("_", "-")
+    if _AREA_FIELD.match(field) and getattr(args, "region", None) is not None:
+        return "--region"
+    if _AREA_FIELD.match(field) or _DATA_FIELD.match(field):
+        return getattr(args, "source", None) or getattr(args, "specimen", None)
     image = _IMAGE_FIELD.match(field)
     images = getattr(args, "images", None) or []
     if image and int(image[1]) < len(images):
-        return f"{images[int(image[1])]}: {detail}"
-    return message
+        return images[int(image[1])]
+    return None
 
 
 def is_connection_failure(message: str) -> bool:

@@ -3,12 +3,12 @@ or OBJ (the format follows the output's extension)."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
-import numpy as np
-
-from fractoscope.cli.common import SERVER_HELP, UsageError, connected, region_argument
+from fractoscope.cli.common import (
+    SERVER_HELP, UsageError, connected, existing_file, given_pixel_size_um, print_json, recorded_pixel_size_um, region_argument,
+)
+from fractoscope.formats.height_npz import read_height_npz
 
 
 def add_parsers(commands) -> None:
@@ -33,36 +33,26 @@ def command_export(args) -> int:
     out = Path(args.output)
     out.parent.mkdir(parents=True, exist_ok=True)
     options = {"solid": args.solid, "units": args.units}
-    with connected(args.server, args.data) as client:
-        if args.source.lower().endswith(".npz"):
-            if args.roi or args.region:
-                raise UsageError("--roi and --region select an area of a specimen, not of an npz height map")
-            z_um, sigma_um, pixel_size_um = _height_map(Path(args.source), args.pixel_size_um)
-            export_pixel_size_um = args.pixel_size_um if args.pixel_size_um != pixel_size_um else None
-            grid = client.export_height_map(z_um, out, pixel_size_um=pixel_size_um, sigma_um=sigma_um,
-                                            export_pixel_size_um=export_pixel_size_um, **options)
-        else:
+    given_pixel_size_um(args.pixel_size_um)
+    if args.source.lower().endswith(".npz"):
+        if args.roi or args.region:
+            raise UsageError("--roi and --region select an area of a specimen, not of an npz height map")
+        stored = read_height_npz(existing_file(args.source))
+        pixel_size_um = args.pixel_size_um if stored.pixel_size_um is None else recorded_pixel_size_um(args.source, stored.pixel_size_um)
+        if pixel_size_um is None:
+            raise UsageError(f"--pixel-size-um: {args.source} stores no pixel size; give it")
+        with connected(args.server, args.data) as client:
+            grid = client.export_height_map(
+                stored.z_um, out, pixel_size_um=pixel_size_um, sigma_um=stored.sigma_um,
+                report=stored.calibration.to_report() if stored.calibration else None,
+                export_pixel_size_um=args.pixel_size_um if args.pixel_size_um != pixel_size_um else None, **options,
+            )  # fmt: skip
+    else:
+        with connected(args.server, args.data) as client:
             grid = client.export_area(args.source, out, roi=args.roi, region_um=args.region, pixel_size_um=args.pixel_size_um, **options)
     summary = {"output": str(out), "bytes": out.stat().st_size, **grid}
     if args.json:
-        print(json.dumps(summary))
+        print_json(summary)
     else:
         print(f"wrote {out}: {grid['cols']}x{grid['rows']} points at {grid['pixel_size_um']:.4g} µm, {summary['bytes']} bytes")
     return 0
-
-
-def _height_map(path: Path, pixel_size_um: float | None) -> tuple[np.ndarray, np.ndarray | None, float]:
-    """z_um and sigma_um of an npz, with its pixel size: the stored one (`pixel_size_um`) or, for
-    an npz without one, `--pixel-size-um`."""
-    if not path.is_file():
-        raise UsageError(f"cannot read {path}: no such file")
-    try:
-        with np.load(path) as arrays:
-            z_um = arrays["z_um"]
-            sigma_um = arrays["sigma_um"] if "sigma_um" in arrays.files else None
-            stored = float(arrays["pixel_size_um"]) if "pixel_size_um" in arrays.files else None
-    except (OSError, ValueError, KeyError) as error:
-        raise UsageError(f"cannot read z_um from {path}: {error}") from None
-    if stored is None and pixel_size_um is None:
-        raise UsageError(f"--pixel-size-um: {path} stores no pixel size; give it")
-    return z_um, sigma_um, stored if stored is not None else pixel_size_um

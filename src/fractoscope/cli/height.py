@@ -4,13 +4,12 @@ calibration they were computed with (formats.height_npz)."""
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
 import numpy as np
 
-from fractoscope.cli.common import SERVER_HELP, UsageError, connected, err, existing_file, progress_bar
+from fractoscope.cli.common import SERVER_HELP, UsageError, connected, err, existing_file, print_json, progress_bar
 from fractoscope.client import FractoscopeClient, HeightMap
 from fractoscope.formats.calibration import Calibration
 from fractoscope.formats.height_npz import write_height_npz
@@ -137,7 +136,7 @@ def command_height(args) -> int:
         plot_height_map(result, Path(args.png))
         summary["png"] = args.png
     if args.json:
-        print(json.dumps(summary))
+        print_json(summary)
     else:
         print(
             f"wrote {out}: {result.z_um.shape[1]}x{result.z_um.shape[0]} px, "

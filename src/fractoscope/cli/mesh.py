@@ -3,10 +3,9 @@ reads back), written as level_L/ROW_COL.glb."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
-from fractoscope.cli.common import SERVER_HELP, UsageError, connected, err, existing_file, progress_bar
+from fractoscope.cli.common import SERVER_HELP, UsageError, connected, err, existing_file, print_json, progress_bar
 from fractoscope.formats.height_npz import read_height_npz
 from fractoscope.sem.image import read_sem_image
 from fractoscope.v1 import meshing_pb2
@@ -68,7 +67,7 @@ def command_mesh(args) -> int:
         ],
     }
     if args.json:
-        print(json.dumps(summary))
+        print_json(summary)
     else:
         print(f"wrote {len(tiles)} GLB tiles in {len(levels)} levels to {args.output} ({pixel_size_um:g} µm/px"
               + (f"; walls steeper than {max_slope:.1f} set apart)" if max_slope else ")"))

@@ -9,7 +9,10 @@ from pathlib import Path
 
 import numpy as np
 
-from fractoscope.cli.common import SERVER_HELP, UsageError, connected, err, existing_file, progress_bar, region_argument
+from fractoscope.cli.common import (
+    SERVER_HELP, UsageError, connected, err, existing_file, given_pixel_size_um, print_json, progress_bar, recorded_pixel_size_um,
+    region_argument,
+)
 from fractoscope.client.manifest import load_manifest
 from fractoscope.formats.tileset import content_uris
 from fractoscope.rpc import wire
@@ -62,7 +65,7 @@ def add_parsers(commands) -> None:
     rough.add_argument("--min-windows", type=float, help="the Hurst fit starts this many windows up (default 4)")
     rough.add_argument("--robust-form", action="store_true", default=None,
                        help="fit the form robustly, so that outliers (dust, spikes) do not pull it (default: least squares)")
-    rough.add_argument("--pixel-size-um", type=float, help="pixel size of an npz map that does not record it, µm")
+    rough.add_argument("--pixel-size-um", type=float, help="pixel size of the file, µm (default: the one it records)")
 
     zoom = specimen_command("zoom", "tiles that show a region at a magnification, optical or digital", command_zoom)
     zoom.add_argument("specimen")
@@ -89,7 +92,7 @@ def command_reconstruct(args) -> int:
     with connected(args.server, args.data) as client, progress_bar("reconstructing", enabled=not args.json and err.is_terminal) as advance:
         summary = client.reconstruct_specimen(specimen_id, rois, request_id=args.request_id or "", on_progress=advance)
     if args.json:
-        print(json.dumps(summary))
+        print_json(summary)
         return 0
     print(summary["id"])
     for roi in summary["rois"]:
@@ -125,7 +128,7 @@ def command_profile(args) -> int:
     if args.plot:
         plot_profile(result, Path(args.plot), title=f"{args.specimen}: {args.start} to {args.end} µm")
     if args.json:
-        print(json.dumps({"output": str(out), "samples": len(result.z_um), **result.parameters, "chain": result.chain}))
+        print_json({"output": str(out), "samples": len(result.z_um), **result.parameters, "chain": result.chain})
     else:
         figures = ", ".join(f"{k} {v:.4g}" for k, v in result.parameters.items() if v is not None)
         chain = result.chain
@@ -161,15 +164,16 @@ def command_roughness(args) -> int:
         "levelling_region_um": args.levelling_region, "window_px": args.window_px, "min_windows": args.min_windows,
         "robust_form": args.robust_form,
     }  # fmt: skip
+    pixel_size_um = given_pixel_size_um(args.pixel_size_um)
     if Path(args.source).suffix.lower() in (".npz", ".x3p"):
         if args.roi or args.region:
             raise UsageError("--roi and --region are for specimens; a file is analysed whole")
-        values = roughness_of_file(existing_file(args.source), chain, pixel_size_um=args.pixel_size_um)
+        values = roughness_of_file(existing_file(args.source), chain, pixel_size_um=pixel_size_um)
     else:
         with connected(args.server, args.data) as client:
             values = client.roughness(args.source, roi=args.roi, region_um=args.region, **chain)
     if args.json:
-        print(json.dumps(values))
+        print_json(values)
         return 0
     used = values["chain"]
     filters = ", ".join(f"{name} {used[key]:g} µm" for name, key in (("λs", "s_filter_um"), ("λc", "l_filter_um")) if used[key]) or "no filters"
@@ -208,7 +212,7 @@ def roughness_of_file(path: Path, chain: dict, *, pixel_size_um: float | None) -
             raise UsageError(f"{path}: pixels of {surface.step_x_um:g} x {surface.step_y_um:g} µm are not square")
         z_um, file_pixel_um, origin_um, window_px = surface.z_um, surface.step_x_um, surface.origin_um, 1.0
     else:
-        stored = read_height_npz(path, field=str(path))
+        stored = read_height_npz(path)
         z_um, file_pixel_um, window_px = stored.z_um.astype(np.float64), stored.pixel_size_um, DEFAULT_WINDOW_PX
         # The matching noise alone: the chain propagates the tilt part (which scales all heights together) apart.
         sigma_um = stored.local_sigma_um if stored.local_sigma_um is not None else stored.sigma_um
@@ -218,11 +222,7 @@ def roughness_of_file(path: Path, chain: dict, *, pixel_size_um: float | None) -
         if sigma_um is not None:
             known = np.isfinite(sigma_um) & np.isfinite(z_um)
             sigma_um = np.where(known, sigma_um, np.median(sigma_um[known]) if known.any() else 0.0)
-    if pixel_size_um is None and file_pixel_um is None:
-        raise UsageError(f"{path} does not record its pixel size: give --pixel-size-um")
-    pixel_um = pixel_size_um or file_pixel_um
-    if not (np.isfinite(pixel_um) and pixel_um > 0):
-        raise UsageError(f"--pixel-size-um must be positive, got {pixel_um}")
+    pixel_um = pixel_size_um if pixel_size_um is not None else recorded_pixel_size_um(path, file_pixel_um)
     request = ChainRequest(**chain)
     analysis = roughness_of_map(
         z_um, pixel_size_um=pixel_um, origin_um=origin_um, sigma_um=sigma_um, tilt_rel_uncertainty=tilt_rel, chain=request,
@@ -235,7 +235,7 @@ def command_zoom(args) -> int:
     with connected(args.server, args.data) as client:
         tiles = client.zoom(args.specimen, args.region, magnification=args.magnification)
     if args.json:
-        print(json.dumps({"tiles": tiles}))
+        print_json({"tiles": tiles})
     else:
         for tile in tiles:
             print(f"{tile['uri']}  {tile['zoom']:8} ROI {tile['roi']} ({tile['magnification']:g}x)")
@@ -253,7 +253,10 @@ def command_tiles(args) -> int:
             path = out / uri
             path.parent.mkdir(parents=True, exist_ok=True)
             path.write_bytes(client.get_tile(args.specimen, uri))
-    print(json.dumps({"output": str(out), "tiles": len(uris)}) if args.json else f"wrote tileset.json and {len(uris)} tiles to {out}")
+    if args.json:
+        print_json({"output": str(out), "tiles": len(uris)})
+    else:
+        print(f"wrote tileset.json and {len(uris)} tiles to {out}")
     return 0
 
 
@@ -261,7 +264,7 @@ def command_list(args) -> int:
     with connected(args.server, args.data) as client:
         specimens = client.list_specimens()
     if args.json:
-        print(json.dumps({"specimens": specimens}))
+        print_json({"specimens": specimens})
         return 0
     for specimen in specimens:
         rois = ", ".join(f"{roi['id']} ({roi['pixel_size_um']:.4g} µm/px)" for roi in specimen["rois"])
@@ -279,7 +282,7 @@ def command_report(args) -> int:
         for path in outputs:
             client.report(args.specimen, path, roi=args.roi, region_um=args.region)
     if args.json:
-        print(json.dumps({"outputs": [str(path) for path in outputs]}))
+        print_json({"outputs": [str(path) for path in outputs]})
     else:
         print("wrote " + " and ".join(str(path) for path in outputs))
     return 0

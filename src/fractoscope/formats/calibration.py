@@ -68,6 +68,17 @@ class Calibration:
             "pixel_size_source": self.pixel_size_source,
         }
 
+    def to_report(self) -> dict:
+        """The matching report's fields (MatchingReport) that state this calibration, which
+        `from_report` reads back: the nominal tilt uncertainty is the sigma of the first tilt not
+        from the tilt calibration (NaN when all are)."""
+        nominal_sigma = next((s for s, source in zip(self.tilt_sigma_deg, self.tilt_source) if source != TILT_CALIBRATION), math.nan)
+        return {
+            "tilt_deg": list(self.tilt_deg), "tilt_source": list(self.tilt_source), "tilt_sigma_deg": list(self.tilt_sigma_deg),
+            "pixel_size_um": self.pixel_size_um, "pixel_size_source": self.pixel_size_source,
+            "parameters": {"tilt_uncertainty_deg": nominal_sigma},
+        }
+
     @classmethod
     def from_report(cls, report: dict) -> Calibration | None:
         """The calibration a height map's matching report (MatchingReport's fields) states: each

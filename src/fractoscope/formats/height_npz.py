@@ -14,13 +14,16 @@ can measure, stereo.geometry.max_measurable_slope), the matching `method`, `para
 `report`, and the `datum` (where zero is: surface.datum.Datum.to_dict, or null).
 
 Files written before the record existed hold z_um, sigma_um and confidence only; they read back
-with `calibration` None, and commands then ask for what they need.
+with `calibration` None, and commands then ask for what they need. A file with a `pixel_size_um`
+array but no record (written with numpy alone) reads back with that pixel size.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import zipfile
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -28,11 +31,13 @@ import numpy as np
 
 from fractoscope.errors import InvalidInputError
 from fractoscope.formats.calibration import Calibration, software
+from fractoscope.formats.strict_json import json_ready
 
 
 @dataclass(frozen=True)
 class HeightMapFile:
-    """A height map file's arrays (None where the file has none) and its record."""
+    """A height map file's arrays (None where the file has none), its record, and the value of its
+    `pixel_size_um` array (None without one)."""
 
     z_um: np.ndarray
     sigma_um: np.ndarray | None = None
@@ -41,9 +46,12 @@ class HeightMapFile:
     calibration: Calibration | None = None
     record: dict = field(default_factory=dict)
 
+    array_pixel_size_um: float | None = None
+
     @property
     def pixel_size_um(self) -> float | None:
-        return self.calibration.pixel_size_um if self.calibration else None
+        """The calibration's pixel size, else the `pixel_size_um` array's (a file with no record)."""
+        return self.calibration.pixel_size_um if self.calibration else self.array_pixel_size_um
 
     @property
     def max_slope(self) -> float | None:
@@ -63,7 +71,7 @@ def write_height_npz(
 ) -> None:
     """Writes the file; `record` holds tilt_axis_deg, max_slope, method, parameters, report and
     datum (see the module's docstring), to which the software and calibration are added."""
-    document = _json_ready({"software": software(), "calibration": calibration.to_dict(), **record})
+    document = json_ready({"software": software(), "calibration": calibration.to_dict(), **record})
     arrays = {
         "z_um": np.asarray(z_um, np.float32), "sigma_um": np.asarray(sigma_um, np.float32),
         "confidence": np.asarray(confidence, np.float32), "local_sigma_um": np.asarray(local_sigma_um, np.float32),
@@ -77,34 +85,71 @@ def write_height_npz(
     np.savez_compressed(path, **arrays)
 
 
-def read_height_npz(path: str | Path, *, field: str = "heights") -> HeightMapFile:
-    """Reads a height map file; InvalidInputError (naming `field`) when it is none."""
+def read_height_npz(path: str | Path, *, field: str | None = None) -> HeightMapFile:
+    """Reads a height map file; InvalidInputError naming `field` (default: the path) and what is
+    wrong when it is none."""
+    field = field or str(path)
+    values = _arrays(path, field)
+    z_um = values.get("z_um")
+    if z_um is None or z_um.ndim != 2 or not _real(z_um):
+        raise InvalidInputError(field, "holds no 2D z_um array of real numbers (write it with fracto height)")
+    for name in ("sigma_um", "confidence", "local_sigma_um"):
+        if name in values and values[name].shape != z_um.shape:
+            raise InvalidInputError(field, f"its {name} array has shape {values[name].shape}, its z_um {z_um.shape}")
+        if name in values and not _real(values[name]):
+            raise InvalidInputError(field, f"its {name} array holds {values[name].dtype}, not real numbers")
+    record = _record(values, field)
     try:
-        with np.load(path, allow_pickle=False) as arrays:
-            values = {name: arrays[name] for name in arrays.files}
-    except (OSError, ValueError) as error:
-        raise InvalidInputError(field, f"cannot read {path}: {error}") from None
-    if "z_um" not in values or values["z_um"].ndim != 2:
-        raise InvalidInputError(field, f"{path} holds no 2D z_um array (write it with fracto height)")
-    record, calibration = {}, None
-    if "record" in values:
-        try:
-            record = json.loads(str(values["record"]))
-            calibration = Calibration.from_dict(record["calibration"]) if record.get("calibration") else None
-        except (ValueError, KeyError, TypeError) as error:
-            raise InvalidInputError(field, f"{path} has an unreadable record: {error}") from None
+        calibration = Calibration.from_dict(record["calibration"]) if record.get("calibration") else None
+    except KeyError as error:
+        raise InvalidInputError(field, f"has an unreadable calibration in its record: no {error.args[0]}") from None
+    except (ValueError, TypeError) as error:
+        raise InvalidInputError(field, f"has an unreadable calibration in its record: {error}") from None
     return HeightMapFile(
-        z_um=values["z_um"], sigma_um=values.get("sigma_um"), confidence=values.get("confidence"),
-        local_sigma_um=values.get("local_sigma_um"), calibration=calibration, record=record,
+        z_um=z_um, sigma_um=values.get("sigma_um"), confidence=values.get("confidence"), local_sigma_um=values.get("local_sigma_um"),
+        calibration=calibration, record=record, array_pixel_size_um=_array_pixel_size_um(values, field),
     )
 
 
-def _json_ready(value):
-    """`value` with NaN and infinite numbers (unknown figures of a report) as None."""
-    if isinstance(value, dict):
-        return {key: _json_ready(item) for key, item in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_ready(item) for item in value]
-    if isinstance(value, float) and not math.isfinite(value):
+def _arrays(path: str | Path, field: str) -> dict[str, np.ndarray]:
+    """Every array of the npz file at `path`."""
+    if not zipfile.is_zipfile(path):
+        raise InvalidInputError(field, "is not an npz file (a zip archive of .npy arrays): empty, truncated or of another kind")
+    try:
+        with np.load(path, allow_pickle=False) as arrays:
+            values = {name: arrays[name] for name in arrays.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as error:
+        raise InvalidInputError(field, f"is an unreadable npz file ({type(error).__name__}: {error})") from None
+    not_arrays = [name for name, value in values.items() if not isinstance(value, np.ndarray)]
+    if not_arrays:
+        raise InvalidInputError(field, f"is an unreadable npz file: {not_arrays[0]} is not a .npy array")
+    return values
+
+
+def _real(array: np.ndarray) -> bool:
+    return np.issubdtype(array.dtype, np.floating) or np.issubdtype(array.dtype, np.integer)
+
+
+def _record(values: dict[str, np.ndarray], field: str) -> dict:
+    """The file's JSON record, {} for a file without one."""
+    if "record" not in values:
+        return {}
+    try:
+        record = json.loads(str(values["record"]))
+    except ValueError as error:
+        raise InvalidInputError(field, f"has an unreadable record: {error}") from None
+    if not isinstance(record, dict):
+        raise InvalidInputError(field, f"has an unreadable record: a JSON {type(record).__name__}, not an object")
+    return record
+
+
+def _array_pixel_size_um(values: dict[str, np.ndarray], field: str) -> float | None:
+    """The `pixel_size_um` array's value, µm: None when the file has none."""
+    if "pixel_size_um" not in values:
         return None
+    array = values["pixel_size_um"]
+    value = float(array.reshape(-1)[0]) if array.size == 1 and _real(array) else math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise InvalidInputError(field, f"its pixel_size_um array must hold one positive finite number (µm), got {array.tolist()!r}")
     return value
+

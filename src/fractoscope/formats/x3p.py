@@ -19,8 +19,10 @@ Part 72: XML file format x3p; the openGPS ISO 5436-2 XML schema, https://www.ope
 from __future__ import annotations
 
 import hashlib
+import math
 import os
 import zipfile
+import zlib
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from typing import BinaryIO
@@ -98,51 +100,73 @@ def write_x3p(
         archive.writestr(CHECKSUM_PATH, f"{hashlib.md5(main_xml).hexdigest()} *main.xml\n")
 
 
-def read_x3p(file: str | os.PathLike | BinaryIO) -> X3pSurface:
+def read_x3p(file: str | os.PathLike | BinaryIO, *, field: str | None = None) -> X3pSurface:
     """Read a surface (FeatureType SUR) with binary point data of any Z type from an X3P file.
 
     Checks the MD5 sums that main.xml gives; points that valid.bin marks invalid, and non-finite
-    values, become NaN. Raises InvalidInputError naming the element at fault.
+    values, become NaN. Raises InvalidInputError naming `field` (default: the file's path or name)
+    and saying which element or member is at fault.
     """
-    with zipfile.ZipFile(file) as archive:
-        try:
-            root = ElementTree.fromstring(archive.read("main.xml"))
-        except KeyError:
-            raise InvalidInputError("main.xml", "missing from the archive") from None
-        text = _element_text(root)
-        if text("Record1/FeatureType") != "SUR":
-            raise InvalidInputError("Record1/FeatureType", f"only SUR surfaces are read, not {text('Record1/FeatureType')!r}")
-        for axis, kind in (("CX", "I"), ("CY", "I"), ("CZ", "A")):
-            if text(f"Record1/Axes/{axis}/AxisType") != kind:
-                raise InvalidInputError(f"Record1/Axes/{axis}/AxisType", f"only {kind} is read")
-        z_type = text("Record1/Axes/CZ/DataType")
-        if z_type not in _Z_TYPES:
-            raise InvalidInputError("Record1/Axes/CZ/DataType", f"{z_type!r} is none of {sorted(_Z_TYPES)}")
-        cols, rows, layers = (int(text(f"Record3/MatrixDimension/Size{a}")) for a in "XYZ")
-        if layers != 1:
-            raise InvalidInputError("Record3/MatrixDimension/SizeZ", f"only one layer is read, not {layers}")
-        link = text("Record3/DataLink/PointDataLink")
-        if not link:
-            raise InvalidInputError("Record3/DataLink/PointDataLink", "no binary point data (XML DataList is not read)")
-        raw = _member(archive, link, text("Record3/DataLink/MD5ChecksumPointData"))
-        dtype = np.dtype(_Z_TYPES[z_type])
-        if len(raw) != rows * cols * dtype.itemsize:
-            raise InvalidInputError(link, f"{len(raw)} bytes for {rows} x {cols} points of type {z_type}")
-        increment, offset = (float(text(f"Record1/Axes/CZ/{name}") or default) for name, default in (("Increment", 1), ("Offset", 0)))
-        z_um = np.frombuffer(raw, dtype).reshape(rows, cols).astype(np.float64)
-        z_um *= increment / M_PER_UM
-        z_um += offset / M_PER_UM
-        z_um[~np.isfinite(z_um)] = np.nan
-        valid_link = text("Record3/DataLink/ValidPointsLink")
-        if valid_link:
-            bits = np.frombuffer(_member(archive, valid_link, text("Record3/DataLink/MD5ChecksumValidPoints")), np.uint8)
-            if len(bits) != (rows * cols + 7) // 8:
-                raise InvalidInputError(valid_link, f"{len(bits)} bytes for {rows * cols} points")
-            # One bit per point in point order, least significant bit first, set where valid.
-            z_um[~np.unpackbits(bits, count=rows * cols, bitorder="little").reshape(rows, cols).astype(bool)] = np.nan
-        step_x_um, step_y_um = (float(text(f"Record1/Axes/{a}/Increment") or 1) / M_PER_UM for a in ("CX", "CY"))
-        origin_um = tuple(float(text(f"Record1/Axes/{a}/Offset") or 0) / M_PER_UM for a in ("CX", "CY"))
-        return X3pSurface(z_um, step_x_um, step_y_um, origin_um, text("Record2/Comment") or "")
+    field = field or _file_name(file)
+    try:
+        with zipfile.ZipFile(file) as archive:
+            return _surface(archive)
+    except InvalidInputError as error:
+        raise InvalidInputError(field, str(error)) from None
+    except (zipfile.BadZipFile, EOFError, zlib.error) as error:
+        raise InvalidInputError(field, f"is not a readable X3P file (a zip archive): {error}") from None
+
+
+def _file_name(file: str | os.PathLike | BinaryIO) -> str:
+    """How errors name `file`: its path, else the stream's name, else "X3P file"."""
+    if isinstance(file, (str, os.PathLike)):
+        return os.fspath(file)
+    return str(getattr(file, "name", "X3P file"))
+
+
+def _surface(archive: zipfile.ZipFile) -> X3pSurface:
+    """The surface in an X3P archive; InvalidInputError names the element at fault."""
+    try:
+        root = ElementTree.fromstring(archive.read("main.xml"))
+    except KeyError:
+        raise InvalidInputError("main.xml", "missing from the archive") from None
+    except ElementTree.ParseError as error:
+        raise InvalidInputError("main.xml", f"malformed XML ({error})") from None
+    text = _element_text(root)
+    if text("Record1/FeatureType") != "SUR":
+        raise InvalidInputError("Record1/FeatureType", f"only SUR surfaces are read, not {text('Record1/FeatureType')!r}")
+    for axis, kind in (("CX", "I"), ("CY", "I"), ("CZ", "A")):
+        if text(f"Record1/Axes/{axis}/AxisType") != kind:
+            raise InvalidInputError(f"Record1/Axes/{axis}/AxisType", f"only {kind} is read")
+    z_type = text("Record1/Axes/CZ/DataType")
+    if z_type not in _Z_TYPES:
+        raise InvalidInputError("Record1/Axes/CZ/DataType", f"{z_type!r} is none of {sorted(_Z_TYPES)}")
+    number = _number_at(text)
+    cols, rows, layers = (number(f"Record3/MatrixDimension/Size{a}", int) for a in "XYZ")
+    if layers != 1:
+        raise InvalidInputError("Record3/MatrixDimension/SizeZ", f"only one layer is read, not {layers}")
+    link = text("Record3/DataLink/PointDataLink")
+    if not link:
+        raise InvalidInputError("Record3/DataLink/PointDataLink", "no binary point data (XML DataList is not read)")
+    raw = _member(archive, link, text("Record3/DataLink/MD5ChecksumPointData"))
+    dtype = np.dtype(_Z_TYPES[z_type])
+    if len(raw) != rows * cols * dtype.itemsize:
+        raise InvalidInputError(link, f"{len(raw)} bytes for {rows} x {cols} points of type {z_type}")
+    increment, offset = number("Record1/Axes/CZ/Increment", float, 1.0), number("Record1/Axes/CZ/Offset", float, 0.0)
+    z_um = np.frombuffer(raw, dtype).reshape(rows, cols).astype(np.float64)
+    z_um *= increment / M_PER_UM
+    z_um += offset / M_PER_UM
+    z_um[~np.isfinite(z_um)] = np.nan
+    valid_link = text("Record3/DataLink/ValidPointsLink")
+    if valid_link:
+        bits = np.frombuffer(_member(archive, valid_link, text("Record3/DataLink/MD5ChecksumValidPoints")), np.uint8)
+        if len(bits) != (rows * cols + 7) // 8:
+            raise InvalidInputError(valid_link, f"{len(bits)} bytes for {rows * cols} points")
+        # One bit per point in point order, least significant bit first, set where valid.
+        z_um[~np.unpackbits(bits, count=rows * cols, bitorder="little").reshape(rows, cols).astype(bool)] = np.nan
+    step_x_um, step_y_um = (_step_m(number, axis) / M_PER_UM for axis in ("CX", "CY"))
+    origin_um = tuple(number(f"Record1/Axes/{a}/Offset", float, 0.0) / M_PER_UM for a in ("CX", "CY"))
+    return X3pSurface(z_um, step_x_um, step_y_um, origin_um, text("Record2/Comment") or "")
 
 
 def _main_xml(rows: int, cols: int, step_m: float, origin_m: tuple[float, float], data_md5: str, comment: str) -> bytes:
@@ -204,6 +228,31 @@ def _element_text(root: ElementTree.Element):
         return element.text.strip() if element is not None and element.text else None
 
     return text
+
+
+def _number_at(text):
+    """number(path, kind, default) -> the element's text as `kind` (int or float), `default` when
+    absent; InvalidInputError naming the element when it is no such number."""
+
+    def number(path: str, kind: type, default=None):
+        value = text(path)
+        if value is None and default is not None:
+            return default
+        try:
+            return kind(value)
+        except (TypeError, ValueError):
+            raise InvalidInputError(path, f"expected {'an integer' if kind is int else 'a number'}, got {value!r}") from None
+
+    return number
+
+
+def _step_m(number, axis: str) -> float:
+    """The grid step of incremental axis `axis` (CX or CY), m: positive and finite."""
+    path = f"Record1/Axes/{axis}/Increment"
+    step_m = number(path, float, 1.0)
+    if not (math.isfinite(step_m) and step_m > 0):
+        raise InvalidInputError(path, f"the grid step must be positive and finite, got {step_m} m")
+    return step_m
 
 
 def _member(archive: zipfile.ZipFile, name: str, md5: str | None) -> bytes:
