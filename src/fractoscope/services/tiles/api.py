@@ -35,6 +35,7 @@ from google.protobuf import json_format
 
 from fractoscope import report
 from fractoscope.errors import FractoscopeError, InvalidInputError, NotFoundError
+from fractoscope.formats import strict_json
 from fractoscope.formats.exports import MEDIA_TYPES
 from fractoscope.rpc import wire
 from fractoscope.rpc.channel import open_channel
@@ -461,25 +462,12 @@ async def _off_loop(function, *args):
 
 
 def _json(value, *, status: HTTPStatus = HTTPStatus.OK, **headers: str) -> web.Response:
-    body = json.dumps(_finite(value), allow_nan=False).encode()
+    body = strict_json.dumps(value).encode()
     return web.Response(status=status, body=body, headers={**_CORS, "Content-Type": _JSON, "Cache-Control": "no-store", **headers})
 
 
 def _error(status: HTTPStatus, message: str, field: str | None, **headers: str) -> web.Response:
     return _json({"error": message, "field": field}, status=status, **headers)
-
-
-def _finite(value):
-    """JSON-ready: NaN and infinities become null (JSON has neither), numpy scalars floats."""
-    if isinstance(value, dict):
-        return {key: _finite(item) for key, item in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_finite(item) for item in value]
-    if isinstance(value, (float, np.floating)):
-        return float(value) if math.isfinite(value) else None
-    if isinstance(value, np.integer):
-        return int(value)
-    return value
 
 
 async def _file_response(request: web.Request, write: Callable[[Path], tuple[Path, str]]) -> web.StreamResponse:
