@@ -19,6 +19,20 @@ def _plane(shape, pixel_size_um, origin_um=(0.0, 0.0)):
     return 0.3 * x_um - 0.2 * y_um + 5.0
 
 
+def test_the_outermost_pixels_are_sampled_too():
+    """Points on an ROI's first and last rows and columns get its heights and texture (they came
+    back unknown: a zero blending weight at the edge and a NaN border in the interpolation)."""
+    roi = _roi("overview", _plane((40, 60), 0.5), pixel_size_um=0.5, texture=np.full((40, 60), 80, np.uint8))
+    surface = FusedSurface([roi])
+    x_um = np.concatenate([np.arange(60) * 0.5, np.zeros(40), np.full(40, 29.5), np.arange(60) * 0.5])
+    y_um = np.concatenate([np.zeros(60), np.arange(40) * 0.5, np.arange(40) * 0.5, np.full(60, 19.5)])
+    samples = surface.sample(x_um, y_um, cell_um=0.5)
+    np.testing.assert_allclose(samples.z_um, 0.3 * x_um - 0.2 * y_um + 5.0, atol=1e-4)
+    assert np.allclose(samples.texture, 80) and (samples.source == 0).all()
+    beyond = surface.sample(np.array([-0.3, 29.8, 5.0]), np.array([5.0, 5.0, 19.8]), cell_um=0.5)
+    assert np.isnan(beyond.z_um).all()
+
+
 def test_footprint_and_overlap_of_rectangles():
     assert footprint_um((10.0, 20.0), (5, 11), 0.5) == (10.0, 20.0, 15.0, 22.0)
     assert overlaps((0, 0, 1, 1), (1, 1, 2, 2)) and overlaps((0, 0, 4, 4), (1, 1, 2, 2))

@@ -133,12 +133,14 @@ class FusedSurface:
             roi_texture_weight = _remap(arrays.texture_weight, maps, 0.0)
             roi_sigma = _remap(arrays.sigma_um, maps, np.nan)
             unknown = ~np.isfinite(z)
-            blend = np.where(unknown & (roi_weight > 0), 1.0, roi_weight).astype(np.float32)
+            # Where nothing coarser is known, an ROI's height counts in full, up to its very edge.
+            blend = np.where(unknown & np.isfinite(roi_z), 1.0, roi_weight).astype(np.float32)
             z = np.where(blend > 0, np.where(unknown, roi_z, z * (1 - blend) + np.nan_to_num(roi_z) * blend), z)
             sigma = np.where(blend > 0, np.where(unknown, roi_sigma, sigma * (1 - blend) + roi_sigma * blend), sigma)
-            texture_blend = np.where(~pictured & (roi_texture_weight > 0), 1.0, roi_texture_weight).astype(np.float32)
+            inside = _inside(maps, arrays.texture.shape)
+            texture_blend = np.where(~pictured & inside, 1.0, roi_texture_weight).astype(np.float32)
             texture = texture * (1 - texture_blend) + roi_texture * texture_blend
-            pictured |= roi_texture_weight > 0
+            pictured |= inside
             source = np.where(blend >= 0.5, index, source)
         return FusedSamples(*(values.ravel()[: x_um.size].reshape(x_um.shape) for values in (z, texture, source, sigma)))
 
@@ -155,7 +157,18 @@ def _pyramid_level(cell_um: float, pixel_size_um: float, levels: int) -> int:
 
 
 def _remap(values: np.ndarray, maps, fill: float) -> np.ndarray:
-    return cv2.remap(values, maps[0], maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=fill)
+    """`values` bilinearly at (col, row) `maps`, `fill` outside the pixel centres' span: points on
+    the outermost row or column get its values (a constant border would blend them with the
+    fill, and a NaN fill made the whole border unknown)."""
+    sampled = cv2.remap(values, maps[0], maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    sampled[~_inside(maps, values.shape)] = fill
+    return sampled
+
+
+def _inside(maps, shape: tuple[int, int]) -> np.ndarray:
+    """Where the (col, row) `maps` lie within the span of an array's pixel centres."""
+    rows, cols = shape
+    return (maps[0] >= -1e-3) & (maps[0] <= cols - 1 + 1e-3) & (maps[1] >= -1e-3) & (maps[1] <= rows - 1 + 1e-3)
 
 
 def _border_weight(valid: np.ndarray) -> np.ndarray:
