@@ -12,21 +12,27 @@ _JIT = {"cache": True, "nogil": True, "fastmath": False}
 
 
 @numba.njit(parallel=True, **_JIT)
-def mean_height(z):
-    """(count of finite heights, their mean)."""
+def height_summary(z):
+    """(count of finite heights, their mean, the highest, the lowest)."""
     rows, cols = z.shape
     sums = np.zeros(rows)
     counts = np.zeros(rows)
+    highest = np.full(rows, -np.inf)
+    lowest = np.full(rows, np.inf)
     for r in numba.prange(rows):
         total, count = 0.0, 0.0
+        hi, lo = -np.inf, np.inf
         for c in range(cols):
             v = z[r, c]
             if np.isfinite(v):
                 total += v
                 count += 1.0
+                hi = max(hi, v)
+                lo = min(lo, v)
         sums[r], counts[r] = total, count
+        highest[r], lowest[r] = hi, lo
     n = counts.sum()
-    return n, sums.sum() / n
+    return n, sums.sum() / n, highest.max(), lowest.min()
 
 
 @numba.njit(parallel=True, **_JIT)
@@ -138,33 +144,40 @@ def _material_class(h, class_heights):
     return min(low, classes - 1)
 
 
-@numba.njit(**_JIT)
-def class_counts(z, mean, class_heights):
-    """How many finite heights (h = z - mean) fall in each material-ratio class."""
+@numba.njit(parallel=True, **_JIT)
+def material_classes(z, mean, class_heights):
+    """Each pixel's material-ratio class (`_material_class` of h = z - mean; the class count where
+    z is unknown), uint8, and how many finite heights fall in each class."""
     rows, cols = z.shape
-    counts = np.zeros(class_heights.size - 1)
-    for r in range(rows):
+    classes = class_heights.size - 1
+    out = np.empty((rows, cols), dtype=np.uint8)
+    counts = np.zeros((rows, classes))
+    for r in numba.prange(rows):
         for c in range(cols):
             v = z[r, c]
             if np.isfinite(v):
-                counts[_material_class(v - mean, class_heights)] += 1.0
-    return counts
+                k = _material_class(v - mean, class_heights)
+                out[r, c] = k
+                counts[r, k] += 1.0
+            else:
+                out[r, c] = classes
+    return out, counts.sum(axis=0)
 
 
 @numba.njit(parallel=True, **_JIT)
-def class_block_sums(z, sigma, mean, class_heights, derivatives, block):
-    """Block sums of sigma · derivatives[class, p] over the finite heights (h = z - mean), each in
-    its material-ratio class (`_material_class`). Returns (P, block rows, block cols)."""
-    rows, cols = z.shape
-    parameters = derivatives.shape[1]
+def class_block_sums(classes, sigma, derivatives, block):
+    """Block sums of sigma · derivatives[class, p] over the pixels of a class map
+    (`material_classes`; classes past the last row of derivatives are unknown points). Returns
+    (P, block rows, block cols)."""
+    rows, cols = classes.shape
+    known, parameters = derivatives.shape
     out_rows, out_cols = (rows + block - 1) // block, (cols + block - 1) // block
     sums = np.zeros((parameters, out_rows, out_cols))
     for br in numba.prange(out_rows):
         for r in range(br * block, min(rows, (br + 1) * block)):
             for c in range(cols):
-                v = z[r, c]
-                if np.isfinite(v):
-                    k = _material_class(v - mean, class_heights)
+                k = classes[r, c]
+                if k < known:
                     s = sigma[r, c]
                     bc = c // block
                     for p in range(parameters):
@@ -173,42 +186,50 @@ def class_block_sums(z, sigma, mean, class_heights, derivatives, block):
 
 
 @numba.njit(parallel=True, **_JIT)
-def slope_block_sums(z, sigma, inverse_pixel, sdq_x_scale, sdq_y_scale, sdr_scale, block):
-    """Block sums of sigma · dSdq/dz and sigma · dSdr/dz, and d Sdr / d ln(s) for heights scaled by
-    s. Sdq = sqrt(sum gx² / Nx + sum gy² / Ny), so dSdq/dgx = gx · sdq_x_scale (= 1 / (Nx Sdq));
-    Sdr = sdr_scale · (sum over complete cells of the corner terms T = sqrt(gx² + gy² + 1)) (less
-    100), sdr_scale = 100 / (4 N_cells), dT/dgx = gx / T, dT/d ln(s) = (gx² + gy²) / T. A slope
-    (z_end - z_start) / pixel passes dP/d(slope) / pixel to the block of its end and minus that to
-    the block of its start, each times the pixel's sigma. Rows of blocks go in two interleaved
-    passes, so that no two threads add to the same block (a cell reaches into the next row)."""
+def slope_block_sums(z, sigma, inverse_pixel, block):
+    """Block sums of sigma · dSdq/dz and sigma · dSdr/dz, each up to a factor known only once the
+    whole map is summed, and those sums: Sdq = sqrt(Sx / Nx + Sy / Ny) over the squared slopes gx², gy²
+    (`slope_sums`), so dSdq/dgx = gx / (Nx Sdq): returned are the block sums qx of sigma · gx /
+    pixel and qy of sigma · gy / pixel; Sdr = 100 / (4 Ncells) · (sum over complete cells of the
+    corner terms T = sqrt(gx² + gy² + 1)) less 100, dT/dgx = gx / T: returned is the block sum of
+    sigma · sum(dT/dz), with the sum of dT/d ln(s) = (gx² + gy²) / T for heights scaled by s. A slope
+    (z_end - z_start) / pixel passes d(term)/d(slope) / pixel to the block of its end and minus that
+    to the block of its start, each times the pixel's sigma. Rows of blocks go in two interleaved
+    passes, so that no two threads add to the same block (a cell reaches into the next row).
+    Returns (qx, qy, block sums for Sdr, their scale sum, Sx, Nx, Sy, Ny, Ncells)."""
     rows, cols = z.shape
     out_rows, out_cols = (rows + block - 1) // block, (cols + block - 1) // block
-    dq = np.zeros((out_rows, out_cols))
+    qx = np.zeros((out_rows, out_cols))
+    qy = np.zeros((out_rows, out_cols))
     dr = np.zeros((out_rows, out_cols))
-    scale_terms = np.zeros(rows)
+    partial = np.zeros((rows, 6))
     for parity in range(2):
         for br in numba.prange(out_rows):
             if br % 2 != parity:
                 continue
             for r in range(br * block, min(rows, (br + 1) * block)):
                 below = (r + 1) // block
-                total = 0.0
+                total = sx = nx = sy = ny = cells = 0.0
                 for c in range(cols):
                     v = z[r, c]
                     here, right_block = c // block, (c + 1) // block
                     if c + 1 < cols:
                         gx = (z[r, c + 1] - v) * inverse_pixel
                         if np.isfinite(gx):
-                            d = gx * sdq_x_scale * inverse_pixel
-                            dq[br, right_block] += d * sigma[r, c + 1]
-                            dq[br, here] -= d * sigma[r, c]
+                            sx += gx * gx
+                            nx += 1.0
+                            d = gx * inverse_pixel
+                            qx[br, right_block] += d * sigma[r, c + 1]
+                            qx[br, here] -= d * sigma[r, c]
                     if r + 1 >= rows:
                         continue
                     gy = (z[r + 1, c] - v) * inverse_pixel
                     if np.isfinite(gy):
-                        d = gy * sdq_y_scale * inverse_pixel
-                        dq[below, here] += d * sigma[r + 1, c]
-                        dq[br, here] -= d * sigma[r, c]
+                        sy += gy * gy
+                        ny += 1.0
+                        d = gy * inverse_pixel
+                        qy[below, here] += d * sigma[r + 1, c]
+                        qy[br, here] -= d * sigma[r, c]
                     if c + 1 >= cols:
                         continue
                     top = (z[r, c + 1] - v) * inverse_pixel
@@ -217,32 +238,70 @@ def slope_block_sums(z, sigma, inverse_pixel, sdq_x_scale, sdq_y_scale, sdr_scal
                     right = (z[r + 1, c + 1] - z[r, c + 1]) * inverse_pixel
                     if not (np.isfinite(top) and np.isfinite(bottom) and np.isfinite(left) and np.isfinite(right)):
                         continue
+                    cells += 1.0
                     t_tl = 1.0 / np.sqrt(top * top + left * left + 1.0)
                     t_tr = 1.0 / np.sqrt(top * top + right * right + 1.0)
                     t_bl = 1.0 / np.sqrt(bottom * bottom + left * left + 1.0)
                     t_br = 1.0 / np.sqrt(bottom * bottom + right * right + 1.0)
-                    scaled = sdr_scale * inverse_pixel
-                    d = scaled * top * (t_tl + t_tr)  # x edge (r, c) -> (r, c + 1)
+                    d = inverse_pixel * top * (t_tl + t_tr)  # x edge (r, c) -> (r, c + 1)
                     dr[br, right_block] += d * sigma[r, c + 1]
                     dr[br, here] -= d * sigma[r, c]
-                    d = scaled * bottom * (t_bl + t_br)  # x edge (r + 1, c) -> (r + 1, c + 1)
+                    d = inverse_pixel * bottom * (t_bl + t_br)  # x edge (r + 1, c) -> (r + 1, c + 1)
                     dr[below, right_block] += d * sigma[r + 1, c + 1]
                     dr[below, here] -= d * sigma[r + 1, c]
-                    d = scaled * left * (t_tl + t_bl)  # y edge (r, c) -> (r + 1, c)
+                    d = inverse_pixel * left * (t_tl + t_bl)  # y edge (r, c) -> (r + 1, c)
                     dr[below, here] += d * sigma[r + 1, c]
                     dr[br, here] -= d * sigma[r, c]
-                    d = scaled * right * (t_tr + t_br)  # y edge (r, c + 1) -> (r + 1, c + 1)
+                    d = inverse_pixel * right * (t_tr + t_br)  # y edge (r, c + 1) -> (r + 1, c + 1)
                     dr[below, right_block] += d * sigma[r + 1, c + 1]
                     dr[br, right_block] -= d * sigma[r, c + 1]
                     total += (
                         (top * top + left * left) * t_tl + (top * top + right * right) * t_tr
                         + (bottom * bottom + left * left) * t_bl + (bottom * bottom + right * right) * t_br
                     )  # fmt: skip
-                scale_terms[r] = total
-    return dq, dr, sdr_scale * scale_terms.sum()
+                partial[r, 0], partial[r, 1], partial[r, 2] = total, sx, nx
+                partial[r, 3], partial[r, 4], partial[r, 5] = sy, ny, cells
+    sums = partial.sum(axis=0)
+    return qx, qy, dr, sums[0], sums[1], sums[2], sums[3], sums[4], sums[5]
 
 
 # Feature parameters: steepest-ascent watershed ######################################################
+
+
+@numba.njit(parallel=True, **_JIT)
+def centred_heights(z, mean):
+    """z - mean, -inf where z is unknown (the watershed's heights)."""
+    rows, cols = z.shape
+    out = np.empty((rows, cols))
+    for r in numba.prange(rows):
+        for c in range(cols):
+            v = z[r, c]
+            out[r, c] = v - mean if np.isfinite(v) else -np.inf
+    return out
+
+
+@numba.njit(parallel=True, **_JIT)
+def labels_at_gaps(labels, heights, count):
+    """Which labels (count + 1,) reach the field's border or an unknown point (height -inf): labels
+    of the border pixels and of scipy.ndimage.binary_dilation(unknown), the unknown pixels and their
+    4 neighbours. Threads may mark a label twice, always alike."""
+    rows, cols = labels.shape
+    touching = np.zeros(count + 1, dtype=np.bool_)
+    for r in numba.prange(rows):
+        for c in range(cols):
+            if r == 0 or r == rows - 1 or c == 0 or c == cols - 1:
+                touching[labels[r, c]] = True
+            if heights[r, c] == -np.inf:
+                touching[labels[r, c]] = True
+                if r > 0:
+                    touching[labels[r - 1, c]] = True
+                if r + 1 < rows:
+                    touching[labels[r + 1, c]] = True
+                if c > 0:
+                    touching[labels[r, c - 1]] = True
+                if c + 1 < cols:
+                    touching[labels[r, c + 1]] = True
+    return touching
 
 
 @numba.njit(parallel=True, **_JIT)
@@ -253,17 +312,13 @@ def _ascent_targets(heights):
     target = np.empty(rows * cols, dtype=np.int64)
     for r in numba.prange(rows):
         for c in range(cols):
-            best = -np.inf
-            chosen = r * cols + c
+            inside = 0 < r < rows - 1 and 0 < c < cols - 1  # no neighbour off the map
+            best, chosen = -np.inf, r * cols + c
             for dr in range(-1, 2):
                 for dc in range(-1, 2):
-                    if dr == 0 and dc == 0:
-                        continue
                     rr, cc = r + dr, c + dc
-                    if 0 <= rr < rows and 0 <= cc < cols and heights[rr, cc] > best:
-                        best = heights[rr, cc]
-                        if best > heights[r, c]:
-                            chosen = rr * cols + cc
+                    if (dr != 0 or dc != 0) and (inside or (0 <= rr < rows and 0 <= cc < cols)) and heights[rr, cc] > best:
+                        best, chosen = heights[rr, cc], rr * cols + cc
             target[r * cols + c] = chosen if best > heights[r, c] else r * cols + c
     return target
 
@@ -304,20 +359,24 @@ def ascent_labels(heights):
                             labels[q] = count
                             top += 1
                             stack[top] = q
-    # Every other pixel takes the label its ascent ends at (paths compressed as they are walked).
-    for start in range(n):
-        if labels[start] != 0:
-            continue
-        length = 0
-        p = start
-        while labels[p] == 0:
-            stack[length] = p
-            length += 1
-            p = target[p]
-        label = labels[p]
-        for i in range(length):
-            labels[stack[i]] = label
+    _climb(target, labels, rows, cols)
     return labels.reshape(rows, cols), np.array(peaks, dtype=np.int64)
+
+
+@numba.njit(parallel=True, **_JIT)
+def _climb(target, labels, rows, cols):
+    """Every unlabelled pixel takes the label its ascent ends at, and so does each pixel on the way
+    (the walks of later pixels stop there). Threads may label a pixel twice, always alike."""
+    for r in numba.prange(rows):
+        for start in range(r * cols, (r + 1) * cols):
+            p = start
+            while labels[p] == 0:
+                p = target[p]
+            label = labels[p]
+            p = start
+            while labels[p] == 0:
+                labels[p] = label
+                p = target[p]
 
 
 @numba.njit(**_JIT)
@@ -490,61 +549,83 @@ def bilinear_profiles(z, origin, across, along, offsets, positions):
 @numba.njit(parallel=True, **_JIT)
 def difference_sums(profiles, lags, order, band_starts, segments):
     """Sums and counts of the squared order-th differences of the profiles at each lag, per block:
-    bands of profiles (starting at band_starts) times `segments` near-equal stretches along them
-    (a difference counted in the stretch where it starts). Returns (bands, segments, lags) twice."""
+    bands of profiles (starting at band_starts) times `segments` stretches along them, those of
+    np.array_split (a difference counted in the stretch where it starts). Each profile is summed
+    on its own, while it is in cache, then the profiles of a band in order. Returns (bands,
+    segments, lags) twice."""
     count, length = profiles.shape
     bands = band_starts.size
+    each_sums = np.zeros((count, segments, lags.size))
+    each_counts = np.zeros((count, segments, lags.size))
+    for p in numba.prange(count):
+        for j in range(lags.size):
+            lag = lags[j]
+            span = order * lag
+            starts = length - span
+            size, extra = starts // segments, starts % segments
+            begin = 0
+            for s in range(segments):
+                end = begin + size + (1 if s < extra else 0)
+                total, n = 0.0, 0.0
+                for i in range(begin, end):
+                    if order == 1:
+                        d = profiles[p, i + lag] - profiles[p, i]
+                    else:
+                        d = profiles[p, i + span] - 2.0 * profiles[p, i + lag] + profiles[p, i]
+                    if np.isfinite(d):
+                        total += d * d
+                        n += 1.0
+                each_sums[p, s, j], each_counts[p, s, j] = total, n
+                begin = end
     sums = np.zeros((bands, segments, lags.size))
     counts = np.zeros((bands, segments, lags.size))
-    band_of = np.empty(count, dtype=np.int64)
     for b in range(bands):
         end = band_starts[b + 1] if b + 1 < bands else count
-        band_of[band_starts[b] : end] = b
-    for j in numba.prange(lags.size):
-        lag = lags[j]
-        span = order * lag
-        starts = length - span
-        for p in range(count):
-            b = band_of[p]
-            for i in range(starts):
-                if order == 1:
-                    d = profiles[p, i + lag] - profiles[p, i]
-                else:
-                    d = profiles[p, i + span] - 2.0 * profiles[p, i + lag] + profiles[p, i]
-                if np.isfinite(d):
-                    s = _segment(i, starts, segments)
-                    sums[b, s, j] += d * d
-                    counts[b, s, j] += 1.0
+        for p in range(band_starts[b], end):
+            sums[b] += each_sums[p]
+            counts[b] += each_counts[p]
     return sums, counts
 
 
 @numba.njit(**_JIT)
-def _segment(i, length, parts):
-    """Which of np.array_split(range(length), parts)'s pieces index i falls in."""
-    size, extra = length // parts, length % parts
-    # The first `extra` pieces hold size + 1 items.
-    boundary = extra * (size + 1)
-    if i < boundary:
-        return i // (size + 1)
-    return extra + (i - boundary) // size
+def longest_known_runs(profiles):
+    """Start and length of each profile's longest run of finite samples (the first of the longest;
+    0, 0 for none)."""
+    count, length = profiles.shape
+    starts = np.zeros(count, dtype=np.int64)
+    lengths = np.zeros(count, dtype=np.int64)
+    for p in range(count):
+        run_start = -1
+        for i in range(length + 1):
+            finite = i < length and np.isfinite(profiles[p, i])
+            if finite and run_start < 0:
+                run_start = i
+            elif not finite and run_start >= 0:
+                if i - run_start > lengths[p]:
+                    starts[p], lengths[p] = run_start, i - run_start
+                run_start = -1
+    return starts, lengths
 
 
-@numba.njit(**_JIT)
+@numba.njit(parallel=True, **_JIT)
 def windowed_difference(z, axis, hann_rows, hann_cols):
     """For the areal PSD: the differences along `axis` (1: columns, 0: rows) on the (rows - 1,
     cols - 1) grid, less their mean over the finite ones, times the Hann windows; 0 where unknown.
     float32."""
     rows, cols = z.shape[0] - 1, z.shape[1] - 1
     out = np.zeros((rows, cols), dtype=np.float32)
-    total, count = 0.0, 0.0
-    for r in range(rows):
+    totals = np.zeros(rows)
+    counts = np.zeros(rows)
+    for r in numba.prange(rows):
+        total, count = 0.0, 0.0
         for c in range(cols):
             d = (z[r, c + 1] - z[r, c]) if axis == 1 else (z[r + 1, c] - z[r, c])
             if np.isfinite(d):
                 total += d
                 count += 1.0
-    mean = total / count
-    for r in range(rows):
+        totals[r], counts[r] = total, count
+    mean = totals.sum() / counts.sum()
+    for r in numba.prange(rows):
         for c in range(cols):
             d = (z[r, c + 1] - z[r, c]) if axis == 1 else (z[r + 1, c] - z[r, c])
             if np.isfinite(d):
@@ -552,40 +633,42 @@ def windowed_difference(z, axis, hann_rows, hann_cols):
     return out
 
 
-@numba.njit(**_JIT)
-def radial_bins(power, cols, scale, pixel_size_um, log_q_min, log_step, bins):
-    """Radial log-binning of the areal PSD of the gradient: power (rows, cols // 2 + 1), the rfft
-    half-plane of a (rows, cols) grid; each value divided by the differences' transfer
-    4 (sin² pi fx + sin² pi fy) and times `scale`, columns other than 0 and Nyquist counted twice
-    (they stand for two frequencies). Bin k holds q in [10^(log_q_min + k log_step), ...).
-    Returns (sums, counts)."""
-    rows, half = power.shape
-    sums = np.zeros(bins)
-    counts = np.zeros(bins)
-    for r in range(rows):
-        f_r = (r if r < (rows + 1) // 2 else r - rows) / rows
-        s_r = np.sin(np.pi * f_r) ** 2
-        for c in range(half):
-            if r == 0 and c == 0:
-                continue
-            f_c = c / cols
-            q = np.sqrt(f_r * f_r + f_c * f_c) / pixel_size_um
-            k = int(np.floor((np.log10(q) - log_q_min) / log_step))
-            if k < 0 or k >= bins:
-                continue
-            weight = 2.0 if 1 <= c < (cols + 1) // 2 else 1.0
-            transfer = 4.0 * (s_r + np.sin(np.pi * f_c) ** 2)
-            sums[k] += weight * power[r, c] * scale / transfer
-            counts[k] += weight
-    return sums, counts
+@numba.njit(parallel=True, **_JIT)
+def radial_bins(spectrum_x, spectrum_y, cols, scale, pixel_size_um, log_q_min, log_step, bins):
+    """Radial log-binning of the areal PSD of the gradient: the power |X|² + |Y|² (float32) of the
+    rfft half-planes of the two differences of a (rows, cols) grid, each value divided by the
+    differences' transfer 4 (sin² pi fx + sin² pi fy) and times `scale`, columns other than 0 and
+    Nyquist counted twice (they stand for two frequencies). Bin k holds q in [10^(log_q_min + k
+    log_step), ...). Returns (sums, counts)."""
+    rows, half = spectrum_x.shape
+    chunks = min(rows, 16)
+    sums = np.zeros((chunks, bins))
+    counts = np.zeros((chunks, bins))
+    for chunk in numba.prange(chunks):
+        for r in range(chunk * rows // chunks, (chunk + 1) * rows // chunks):
+            f_r = (r if r < (rows + 1) // 2 else r - rows) / rows
+            s_r = np.sin(np.pi * f_r) ** 2
+            for c in range(half):
+                if r == 0 and c == 0:
+                    continue
+                f_c = c / cols
+                q = np.sqrt(f_r * f_r + f_c * f_c) / pixel_size_um
+                k = int(np.floor((np.log10(q) - log_q_min) / log_step))
+                if k < 0 or k >= bins:
+                    continue
+                x, y = spectrum_x[r, c], spectrum_y[r, c]
+                power = (x.real * x.real + x.imag * x.imag) + (y.real * y.real + y.imag * y.imag)
+                weight = 2.0 if 1 <= c < (cols + 1) // 2 else 1.0
+                transfer = 4.0 * (s_r + np.sin(np.pi * f_c) ** 2)
+                sums[chunk, k] += weight * power * scale / transfer
+                counts[chunk, k] += weight
+    return sums.sum(axis=0), counts.sum(axis=0)
 
 
 @numba.njit(parallel=True, **_JIT)
-def known_sigma(z, sigma):
-    """sigma where z is finite, 0 elsewhere (float64), whether it is finite and >= 0 wherever z is,
-    and its mean square there."""
+def sigma_statistics(z, sigma):
+    """Whether sigma is finite and >= 0 wherever z is finite, and its mean square there."""
     rows, cols = z.shape
-    out = np.zeros((rows, cols))
     bad = np.zeros(rows)
     squares = np.zeros(rows)
     counts = np.zeros(rows)
@@ -596,20 +679,67 @@ def known_sigma(z, sigma):
                 if not (np.isfinite(s) and s >= 0):
                     bad[r] = 1.0
                     continue
-                out[r, c] = s
                 squares[r] += s * s
                 counts[r] += 1.0
-    return out, bad.sum() == 0, squares.sum() / max(counts.sum(), 1.0)
+    return bad.sum() == 0, squares.sum() / max(counts.sum(), 1.0)
+
+
+@numba.njit(parallel=True, **_JIT)
+def extreme_indices(z):
+    """Flat indices of the highest and the lowest finite height, the first in row-major order on
+    ties (np.argmax, np.argmin)."""
+    rows, cols = z.shape
+    highest = np.full(rows, -np.inf)
+    lowest = np.full(rows, np.inf)
+    at_highest = np.zeros(rows, dtype=np.int64)
+    at_lowest = np.zeros(rows, dtype=np.int64)
+    for r in numba.prange(rows):
+        for c in range(cols):
+            v = z[r, c]
+            if np.isfinite(v):
+                if v > highest[r]:
+                    highest[r], at_highest[r] = v, r * cols + c
+                if v < lowest[r]:
+                    lowest[r], at_lowest[r] = v, r * cols + c
+    return at_highest[np.argmax(highest)], at_lowest[np.argmin(lowest)]
 
 
 @numba.njit(**_JIT)
+def window_sum_squares(sums, m):
+    """The sum over every position of an m x m window, on the grid padded by m - 1 zeros on each
+    side, of the squared sum of the values under it (block grids are small: one thread)."""
+    rows, cols = sums.shape
+    padded = np.zeros((rows + 2 * (m - 1), cols + 2 * (m - 1)))
+    padded[m - 1 : m - 1 + rows, m - 1 : m - 1 + cols] = sums
+    out_rows, out_cols = rows + m - 1, cols + m - 1
+    along = np.zeros((padded.shape[0], out_cols))
+    for r in range(padded.shape[0]):
+        for j in range(out_cols):
+            total = 0.0
+            for k in range(m):
+                total += padded[r, j + k]
+            along[r, j] = total
+    result = 0.0
+    for i in range(out_rows):
+        for j in range(out_cols):
+            total = 0.0
+            for k in range(m):
+                total += along[i + k, j]
+            result += total * total
+    return result
+
+
+@numba.njit(parallel=True, **_JIT)
 def height_histogram(z, mean, low, width, bins):
     """Counts of the finite heights h = z - mean in `bins` classes of `width` from `low` (the top
     class closed)."""
-    counts = np.zeros(bins, dtype=np.int64)
-    flat = z.ravel()
-    for i in range(flat.size):
-        v = flat[i]
-        if np.isfinite(v):
-            counts[min(int((v - mean - low) / width), bins - 1)] += 1
-    return counts
+    rows, cols = z.shape
+    chunks = min(rows, 8)
+    counts = np.zeros((chunks, bins), dtype=np.int64)
+    for chunk in numba.prange(chunks):
+        for r in range(chunk * rows // chunks, (chunk + 1) * rows // chunks):
+            for c in range(cols):
+                v = z[r, c]
+                if np.isfinite(v):
+                    counts[chunk, min(int((v - mean - low) / width), bins - 1)] += 1
+    return counts.sum(axis=0)
