@@ -108,24 +108,35 @@ def slope_sums(z, inverse_pixel):
 @numba.njit(parallel=True, **_JIT)
 def height_block_sums(z, sigma, mean, block):
     """Block sums (block x block pixels; the last blocks partial) of sigma·{1, h, h², h³, sign h}
-    over the finite heights, h = z - mean: (5, block rows, block cols)."""
+    over the finite heights, h = z - mean: (5, block rows, block cols); and the sums of h², h³, h⁴
+    and sign h over them, as `central_moments` has them."""
     rows, cols = z.shape
     out_rows, out_cols = (rows + block - 1) // block, (cols + block - 1) // block
     sums = np.zeros((5, out_rows, out_cols))
+    partial = np.zeros((rows, 4))
     for br in numba.prange(out_rows):
         for r in range(br * block, min(rows, (br + 1) * block)):
+            a2 = a3 = a4 = signs = 0.0
             for c in range(cols):
                 v = z[r, c]
                 if np.isfinite(v):
                     s = sigma[r, c]
                     h = v - mean
+                    h2 = h * h
+                    sign = 1.0 if h > 0 else (-1.0 if h < 0 else 0.0)
+                    a2 += h2
+                    a3 += h2 * h
+                    a4 += h2 * h2
+                    signs += sign
                     bc = c // block
                     sums[0, br, bc] += s
                     sums[1, br, bc] += s * h
                     sums[2, br, bc] += s * h * h
                     sums[3, br, bc] += s * h * h * h
-                    sums[4, br, bc] += s * (1.0 if h > 0 else (-1.0 if h < 0 else 0.0))
-    return sums
+                    sums[4, br, bc] += s * sign
+            partial[r, 0], partial[r, 1], partial[r, 2], partial[r, 3] = a2, a3, a4, signs
+    totals = partial.sum(axis=0)
+    return sums, totals[0], totals[1], totals[2], totals[3]
 
 
 @numba.njit(**_JIT)
@@ -147,16 +158,31 @@ def _material_class(h, class_heights):
 @numba.njit(parallel=True, **_JIT)
 def material_classes(z, mean, class_heights):
     """Each pixel's material-ratio class (`_material_class` of h = z - mean; the class count where
-    z is unknown), uint8, and how many finite heights fall in each class."""
+    z is unknown), uint8, and how many finite heights fall in each class. The class is read from a
+    table over equal height bins where a bin and its two neighbours hold no class edge (a class is
+    monotonic in h, so both ends of the three bins bound it), else searched."""
     rows, cols = z.shape
     classes = class_heights.size - 1
+    bins = 64 * classes
+    low = class_heights[-1]
+    width = (class_heights[0] - low) / bins
+    table = np.full(bins, -1, dtype=np.int64)
+    if width > 0:
+        for b in range(bins):
+            k = _material_class(low + (b - 1) * width, class_heights)
+            if k == _material_class(low + (b + 2) * width, class_heights):
+                table[b] = k
     out = np.empty((rows, cols), dtype=np.uint8)
     counts = np.zeros((rows, classes))
     for r in numba.prange(rows):
         for c in range(cols):
             v = z[r, c]
             if np.isfinite(v):
-                k = _material_class(v - mean, class_heights)
+                h = v - mean
+                b = int(np.floor((h - low) / width)) if width > 0 else -1
+                k = table[b] if 0 <= b < bins else -1
+                if k < 0:
+                    k = _material_class(h, class_heights)
                 out[r, c] = k
                 counts[r, k] += 1.0
             else:
@@ -393,6 +419,11 @@ def hill_boundaries(labels, heights):
     for r in range(rows):
         for c in range(cols):
             a = labels[r, c]
+            right, down = c + 1 < cols, r + 1 < rows
+            if (not right or labels[r, c + 1] == a) and (
+                not down or (labels[r + 1, c] == a and (not right or labels[r + 1, c + 1] == a) and (c == 0 or labels[r + 1, c - 1] == a))
+            ):
+                continue  # inside a hill, as most pixels are
             for k in range(4):
                 rr, cc = (r, c + 1) if k == 0 else ((r + 1, c) if k == 1 else ((r + 1, c + 1) if k == 2 else (r + 1, c - 1)))
                 if rr >= rows or cc < 0 or cc >= cols:
@@ -421,38 +452,43 @@ def hill_boundaries(labels, heights):
 @numba.njit(parallel=True, **_JIT)
 def normalized_separable_filter(z, kernel_rows, kernel_cols):
     """Normalized convolution of a map with a small separable kernel (odd lengths, centred):
-    (K * (w z)) / (K * w), w = 1 on finite heights and 0 elsewhere and outside; NaN where z is."""
+    (K * (w z)) / (K * w), w = 1 on finite heights and 0 elsewhere and outside; NaN where z is.
+    Bands of rows at a time, their row pass kept in cache for the column pass."""
     rows, cols = z.shape
     half_r, half_c = kernel_rows.size // 2, kernel_cols.size // 2
-    numerator = np.empty((rows, cols))
-    weight = np.empty((rows, cols))
-    for r in numba.prange(rows):
-        for c in range(cols):
-            total = 0.0
-            norm = 0.0
-            for t in range(kernel_cols.size):
-                cc = c + t - half_c
-                if 0 <= cc < cols:
-                    v = z[r, cc]
-                    if np.isfinite(v):
-                        total += kernel_cols[t] * v
-                        norm += kernel_cols[t]
-            numerator[r, c] = total
-            weight[r, c] = norm
+    band = 32
     out = np.empty((rows, cols))
-    for r in numba.prange(rows):
-        for c in range(cols):
-            if not np.isfinite(z[r, c]):
-                out[r, c] = np.nan
-                continue
-            total = 0.0
-            norm = 0.0
-            for t in range(kernel_rows.size):
-                rr = r + t - half_r
-                if 0 <= rr < rows:
-                    total += kernel_rows[t] * numerator[rr, c]
-                    norm += kernel_rows[t] * weight[rr, c]
-            out[r, c] = total / norm
+    for b in numba.prange((rows + band - 1) // band):
+        first, last = b * band, min(rows, (b + 1) * band)
+        low, high = max(0, first - half_r), min(rows, last + half_r)
+        numerator = np.empty((high - low, cols))
+        weight = np.empty((high - low, cols))
+        for r in range(low, high):
+            for c in range(cols):
+                total = 0.0
+                norm = 0.0
+                for t in range(kernel_cols.size):
+                    cc = c + t - half_c
+                    if 0 <= cc < cols:
+                        v = z[r, cc]
+                        if np.isfinite(v):
+                            total += kernel_cols[t] * v
+                            norm += kernel_cols[t]
+                numerator[r - low, c] = total
+                weight[r - low, c] = norm
+        for r in range(first, last):
+            for c in range(cols):
+                if not np.isfinite(z[r, c]):
+                    out[r, c] = np.nan
+                    continue
+                total = 0.0
+                norm = 0.0
+                for t in range(kernel_rows.size):
+                    rr = r + t - half_r
+                    if 0 <= rr < rows:
+                        total += kernel_rows[t] * numerator[rr - low, c]
+                        norm += kernel_rows[t] * weight[rr - low, c]
+                out[r, c] = total / norm
     return out
 
 
@@ -507,14 +543,12 @@ def upsample_cubic(coarse, start, step, rows, cols, known):
     for c in numba.prange(cols):
         for t in range(4):
             along_cols[:, c] += weights_c[c, t] * coarse[:, first_c[c] + t]
-    out = np.full((rows, cols), np.nan)
+    out = np.empty((rows, cols))
     for r in numba.prange(rows):
-        blended = np.zeros(cols)
-        for t in range(4):
-            blended += weights_r[r, t] * along_cols[first_r[r] + t]
+        w0, w1, w2, w3 = weights_r[r, 0], weights_r[r, 1], weights_r[r, 2], weights_r[r, 3]
+        a0, a1, a2, a3 = along_cols[first_r[r]], along_cols[first_r[r] + 1], along_cols[first_r[r] + 2], along_cols[first_r[r] + 3]
         for c in range(cols):
-            if known[r, c]:
-                out[r, c] = blended[c]
+            out[r, c] = ((w0 * a0[c] + w1 * a1[c]) + w2 * a2[c]) + w3 * a3[c] if known[r, c] else np.nan
     return out
 
 

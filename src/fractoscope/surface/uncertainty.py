@@ -197,10 +197,9 @@ def _block_sums(z: np.ndarray, sigma: np.ndarray, mean: float, n: float, pixel_s
     ("Sdr scale", d Sdr / d ln(s)) for heights scaled by s. Derivatives of the central moments include
     the shift of the mean: d m3 / dz_i = 3 (h_i² - m2) / n."""
     if wanted & {"Sa", "Sq", "Ssk", "Sku"}:
-        _, squares, cubes, fourths, signs, _, _ = _kernels.central_moments(z, mean)
+        (b0, bh, bh2, bh3, bsign), squares, cubes, fourths, signs = _kernels.height_block_sums(z, sigma, mean, block)
         m2, m3, m4 = squares / n, cubes / n, fourths / n
         sq = np.sqrt(m2)
-        b0, bh, bh2, bh3, bsign = _kernels.height_block_sums(z, sigma, mean, block)
         derivatives = {
             "Sa": lambda: (bsign - signs / n * b0) / n,
             "Sq": lambda: bh / (n * sq),
