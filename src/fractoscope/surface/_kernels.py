@@ -331,11 +331,10 @@ def labels_at_gaps(labels, heights, count):
 
 
 @numba.njit(parallel=True, **_JIT)
-def _ascent_targets(heights):
-    """Each pixel's (flat) steepest-ascent neighbour: the highest of its eight, the first in
-    row-major order on ties; itself where none is higher."""
+def _ascent_targets(heights, target):
+    """Each pixel's (flat) steepest-ascent neighbour into target (rows * cols,): the highest of its
+    eight, the first in row-major order on ties; itself where none is higher."""
     rows, cols = heights.shape
-    target = np.empty(rows * cols, dtype=np.int64)
     for r in numba.prange(rows):
         for c in range(cols):
             inside = 0 < r < rows - 1 and 0 < c < cols - 1  # no neighbour off the map
@@ -350,15 +349,16 @@ def _ascent_targets(heights):
 
 
 @numba.njit(**_JIT)
-def ascent_labels(heights):
+def ascent_labels(heights, labels):
     """Label each pixel 1..n with the local maximum (plateau: an 8-connected set of pixels none of
     whose neighbours is higher) that steepest ascent reaches from it; the steepest neighbour is the
-    highest, the first in row-major neighbour order on ties. Returns (labels, flat index of the
-    last pixel, row-major, of each label's maximum; index 0 unused)."""
+    highest, the first in row-major neighbour order on ties. ``labels``: (rows * cols,) zeros of
+    an integer type that holds rows * cols (int32 where it does: half the memory traffic of the
+    walks). Returns (labels (rows, cols), flat index of the last pixel, row-major, of each label's
+    maximum; index 0 unused)."""
     rows, cols = heights.shape
     n = rows * cols
-    target = _ascent_targets(heights)
-    labels = np.zeros(n, dtype=np.int64)
+    target = _ascent_targets(heights, np.empty_like(labels))
     # Plateaus (pixels that do not climb) are labelled by an 8-connected flood fill.
     stack = np.empty(n, dtype=np.int64)
     peaks = [0]
@@ -619,6 +619,23 @@ def difference_sums(profiles, lags, order, band_starts, segments):
             sums[b] += each_sums[p]
             counts[b] += each_counts[p]
     return sums, counts
+
+
+@numba.njit(**_JIT)
+def bin_spectra(power, log_k, index, band, sums, counts, log_k_sums, k_counts):
+    """Adds each profile's spectrum, power (profiles, K) at wavenumbers of logarithm log_k (K,), to
+    the bins index (K,; outside where not in 0 .. bins - 1) of its band: sums and counts (bands,
+    bins); and each wavenumber's log_k and 1 per profile to log_k_sums and k_counts (bins,)."""
+    bins = k_counts.size
+    for j in range(index.size):
+        if 0 <= index[j] < bins:
+            log_k_sums[index[j]] += log_k[j] * power.shape[0]
+            k_counts[index[j]] += power.shape[0]
+    for row in range(power.shape[0]):
+        for j in range(index.size):
+            if 0 <= index[j] < bins:
+                sums[band[row], index[j]] += power[row, j]
+                counts[band[row], index[j]] += 1.0
 
 
 @numba.njit(**_JIT)

@@ -383,7 +383,8 @@ def _ascent_watershed(heights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Label each pixel 1..n with the local maximum (plateau) that steepest ascent reaches from it.
     Returns the labels and, for each label (index 0 unused), the flat index of one pixel of its
     maximum."""
-    return _kernels.ascent_labels(np.ascontiguousarray(heights))
+    index_type = np.int32 if heights.size < 2**31 else np.int64
+    return _kernels.ascent_labels(np.ascontiguousarray(heights), np.zeros(heights.size, dtype=index_type))
 
 
 def _saddles(labels: np.ndarray, heights: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -113,10 +113,10 @@ def directional_profiles(z_um: np.ndarray, *, direction_deg: float, spacing_px: 
     offsets = np.arange(-half, half + 1e-9, spacing_px)
     positions = np.arange(-half, half + 1e-9, 1.0)
     profiles = _kernels.bilinear_profiles(np.ascontiguousarray(z), centre, across, along, offsets, positions)
-    keep_rows = np.isfinite(profiles).sum(axis=1) >= 8
-    profiles = profiles[keep_rows]
-    keep_cols = np.isfinite(profiles).any(axis=0)
-    return profiles[:, keep_cols]
+    finite = np.isfinite(profiles)
+    keep_rows = finite.sum(axis=1) >= 8
+    keep_cols = finite[keep_rows].any(axis=0)
+    return profiles[np.ix_(keep_rows, keep_cols)]  # one contiguous copy
 
 
 def height_height_correlation(
@@ -185,19 +185,7 @@ def profile_psd(
         power = np.abs(scipy.fft.rfft((diffs - diffs.mean(axis=1, keepdims=True)) * window, axis=1)) ** 2
         k = scipy.fft.rfftfreq(length - 1, d=pixel_size_um)[1:]
         power = power[:, 1:] * (2.0 * pixel_size_um / np.sum(window**2)) / (2.0 * np.sin(np.pi * k * pixel_size_um)) ** 2
-        index = np.digitize(k, edges) - 1
-        inside = (index >= 0) & (index < edges.size - 1)
-        np.add.at(log_k, index[inside], np.log(k[inside]) * group.size)
-        np.add.at(k_counts, index[inside], group.size)
-        if not inside.any():
-            continue
-        # The bins' indices rise with k: each profile's bin sums by reduceat, added to its band's.
-        index = index[inside]
-        first = np.flatnonzero(np.r_[True, index[1:] != index[:-1]])
-        bins = index[first]
-        per_profile = np.add.reduceat(power[:, inside], first, axis=1)
-        np.add.at(sums, (band_of[group][:, None], bins[None, :]), per_profile)
-        np.add.at(counts, (band_of[group][:, None], bins[None, :]), np.diff(np.r_[first, index.size])[None, :].astype(float))
+        _kernels.bin_spectra(power, np.log(k), np.digitize(k, edges) - 1, band_of[group], sums, counts, log_k, k_counts)
     used = k_counts > 0
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.exp(log_k[used] / k_counts[used]), (sums / counts)[:, used]
