@@ -194,11 +194,12 @@ def material_classes(z, mean, class_heights):
 def class_block_sums(classes, sigma, derivatives, block):
     """Block sums of sigma · derivatives[class, p] over the pixels of a class map
     (`material_classes`; classes past the last row of derivatives are unknown points). Returns
-    (P, block rows, block cols)."""
+    (P, block rows, block cols), summed with the parameters last (each pixel adds to P adjacent
+    values)."""
     rows, cols = classes.shape
     known, parameters = derivatives.shape
     out_rows, out_cols = (rows + block - 1) // block, (cols + block - 1) // block
-    sums = np.zeros((parameters, out_rows, out_cols))
+    sums = np.zeros((out_rows, out_cols, parameters))
     for br in numba.prange(out_rows):
         for r in range(br * block, min(rows, (br + 1) * block)):
             for c in range(cols):
@@ -207,8 +208,8 @@ def class_block_sums(classes, sigma, derivatives, block):
                     s = sigma[r, c]
                     bc = c // block
                     for p in range(parameters):
-                        sums[p, br, bc] += s * derivatives[k, p]
-    return sums
+                        sums[br, bc, p] += s * derivatives[k, p]
+    return np.ascontiguousarray(sums.transpose(2, 0, 1))
 
 
 @numba.njit(parallel=True, **_JIT)
@@ -408,14 +409,17 @@ def _climb(target, labels, rows, cols):
 @numba.njit(**_JIT)
 def hill_boundaries(labels, heights):
     """Adjacent hill pairs across every 8-connected boundary (right, down, down-right, down-left
-    neighbours): (low label, high label, pass height = the lower of the two heights), runs of the
-    same pair along a row folded to their largest pass."""
+    neighbours): (low label, high label, pass height = the lower of the two heights). A pair met
+    again while it is still in a small hashed cache of recent pairs (most repeats are a row or
+    two apart) is folded into its entry, keeping the largest pass; the rest are new entries."""
     rows, cols = labels.shape
     capacity = 1024
     low = np.empty(capacity, dtype=np.int64)
     high = np.empty(capacity, dtype=np.int64)
     value = np.empty(capacity)
     size = 0
+    slots = 1 << 14
+    cached = np.full(slots, -1, dtype=np.int64)  # entry of the pair last hashed to each slot
     for r in range(rows):
         for c in range(cols):
             a = labels[r, c]
@@ -433,8 +437,10 @@ def hill_boundaries(labels, heights):
                     continue
                 lo_label, hi_label = (a, b) if a < b else (b, a)
                 height = min(heights[r, c], heights[rr, cc])
-                if size > 0 and low[size - 1] == lo_label and high[size - 1] == hi_label:
-                    value[size - 1] = max(value[size - 1], height)
+                slot = (lo_label * 40503 + hi_label) & (slots - 1)
+                entry = cached[slot]
+                if entry >= 0 and low[entry] == lo_label and high[entry] == hi_label:
+                    value[entry] = max(value[entry], height)
                     continue
                 if size == capacity:
                     capacity *= 2
@@ -442,6 +448,7 @@ def hill_boundaries(labels, heights):
                     high = np.resize(high, capacity)
                     value = np.resize(value, capacity)
                 low[size], high[size], value[size] = lo_label, hi_label, height
+                cached[slot] = size
                 size += 1
     return low[:size].copy(), high[:size].copy(), value[:size].copy()
 
@@ -718,28 +725,13 @@ def radial_bins(spectrum_x, spectrum_y, cols, scale, pixel_size_um, log_q_min, l
 
 @numba.njit(parallel=True, **_JIT)
 def sigma_statistics(z, sigma):
-    """Whether sigma is finite and >= 0 wherever z is finite, and its mean square there."""
+    """Whether sigma is finite and >= 0 wherever z is finite, its mean square there, and the flat
+    indices of the highest and the lowest finite height (the first in row-major order on ties, as
+    np.argmax and np.argmin)."""
     rows, cols = z.shape
     bad = np.zeros(rows)
     squares = np.zeros(rows)
     counts = np.zeros(rows)
-    for r in numba.prange(rows):
-        for c in range(cols):
-            if np.isfinite(z[r, c]):
-                s = sigma[r, c]
-                if not (np.isfinite(s) and s >= 0):
-                    bad[r] = 1.0
-                    continue
-                squares[r] += s * s
-                counts[r] += 1.0
-    return bad.sum() == 0, squares.sum() / max(counts.sum(), 1.0)
-
-
-@numba.njit(parallel=True, **_JIT)
-def extreme_indices(z):
-    """Flat indices of the highest and the lowest finite height, the first in row-major order on
-    ties (np.argmax, np.argmin)."""
-    rows, cols = z.shape
     highest = np.full(rows, -np.inf)
     lowest = np.full(rows, np.inf)
     at_highest = np.zeros(rows, dtype=np.int64)
@@ -752,7 +744,14 @@ def extreme_indices(z):
                     highest[r], at_highest[r] = v, r * cols + c
                 if v < lowest[r]:
                     lowest[r], at_lowest[r] = v, r * cols + c
-    return at_highest[np.argmax(highest)], at_lowest[np.argmin(lowest)]
+                s = sigma[r, c]
+                if not (np.isfinite(s) and s >= 0):
+                    bad[r] = 1.0
+                    continue
+                squares[r] += s * s
+                counts[r] += 1.0
+    mean_square = squares.sum() / max(counts.sum(), 1.0)
+    return bad.sum() == 0, mean_square, at_highest[np.argmax(highest)], at_lowest[np.argmin(lowest)]
 
 
 @numba.njit(**_JIT)

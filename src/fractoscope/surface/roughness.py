@@ -196,16 +196,17 @@ def analyse(
         max_lag_px = max(1, min(min(sl.shape) // 2, int(np.ceil(chain.lambda_c_um / pixel_size_um))))
     nan = float("nan")
     # The steps below are independent but for the uncertainty, which needs the parameters: two
-    # threads run them, each its compiled loops on one thread. Submitted longest first, and the
-    # areal PSD after the uncertainty, so that the two threads finish together.
+    # threads run them, each its compiled loops on one thread. The parameters are submitted first
+    # (the longest first) and the areal PSD after the uncertainty, so that the two threads finish
+    # about together.
     with _step_threads() as pool:
         pending = {
             "feature parameters": (lambda: areal_parameters.feature_parameters(sl, pixel_size_um=pixel_size_um))
             if features else (lambda: {"Spd": nan, "Spc": nan}),
+            "spatial parameters": lambda: areal_parameters.spatial_parameters(sl, pixel_size_um=pixel_size_um, max_lag_px=max_lag_px),
             "height and hybrid parameters": lambda: areal_parameters.height_parameters(sl)
             | areal_parameters.hybrid_parameters(sl, pixel_size_um=pixel_size_um),
             "functional parameters": lambda: areal_parameters.functional_parameters(sl),
-            "spatial parameters": lambda: areal_parameters.spatial_parameters(sl, pixel_size_um=pixel_size_um, max_lag_px=max_lag_px),
             "Hurst exponents": lambda: _hurst(surface.sf_um, pixel_size_um, chain),
         }  # fmt: skip
         futures = {name: pool.submit(step.timed, name, task) for name, task in pending.items()}

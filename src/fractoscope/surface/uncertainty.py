@@ -74,7 +74,7 @@ def areal_uncertainty(
     if z.ndim != 2:
         raise ValueError("z_um must be a (rows, cols) array")
     sigma = np.broadcast_to(np.asarray(sigma_um, dtype=np.float64), z.shape)
-    sigma_ok, mean_variance = _kernels.sigma_statistics(z, sigma)
+    sigma_ok, mean_variance, highest, lowest = _kernels.sigma_statistics(z, sigma)
     if not sigma_ok:
         raise ValueError("sigma_um must be finite and non-negative wherever z_um is known")
     if not (np.isfinite(tilt_rel_uncertainty) and tilt_rel_uncertainty >= 0):
@@ -91,7 +91,7 @@ def areal_uncertainty(
     width = max(1, int(round(correlation_px)))
     block = _block_px(width)
     n, mean, _, _ = _kernels.height_summary(z)
-    u_noise = _extremes_noise(z, sigma, correlation_px)
+    u_noise = _extremes_noise(z.shape, sigma, highest, lowest, correlation_px)
     sdr_scale_derivative = 0.0
     for name, sums in _block_sums(z, sigma, mean, n, pixel_size_um, wanted, block):
         if name == "Sdr scale":
@@ -184,9 +184,10 @@ def _correlation(offset: np.ndarray, correlation_px: float) -> float:
     return float(np.prod(np.clip(1.0 - np.abs(offset) / width, 0.0, None)))
 
 
-def _extremes_noise(z: np.ndarray, sigma: np.ndarray, correlation_px: float) -> dict[str, float]:
-    """Sp, Sv and Sz move with the one pixel at each extreme (the mean's shift is negligible)."""
-    highest, lowest = (np.unravel_index(index, z.shape) for index in _kernels.extreme_indices(z))
+def _extremes_noise(shape: tuple[int, int], sigma: np.ndarray, highest: int, lowest: int, correlation_px: float) -> dict[str, float]:
+    """Sp, Sv and Sz move with the one pixel at each extreme (flat indices ``highest`` and
+    ``lowest``; the mean's shift is negligible)."""
+    highest, lowest = np.unravel_index(highest, shape), np.unravel_index(lowest, shape)
     sp, sv = float(sigma[highest]), float(sigma[lowest])
     rho = _correlation(np.subtract(highest, lowest), correlation_px)
     return {"Sp": sp, "Sv": sv, "Sz": float(np.sqrt(max(sp**2 + sv**2 - 2 * rho * sp * sv, 0.0)))}
