@@ -666,29 +666,37 @@ def longest_known_runs(profiles):
 
 
 @numba.njit(parallel=True, **_JIT)
-def windowed_difference(z, axis, hann_rows, hann_cols):
-    """For the areal PSD: the differences along `axis` (1: columns, 0: rows) on the (rows - 1,
-    cols - 1) grid, less their mean over the finite ones, times the Hann windows; 0 where unknown.
-    float32."""
+def windowed_differences(z, hann_rows, hann_cols):
+    """For the areal PSD: the differences along columns and along rows on the (rows - 1, cols - 1)
+    grid, each less its mean over the finite ones, times the Hann windows; 0 where unknown.
+    float32, (along columns, along rows)."""
     rows, cols = z.shape[0] - 1, z.shape[1] - 1
-    out = np.zeros((rows, cols), dtype=np.float32)
-    totals = np.zeros(rows)
-    counts = np.zeros(rows)
+    out_x = np.zeros((rows, cols), dtype=np.float32)
+    out_y = np.zeros((rows, cols), dtype=np.float32)
+    partial = np.zeros((rows, 4))
     for r in numba.prange(rows):
-        total, count = 0.0, 0.0
+        total_x = count_x = total_y = count_y = 0.0
         for c in range(cols):
-            d = (z[r, c + 1] - z[r, c]) if axis == 1 else (z[r + 1, c] - z[r, c])
-            if np.isfinite(d):
-                total += d
-                count += 1.0
-        totals[r], counts[r] = total, count
-    mean = totals.sum() / counts.sum()
+            dx = z[r, c + 1] - z[r, c]
+            dy = z[r + 1, c] - z[r, c]
+            if np.isfinite(dx):
+                total_x += dx
+                count_x += 1.0
+            if np.isfinite(dy):
+                total_y += dy
+                count_y += 1.0
+        partial[r, 0], partial[r, 1], partial[r, 2], partial[r, 3] = total_x, count_x, total_y, count_y
+    sums = partial.sum(axis=0)
+    mean_x, mean_y = sums[0] / sums[1], sums[2] / sums[3]
     for r in numba.prange(rows):
         for c in range(cols):
-            d = (z[r, c + 1] - z[r, c]) if axis == 1 else (z[r + 1, c] - z[r, c])
-            if np.isfinite(d):
-                out[r, c] = (d - mean) * hann_rows[r] * hann_cols[c]
-    return out
+            dx = z[r, c + 1] - z[r, c]
+            dy = z[r + 1, c] - z[r, c]
+            if np.isfinite(dx):
+                out_x[r, c] = (dx - mean_x) * hann_rows[r] * hann_cols[c]
+            if np.isfinite(dy):
+                out_y[r, c] = (dy - mean_y) * hann_rows[r] * hann_cols[c]
+    return out_x, out_y
 
 
 @numba.njit(parallel=True, **_JIT)
@@ -702,6 +710,7 @@ def radial_bins(spectrum_x, spectrum_y, cols, scale, pixel_size_um, log_q_min, l
     chunks = min(rows, 16)
     sums = np.zeros((chunks, bins))
     counts = np.zeros((chunks, bins))
+    s_cols = np.sin(np.pi * (np.arange(half) / cols)) ** 2
     for chunk in numba.prange(chunks):
         for r in range(chunk * rows // chunks, (chunk + 1) * rows // chunks):
             f_r = (r if r < (rows + 1) // 2 else r - rows) / rows
@@ -717,7 +726,7 @@ def radial_bins(spectrum_x, spectrum_y, cols, scale, pixel_size_um, log_q_min, l
                 x, y = spectrum_x[r, c], spectrum_y[r, c]
                 power = (x.real * x.real + x.imag * x.imag) + (y.real * y.real + y.imag * y.imag)
                 weight = 2.0 if 1 <= c < (cols + 1) // 2 else 1.0
-                transfer = 4.0 * (s_r + np.sin(np.pi * f_c) ** 2)
+                transfer = 4.0 * (s_r + s_cols[c])
                 sums[chunk, k] += weight * power * scale / transfer
                 counts[chunk, k] += weight
     return sums.sum(axis=0), counts.sum(axis=0)

@@ -335,9 +335,7 @@ def radial_psd(z_um: np.ndarray, *, pixel_size_um: float, bins_per_decade: int =
     hann_rows, hann_cols = np.hanning(shape[0]), np.hanning(shape[1])
     zc = np.ascontiguousarray(z)
     # Single precision for the transforms: a spectrum is needed to a part in 1e4 at most.
-    spectrum_x, spectrum_y = (
-        scipy.fft.rfft2(_kernels.windowed_difference(zc, axis, hann_rows, hann_cols), workers=-1) for axis in (1, 0)
-    )
+    spectrum_x, spectrum_y = (scipy.fft.rfft2(d, workers=-1) for d in _kernels.windowed_differences(zc, hann_rows, hann_cols))
     scale = pixel_size_um**2 / (np.sum(hann_rows**2) * np.sum(hann_cols**2) * np.isfinite(z).mean())
     q_min, q_max = 1.0 / (min(shape) * pixel_size_um), 0.5 / pixel_size_um
     edges = np.logspace(np.log10(q_min), np.log10(q_max), int(np.log10(q_max / q_min) * bins_per_decade) + 1)
