@@ -163,7 +163,8 @@ def analyse(
     value; without it no uncertainty is computed); ``tilt_rel_uncertainty``: the relative
     uncertainty of the tilt difference (0.01 for 1 %; None: unknown, propagated as 0);
     ``features=False`` leaves out Spd and Spc (NaN); ``timings``, if given, receives each step's
-    wall-clock seconds (STEPS). Raises InvalidInputError naming what is wrong."""
+    wall-clock seconds (STEPS; the steps after the filters run two at a time, so theirs overlap).
+    Raises InvalidInputError naming what is wrong."""
     z = np.asarray(z_um, dtype=np.float64)
     if z.ndim != 2 or min(z.shape) < 16:
         raise InvalidInputError("region", f"needs at least 16 x 16 points, got {z.shape}")
