@@ -4,8 +4,9 @@ The chain as the product runs it (surface.roughness.analyse): form removal (a qu
 sphere-capped, self-affine surface with 1 % of unknown points), the S- and L-filters, every areal
 parameter, the Hurst exponent by both methods along and across a direction, the areal PSD, and
 the uncertainty of every parameter from a sigma map and the tilt. Target: the chain under 3 s.
-Prints a table (wall seconds per step, the fastest of two runs; the whole chain's wall and CPU
-seconds, and the load average: on a shared machine the CPU seconds tell more) and writes
+Prints a table (wall seconds per step, the fastest of two runs; the steps after the filters run
+two at a time, so their seconds overlap; the whole chain's wall and CPU seconds, and the load
+average: on a shared machine the CPU seconds tell more) and writes
 bench-results/surface_analysis.json.
 
     python -m benchmarks.surface_analysis --out bench-results

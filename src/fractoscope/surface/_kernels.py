@@ -12,21 +12,27 @@ _JIT = {"cache": True, "nogil": True, "fastmath": False}
 
 
 @numba.njit(parallel=True, **_JIT)
-def mean_height(z):
-    """(count of finite heights, their mean)."""
+def height_summary(z):
+    """(count of finite heights, their mean, the highest, the lowest)."""
     rows, cols = z.shape
     sums = np.zeros(rows)
     counts = np.zeros(rows)
+    highest = np.full(rows, -np.inf)
+    lowest = np.full(rows, np.inf)
     for r in numba.prange(rows):
         total, count = 0.0, 0.0
+        hi, lo = -np.inf, np.inf
         for c in range(cols):
             v = z[r, c]
             if np.isfinite(v):
                 total += v
                 count += 1.0
+                hi = max(hi, v)
+                lo = min(lo, v)
         sums[r], counts[r] = total, count
+        highest[r], lowest[r] = hi, lo
     n = counts.sum()
-    return n, sums.sum() / n
+    return n, sums.sum() / n, highest.max(), lowest.min()
 
 
 @numba.njit(parallel=True, **_JIT)
@@ -102,24 +108,35 @@ def slope_sums(z, inverse_pixel):
 @numba.njit(parallel=True, **_JIT)
 def height_block_sums(z, sigma, mean, block):
     """Block sums (block x block pixels; the last blocks partial) of sigma·{1, h, h², h³, sign h}
-    over the finite heights, h = z - mean: (5, block rows, block cols)."""
+    over the finite heights, h = z - mean: (5, block rows, block cols); and the sums of h², h³, h⁴
+    and sign h over them, as `central_moments` has them."""
     rows, cols = z.shape
     out_rows, out_cols = (rows + block - 1) // block, (cols + block - 1) // block
     sums = np.zeros((5, out_rows, out_cols))
+    partial = np.zeros((rows, 4))
     for br in numba.prange(out_rows):
         for r in range(br * block, min(rows, (br + 1) * block)):
+            a2 = a3 = a4 = signs = 0.0
             for c in range(cols):
                 v = z[r, c]
                 if np.isfinite(v):
                     s = sigma[r, c]
                     h = v - mean
+                    h2 = h * h
+                    sign = 1.0 if h > 0 else (-1.0 if h < 0 else 0.0)
+                    a2 += h2
+                    a3 += h2 * h
+                    a4 += h2 * h2
+                    signs += sign
                     bc = c // block
                     sums[0, br, bc] += s
                     sums[1, br, bc] += s * h
                     sums[2, br, bc] += s * h * h
                     sums[3, br, bc] += s * h * h * h
-                    sums[4, br, bc] += s * (1.0 if h > 0 else (-1.0 if h < 0 else 0.0))
-    return sums
+                    sums[4, br, bc] += s * sign
+            partial[r, 0], partial[r, 1], partial[r, 2], partial[r, 3] = a2, a3, a4, signs
+    totals = partial.sum(axis=0)
+    return sums, totals[0], totals[1], totals[2], totals[3]
 
 
 @numba.njit(**_JIT)
@@ -138,77 +155,108 @@ def _material_class(h, class_heights):
     return min(low, classes - 1)
 
 
-@numba.njit(**_JIT)
-def class_counts(z, mean, class_heights):
-    """How many finite heights (h = z - mean) fall in each material-ratio class."""
+@numba.njit(parallel=True, **_JIT)
+def material_classes(z, mean, class_heights):
+    """Each pixel's material-ratio class (`_material_class` of h = z - mean; the class count where
+    z is unknown), uint8, and how many finite heights fall in each class. The class is read from a
+    table over equal height bins where a bin and its two neighbours hold no class edge (a class is
+    monotonic in h, so both ends of the three bins bound it), else searched."""
     rows, cols = z.shape
-    counts = np.zeros(class_heights.size - 1)
-    for r in range(rows):
+    classes = class_heights.size - 1
+    bins = 64 * classes
+    low = class_heights[-1]
+    width = (class_heights[0] - low) / bins
+    table = np.full(bins, -1, dtype=np.int64)
+    if width > 0:
+        for b in range(bins):
+            k = _material_class(low + (b - 1) * width, class_heights)
+            if k == _material_class(low + (b + 2) * width, class_heights):
+                table[b] = k
+    out = np.empty((rows, cols), dtype=np.uint8)
+    counts = np.zeros((rows, classes))
+    for r in numba.prange(rows):
         for c in range(cols):
             v = z[r, c]
             if np.isfinite(v):
-                counts[_material_class(v - mean, class_heights)] += 1.0
-    return counts
+                h = v - mean
+                b = int(np.floor((h - low) / width)) if width > 0 else -1
+                k = table[b] if 0 <= b < bins else -1
+                if k < 0:
+                    k = _material_class(h, class_heights)
+                out[r, c] = k
+                counts[r, k] += 1.0
+            else:
+                out[r, c] = classes
+    return out, counts.sum(axis=0)
 
 
 @numba.njit(parallel=True, **_JIT)
-def class_block_sums(z, sigma, mean, class_heights, derivatives, block):
-    """Block sums of sigma · derivatives[class, p] over the finite heights (h = z - mean), each in
-    its material-ratio class (`_material_class`). Returns (P, block rows, block cols)."""
-    rows, cols = z.shape
-    parameters = derivatives.shape[1]
+def class_block_sums(classes, sigma, derivatives, block):
+    """Block sums of sigma · derivatives[class, p] over the pixels of a class map
+    (`material_classes`; classes past the last row of derivatives are unknown points). Returns
+    (P, block rows, block cols), summed with the parameters last (each pixel adds to P adjacent
+    values)."""
+    rows, cols = classes.shape
+    known, parameters = derivatives.shape
     out_rows, out_cols = (rows + block - 1) // block, (cols + block - 1) // block
-    sums = np.zeros((parameters, out_rows, out_cols))
+    sums = np.zeros((out_rows, out_cols, parameters))
     for br in numba.prange(out_rows):
         for r in range(br * block, min(rows, (br + 1) * block)):
             for c in range(cols):
-                v = z[r, c]
-                if np.isfinite(v):
-                    k = _material_class(v - mean, class_heights)
+                k = classes[r, c]
+                if k < known:
                     s = sigma[r, c]
                     bc = c // block
                     for p in range(parameters):
-                        sums[p, br, bc] += s * derivatives[k, p]
-    return sums
+                        sums[br, bc, p] += s * derivatives[k, p]
+    return np.ascontiguousarray(sums.transpose(2, 0, 1))
 
 
 @numba.njit(parallel=True, **_JIT)
-def slope_block_sums(z, sigma, inverse_pixel, sdq_x_scale, sdq_y_scale, sdr_scale, block):
-    """Block sums of sigma · dSdq/dz and sigma · dSdr/dz, and d Sdr / d ln(s) for heights scaled by
-    s. Sdq = sqrt(sum gx² / Nx + sum gy² / Ny), so dSdq/dgx = gx · sdq_x_scale (= 1 / (Nx Sdq));
-    Sdr = sdr_scale · (sum over complete cells of the corner terms T = sqrt(gx² + gy² + 1)) (less
-    100), sdr_scale = 100 / (4 N_cells), dT/dgx = gx / T, dT/d ln(s) = (gx² + gy²) / T. A slope
-    (z_end - z_start) / pixel passes dP/d(slope) / pixel to the block of its end and minus that to
-    the block of its start, each times the pixel's sigma. Rows of blocks go in two interleaved
-    passes, so that no two threads add to the same block (a cell reaches into the next row)."""
+def slope_block_sums(z, sigma, inverse_pixel, block):
+    """Block sums of sigma · dSdq/dz and sigma · dSdr/dz, each up to a factor known only once the
+    whole map is summed, and those sums: Sdq = sqrt(Sx / Nx + Sy / Ny) over the squared slopes gx², gy²
+    (`slope_sums`), so dSdq/dgx = gx / (Nx Sdq): returned are the block sums qx of sigma · gx /
+    pixel and qy of sigma · gy / pixel; Sdr = 100 / (4 Ncells) · (sum over complete cells of the
+    corner terms T = sqrt(gx² + gy² + 1)) less 100, dT/dgx = gx / T: returned is the block sum of
+    sigma · sum(dT/dz), with the sum of dT/d ln(s) = (gx² + gy²) / T for heights scaled by s. A slope
+    (z_end - z_start) / pixel passes d(term)/d(slope) / pixel to the block of its end and minus that
+    to the block of its start, each times the pixel's sigma. Rows of blocks go in two interleaved
+    passes, so that no two threads add to the same block (a cell reaches into the next row).
+    Returns (qx, qy, block sums for Sdr, their scale sum, Sx, Nx, Sy, Ny, Ncells)."""
     rows, cols = z.shape
     out_rows, out_cols = (rows + block - 1) // block, (cols + block - 1) // block
-    dq = np.zeros((out_rows, out_cols))
+    qx = np.zeros((out_rows, out_cols))
+    qy = np.zeros((out_rows, out_cols))
     dr = np.zeros((out_rows, out_cols))
-    scale_terms = np.zeros(rows)
+    partial = np.zeros((rows, 6))
     for parity in range(2):
         for br in numba.prange(out_rows):
             if br % 2 != parity:
                 continue
             for r in range(br * block, min(rows, (br + 1) * block)):
                 below = (r + 1) // block
-                total = 0.0
+                total = sx = nx = sy = ny = cells = 0.0
                 for c in range(cols):
                     v = z[r, c]
                     here, right_block = c // block, (c + 1) // block
                     if c + 1 < cols:
                         gx = (z[r, c + 1] - v) * inverse_pixel
                         if np.isfinite(gx):
-                            d = gx * sdq_x_scale * inverse_pixel
-                            dq[br, right_block] += d * sigma[r, c + 1]
-                            dq[br, here] -= d * sigma[r, c]
+                            sx += gx * gx
+                            nx += 1.0
+                            d = gx * inverse_pixel
+                            qx[br, right_block] += d * sigma[r, c + 1]
+                            qx[br, here] -= d * sigma[r, c]
                     if r + 1 >= rows:
                         continue
                     gy = (z[r + 1, c] - v) * inverse_pixel
                     if np.isfinite(gy):
-                        d = gy * sdq_y_scale * inverse_pixel
-                        dq[below, here] += d * sigma[r + 1, c]
-                        dq[br, here] -= d * sigma[r, c]
+                        sy += gy * gy
+                        ny += 1.0
+                        d = gy * inverse_pixel
+                        qy[below, here] += d * sigma[r + 1, c]
+                        qy[br, here] -= d * sigma[r, c]
                     if c + 1 >= cols:
                         continue
                     top = (z[r, c + 1] - v) * inverse_pixel
@@ -217,67 +265,101 @@ def slope_block_sums(z, sigma, inverse_pixel, sdq_x_scale, sdq_y_scale, sdr_scal
                     right = (z[r + 1, c + 1] - z[r, c + 1]) * inverse_pixel
                     if not (np.isfinite(top) and np.isfinite(bottom) and np.isfinite(left) and np.isfinite(right)):
                         continue
+                    cells += 1.0
                     t_tl = 1.0 / np.sqrt(top * top + left * left + 1.0)
                     t_tr = 1.0 / np.sqrt(top * top + right * right + 1.0)
                     t_bl = 1.0 / np.sqrt(bottom * bottom + left * left + 1.0)
                     t_br = 1.0 / np.sqrt(bottom * bottom + right * right + 1.0)
-                    scaled = sdr_scale * inverse_pixel
-                    d = scaled * top * (t_tl + t_tr)  # x edge (r, c) -> (r, c + 1)
+                    d = inverse_pixel * top * (t_tl + t_tr)  # x edge (r, c) -> (r, c + 1)
                     dr[br, right_block] += d * sigma[r, c + 1]
                     dr[br, here] -= d * sigma[r, c]
-                    d = scaled * bottom * (t_bl + t_br)  # x edge (r + 1, c) -> (r + 1, c + 1)
+                    d = inverse_pixel * bottom * (t_bl + t_br)  # x edge (r + 1, c) -> (r + 1, c + 1)
                     dr[below, right_block] += d * sigma[r + 1, c + 1]
                     dr[below, here] -= d * sigma[r + 1, c]
-                    d = scaled * left * (t_tl + t_bl)  # y edge (r, c) -> (r + 1, c)
+                    d = inverse_pixel * left * (t_tl + t_bl)  # y edge (r, c) -> (r + 1, c)
                     dr[below, here] += d * sigma[r + 1, c]
                     dr[br, here] -= d * sigma[r, c]
-                    d = scaled * right * (t_tr + t_br)  # y edge (r, c + 1) -> (r + 1, c + 1)
+                    d = inverse_pixel * right * (t_tr + t_br)  # y edge (r, c + 1) -> (r + 1, c + 1)
                     dr[below, right_block] += d * sigma[r + 1, c + 1]
                     dr[br, right_block] -= d * sigma[r, c + 1]
                     total += (
                         (top * top + left * left) * t_tl + (top * top + right * right) * t_tr
                         + (bottom * bottom + left * left) * t_bl + (bottom * bottom + right * right) * t_br
                     )  # fmt: skip
-                scale_terms[r] = total
-    return dq, dr, sdr_scale * scale_terms.sum()
+                partial[r, 0], partial[r, 1], partial[r, 2] = total, sx, nx
+                partial[r, 3], partial[r, 4], partial[r, 5] = sy, ny, cells
+    sums = partial.sum(axis=0)
+    return qx, qy, dr, sums[0], sums[1], sums[2], sums[3], sums[4], sums[5]
 
 
 # Feature parameters: steepest-ascent watershed ######################################################
 
 
 @numba.njit(parallel=True, **_JIT)
-def _ascent_targets(heights):
-    """Each pixel's (flat) steepest-ascent neighbour: the highest of its eight, the first in
-    row-major order on ties; itself where none is higher."""
-    rows, cols = heights.shape
-    target = np.empty(rows * cols, dtype=np.int64)
+def centred_heights(z, mean):
+    """z - mean, -inf where z is unknown (the watershed's heights)."""
+    rows, cols = z.shape
+    out = np.empty((rows, cols))
     for r in numba.prange(rows):
         for c in range(cols):
-            best = -np.inf
-            chosen = r * cols + c
+            v = z[r, c]
+            out[r, c] = v - mean if np.isfinite(v) else -np.inf
+    return out
+
+
+@numba.njit(parallel=True, **_JIT)
+def labels_at_gaps(labels, heights, count):
+    """Which labels (count + 1,) reach the field's border or an unknown point (height -inf): labels
+    of the border pixels and of scipy.ndimage.binary_dilation(unknown), the unknown pixels and their
+    4 neighbours. Threads may mark a label twice, always alike."""
+    rows, cols = labels.shape
+    touching = np.zeros(count + 1, dtype=np.bool_)
+    for r in numba.prange(rows):
+        for c in range(cols):
+            if r == 0 or r == rows - 1 or c == 0 or c == cols - 1:
+                touching[labels[r, c]] = True
+            if heights[r, c] == -np.inf:
+                touching[labels[r, c]] = True
+                if r > 0:
+                    touching[labels[r - 1, c]] = True
+                if r + 1 < rows:
+                    touching[labels[r + 1, c]] = True
+                if c > 0:
+                    touching[labels[r, c - 1]] = True
+                if c + 1 < cols:
+                    touching[labels[r, c + 1]] = True
+    return touching
+
+
+@numba.njit(parallel=True, **_JIT)
+def _ascent_targets(heights, target):
+    """Each pixel's (flat) steepest-ascent neighbour into target (rows * cols,): the highest of its
+    eight, the first in row-major order on ties; itself where none is higher."""
+    rows, cols = heights.shape
+    for r in numba.prange(rows):
+        for c in range(cols):
+            inside = 0 < r < rows - 1 and 0 < c < cols - 1  # no neighbour off the map
+            best, chosen = -np.inf, r * cols + c
             for dr in range(-1, 2):
                 for dc in range(-1, 2):
-                    if dr == 0 and dc == 0:
-                        continue
                     rr, cc = r + dr, c + dc
-                    if 0 <= rr < rows and 0 <= cc < cols and heights[rr, cc] > best:
-                        best = heights[rr, cc]
-                        if best > heights[r, c]:
-                            chosen = rr * cols + cc
+                    if (dr != 0 or dc != 0) and (inside or (0 <= rr < rows and 0 <= cc < cols)) and heights[rr, cc] > best:
+                        best, chosen = heights[rr, cc], rr * cols + cc
             target[r * cols + c] = chosen if best > heights[r, c] else r * cols + c
     return target
 
 
 @numba.njit(**_JIT)
-def ascent_labels(heights):
+def ascent_labels(heights, labels):
     """Label each pixel 1..n with the local maximum (plateau: an 8-connected set of pixels none of
     whose neighbours is higher) that steepest ascent reaches from it; the steepest neighbour is the
-    highest, the first in row-major neighbour order on ties. Returns (labels, flat index of the
-    last pixel, row-major, of each label's maximum; index 0 unused)."""
+    highest, the first in row-major neighbour order on ties. ``labels``: (rows * cols,) zeros of
+    an integer type that holds rows * cols (int32 where it does: half the memory traffic of the
+    walks). Returns (labels (rows, cols), flat index of the last pixel, row-major, of each label's
+    maximum; index 0 unused)."""
     rows, cols = heights.shape
     n = rows * cols
-    target = _ascent_targets(heights)
-    labels = np.zeros(n, dtype=np.int64)
+    target = _ascent_targets(heights, np.empty_like(labels))
     # Plateaus (pixels that do not climb) are labelled by an 8-connected flood fill.
     stack = np.empty(n, dtype=np.int64)
     peaks = [0]
@@ -304,36 +386,48 @@ def ascent_labels(heights):
                             labels[q] = count
                             top += 1
                             stack[top] = q
-    # Every other pixel takes the label its ascent ends at (paths compressed as they are walked).
-    for start in range(n):
-        if labels[start] != 0:
-            continue
-        length = 0
-        p = start
-        while labels[p] == 0:
-            stack[length] = p
-            length += 1
-            p = target[p]
-        label = labels[p]
-        for i in range(length):
-            labels[stack[i]] = label
+    _climb(target, labels, rows, cols)
     return labels.reshape(rows, cols), np.array(peaks, dtype=np.int64)
+
+
+@numba.njit(parallel=True, **_JIT)
+def _climb(target, labels, rows, cols):
+    """Every unlabelled pixel takes the label its ascent ends at, and so does each pixel on the way
+    (the walks of later pixels stop there). Threads may label a pixel twice, always alike."""
+    for r in numba.prange(rows):
+        for start in range(r * cols, (r + 1) * cols):
+            p = start
+            while labels[p] == 0:
+                p = target[p]
+            label = labels[p]
+            p = start
+            while labels[p] == 0:
+                labels[p] = label
+                p = target[p]
 
 
 @numba.njit(**_JIT)
 def hill_boundaries(labels, heights):
     """Adjacent hill pairs across every 8-connected boundary (right, down, down-right, down-left
-    neighbours): (low label, high label, pass height = the lower of the two heights), runs of the
-    same pair along a row folded to their largest pass."""
+    neighbours): (low label, high label, pass height = the lower of the two heights). A pair met
+    again while it is still in a small hashed cache of recent pairs (most repeats are a row or
+    two apart) is folded into its entry, keeping the largest pass; the rest are new entries."""
     rows, cols = labels.shape
     capacity = 1024
     low = np.empty(capacity, dtype=np.int64)
     high = np.empty(capacity, dtype=np.int64)
     value = np.empty(capacity)
     size = 0
+    slots = 1 << 14
+    cached = np.full(slots, -1, dtype=np.int64)  # entry of the pair last hashed to each slot
     for r in range(rows):
         for c in range(cols):
             a = labels[r, c]
+            right, down = c + 1 < cols, r + 1 < rows
+            if (not right or labels[r, c + 1] == a) and (
+                not down or (labels[r + 1, c] == a and (not right or labels[r + 1, c + 1] == a) and (c == 0 or labels[r + 1, c - 1] == a))
+            ):
+                continue  # inside a hill, as most pixels are
             for k in range(4):
                 rr, cc = (r, c + 1) if k == 0 else ((r + 1, c) if k == 1 else ((r + 1, c + 1) if k == 2 else (r + 1, c - 1)))
                 if rr >= rows or cc < 0 or cc >= cols:
@@ -343,8 +437,10 @@ def hill_boundaries(labels, heights):
                     continue
                 lo_label, hi_label = (a, b) if a < b else (b, a)
                 height = min(heights[r, c], heights[rr, cc])
-                if size > 0 and low[size - 1] == lo_label and high[size - 1] == hi_label:
-                    value[size - 1] = max(value[size - 1], height)
+                slot = (lo_label * 40503 + hi_label) & (slots - 1)
+                entry = cached[slot]
+                if entry >= 0 and low[entry] == lo_label and high[entry] == hi_label:
+                    value[entry] = max(value[entry], height)
                     continue
                 if size == capacity:
                     capacity *= 2
@@ -352,6 +448,7 @@ def hill_boundaries(labels, heights):
                     high = np.resize(high, capacity)
                     value = np.resize(value, capacity)
                 low[size], high[size], value[size] = lo_label, hi_label, height
+                cached[slot] = size
                 size += 1
     return low[:size].copy(), high[:size].copy(), value[:size].copy()
 
@@ -362,38 +459,43 @@ def hill_boundaries(labels, heights):
 @numba.njit(parallel=True, **_JIT)
 def normalized_separable_filter(z, kernel_rows, kernel_cols):
     """Normalized convolution of a map with a small separable kernel (odd lengths, centred):
-    (K * (w z)) / (K * w), w = 1 on finite heights and 0 elsewhere and outside; NaN where z is."""
+    (K * (w z)) / (K * w), w = 1 on finite heights and 0 elsewhere and outside; NaN where z is.
+    Bands of rows at a time, their row pass kept in cache for the column pass."""
     rows, cols = z.shape
     half_r, half_c = kernel_rows.size // 2, kernel_cols.size // 2
-    numerator = np.empty((rows, cols))
-    weight = np.empty((rows, cols))
-    for r in numba.prange(rows):
-        for c in range(cols):
-            total = 0.0
-            norm = 0.0
-            for t in range(kernel_cols.size):
-                cc = c + t - half_c
-                if 0 <= cc < cols:
-                    v = z[r, cc]
-                    if np.isfinite(v):
-                        total += kernel_cols[t] * v
-                        norm += kernel_cols[t]
-            numerator[r, c] = total
-            weight[r, c] = norm
+    band = 32
     out = np.empty((rows, cols))
-    for r in numba.prange(rows):
-        for c in range(cols):
-            if not np.isfinite(z[r, c]):
-                out[r, c] = np.nan
-                continue
-            total = 0.0
-            norm = 0.0
-            for t in range(kernel_rows.size):
-                rr = r + t - half_r
-                if 0 <= rr < rows:
-                    total += kernel_rows[t] * numerator[rr, c]
-                    norm += kernel_rows[t] * weight[rr, c]
-            out[r, c] = total / norm
+    for b in numba.prange((rows + band - 1) // band):
+        first, last = b * band, min(rows, (b + 1) * band)
+        low, high = max(0, first - half_r), min(rows, last + half_r)
+        numerator = np.empty((high - low, cols))
+        weight = np.empty((high - low, cols))
+        for r in range(low, high):
+            for c in range(cols):
+                total = 0.0
+                norm = 0.0
+                for t in range(kernel_cols.size):
+                    cc = c + t - half_c
+                    if 0 <= cc < cols:
+                        v = z[r, cc]
+                        if np.isfinite(v):
+                            total += kernel_cols[t] * v
+                            norm += kernel_cols[t]
+                numerator[r - low, c] = total
+                weight[r - low, c] = norm
+        for r in range(first, last):
+            for c in range(cols):
+                if not np.isfinite(z[r, c]):
+                    out[r, c] = np.nan
+                    continue
+                total = 0.0
+                norm = 0.0
+                for t in range(kernel_rows.size):
+                    rr = r + t - half_r
+                    if 0 <= rr < rows:
+                        total += kernel_rows[t] * numerator[rr - low, c]
+                        norm += kernel_rows[t] * weight[rr - low, c]
+                out[r, c] = total / norm
     return out
 
 
@@ -448,14 +550,12 @@ def upsample_cubic(coarse, start, step, rows, cols, known):
     for c in numba.prange(cols):
         for t in range(4):
             along_cols[:, c] += weights_c[c, t] * coarse[:, first_c[c] + t]
-    out = np.full((rows, cols), np.nan)
+    out = np.empty((rows, cols))
     for r in numba.prange(rows):
-        blended = np.zeros(cols)
-        for t in range(4):
-            blended += weights_r[r, t] * along_cols[first_r[r] + t]
+        w0, w1, w2, w3 = weights_r[r, 0], weights_r[r, 1], weights_r[r, 2], weights_r[r, 3]
+        a0, a1, a2, a3 = along_cols[first_r[r]], along_cols[first_r[r] + 1], along_cols[first_r[r] + 2], along_cols[first_r[r] + 3]
         for c in range(cols):
-            if known[r, c]:
-                out[r, c] = blended[c]
+            out[r, c] = ((w0 * a0[c] + w1 * a1[c]) + w2 * a2[c]) + w3 * a3[c] if known[r, c] else np.nan
     return out
 
 
@@ -490,126 +590,215 @@ def bilinear_profiles(z, origin, across, along, offsets, positions):
 @numba.njit(parallel=True, **_JIT)
 def difference_sums(profiles, lags, order, band_starts, segments):
     """Sums and counts of the squared order-th differences of the profiles at each lag, per block:
-    bands of profiles (starting at band_starts) times `segments` near-equal stretches along them
-    (a difference counted in the stretch where it starts). Returns (bands, segments, lags) twice."""
+    bands of profiles (starting at band_starts) times `segments` stretches along them, those of
+    np.array_split (a difference counted in the stretch where it starts). Each profile is summed
+    on its own, while it is in cache, then the profiles of a band in order. Returns (bands,
+    segments, lags) twice."""
     count, length = profiles.shape
     bands = band_starts.size
+    each_sums = np.zeros((count, segments, lags.size))
+    each_counts = np.zeros((count, segments, lags.size))
+    for p in numba.prange(count):
+        for j in range(lags.size):
+            lag = lags[j]
+            span = order * lag
+            starts = length - span
+            size, extra = starts // segments, starts % segments
+            begin = 0
+            for s in range(segments):
+                end = begin + size + (1 if s < extra else 0)
+                total, n = 0.0, 0.0
+                for i in range(begin, end):
+                    if order == 1:
+                        d = profiles[p, i + lag] - profiles[p, i]
+                    else:
+                        d = profiles[p, i + span] - 2.0 * profiles[p, i + lag] + profiles[p, i]
+                    if np.isfinite(d):
+                        total += d * d
+                        n += 1.0
+                each_sums[p, s, j], each_counts[p, s, j] = total, n
+                begin = end
     sums = np.zeros((bands, segments, lags.size))
     counts = np.zeros((bands, segments, lags.size))
-    band_of = np.empty(count, dtype=np.int64)
     for b in range(bands):
         end = band_starts[b + 1] if b + 1 < bands else count
-        band_of[band_starts[b] : end] = b
-    for j in numba.prange(lags.size):
-        lag = lags[j]
-        span = order * lag
-        starts = length - span
-        for p in range(count):
-            b = band_of[p]
-            for i in range(starts):
-                if order == 1:
-                    d = profiles[p, i + lag] - profiles[p, i]
-                else:
-                    d = profiles[p, i + span] - 2.0 * profiles[p, i + lag] + profiles[p, i]
-                if np.isfinite(d):
-                    s = _segment(i, starts, segments)
-                    sums[b, s, j] += d * d
-                    counts[b, s, j] += 1.0
+        for p in range(band_starts[b], end):
+            sums[b] += each_sums[p]
+            counts[b] += each_counts[p]
     return sums, counts
 
 
 @numba.njit(**_JIT)
-def _segment(i, length, parts):
-    """Which of np.array_split(range(length), parts)'s pieces index i falls in."""
-    size, extra = length // parts, length % parts
-    # The first `extra` pieces hold size + 1 items.
-    boundary = extra * (size + 1)
-    if i < boundary:
-        return i // (size + 1)
-    return extra + (i - boundary) // size
+def bin_spectra(power, log_k, index, band, sums, counts, log_k_sums, k_counts):
+    """Adds each profile's spectrum, power (profiles, K) at wavenumbers of logarithm log_k (K,), to
+    the bins index (K,; outside where not in 0 .. bins - 1) of its band: sums and counts (bands,
+    bins); and each wavenumber's log_k and 1 per profile to log_k_sums and k_counts (bins,)."""
+    bins = k_counts.size
+    for j in range(index.size):
+        if 0 <= index[j] < bins:
+            log_k_sums[index[j]] += log_k[j] * power.shape[0]
+            k_counts[index[j]] += power.shape[0]
+    for row in range(power.shape[0]):
+        for j in range(index.size):
+            if 0 <= index[j] < bins:
+                sums[band[row], index[j]] += power[row, j]
+                counts[band[row], index[j]] += 1.0
 
 
 @numba.njit(**_JIT)
-def windowed_difference(z, axis, hann_rows, hann_cols):
-    """For the areal PSD: the differences along `axis` (1: columns, 0: rows) on the (rows - 1,
-    cols - 1) grid, less their mean over the finite ones, times the Hann windows; 0 where unknown.
-    float32."""
-    rows, cols = z.shape[0] - 1, z.shape[1] - 1
-    out = np.zeros((rows, cols), dtype=np.float32)
-    total, count = 0.0, 0.0
-    for r in range(rows):
-        for c in range(cols):
-            d = (z[r, c + 1] - z[r, c]) if axis == 1 else (z[r + 1, c] - z[r, c])
-            if np.isfinite(d):
-                total += d
-                count += 1.0
-    mean = total / count
-    for r in range(rows):
-        for c in range(cols):
-            d = (z[r, c + 1] - z[r, c]) if axis == 1 else (z[r + 1, c] - z[r, c])
-            if np.isfinite(d):
-                out[r, c] = (d - mean) * hann_rows[r] * hann_cols[c]
-    return out
-
-
-@numba.njit(**_JIT)
-def radial_bins(power, cols, scale, pixel_size_um, log_q_min, log_step, bins):
-    """Radial log-binning of the areal PSD of the gradient: power (rows, cols // 2 + 1), the rfft
-    half-plane of a (rows, cols) grid; each value divided by the differences' transfer
-    4 (sin² pi fx + sin² pi fy) and times `scale`, columns other than 0 and Nyquist counted twice
-    (they stand for two frequencies). Bin k holds q in [10^(log_q_min + k log_step), ...).
-    Returns (sums, counts)."""
-    rows, half = power.shape
-    sums = np.zeros(bins)
-    counts = np.zeros(bins)
-    for r in range(rows):
-        f_r = (r if r < (rows + 1) // 2 else r - rows) / rows
-        s_r = np.sin(np.pi * f_r) ** 2
-        for c in range(half):
-            if r == 0 and c == 0:
-                continue
-            f_c = c / cols
-            q = np.sqrt(f_r * f_r + f_c * f_c) / pixel_size_um
-            k = int(np.floor((np.log10(q) - log_q_min) / log_step))
-            if k < 0 or k >= bins:
-                continue
-            weight = 2.0 if 1 <= c < (cols + 1) // 2 else 1.0
-            transfer = 4.0 * (s_r + np.sin(np.pi * f_c) ** 2)
-            sums[k] += weight * power[r, c] * scale / transfer
-            counts[k] += weight
-    return sums, counts
+def longest_known_runs(profiles):
+    """Start and length of each profile's longest run of finite samples (the first of the longest;
+    0, 0 for none)."""
+    count, length = profiles.shape
+    starts = np.zeros(count, dtype=np.int64)
+    lengths = np.zeros(count, dtype=np.int64)
+    for p in range(count):
+        run_start = -1
+        for i in range(length + 1):
+            finite = i < length and np.isfinite(profiles[p, i])
+            if finite and run_start < 0:
+                run_start = i
+            elif not finite and run_start >= 0:
+                if i - run_start > lengths[p]:
+                    starts[p], lengths[p] = run_start, i - run_start
+                run_start = -1
+    return starts, lengths
 
 
 @numba.njit(parallel=True, **_JIT)
-def known_sigma(z, sigma):
-    """sigma where z is finite, 0 elsewhere (float64), whether it is finite and >= 0 wherever z is,
-    and its mean square there."""
+def windowed_differences(z, hann_rows, hann_cols):
+    """For the areal PSD: the differences along columns and along rows on the (rows - 1, cols - 1)
+    grid, each less its mean over the finite ones, times the Hann windows; 0 where unknown.
+    float32, (along columns, along rows)."""
+    rows, cols = z.shape[0] - 1, z.shape[1] - 1
+    out_x = np.zeros((rows, cols), dtype=np.float32)
+    out_y = np.zeros((rows, cols), dtype=np.float32)
+    partial = np.zeros((rows, 4))
+    for r in numba.prange(rows):
+        total_x = count_x = total_y = count_y = 0.0
+        for c in range(cols):
+            dx = z[r, c + 1] - z[r, c]
+            dy = z[r + 1, c] - z[r, c]
+            if np.isfinite(dx):
+                total_x += dx
+                count_x += 1.0
+            if np.isfinite(dy):
+                total_y += dy
+                count_y += 1.0
+        partial[r, 0], partial[r, 1], partial[r, 2], partial[r, 3] = total_x, count_x, total_y, count_y
+    sums = partial.sum(axis=0)
+    mean_x, mean_y = sums[0] / sums[1], sums[2] / sums[3]
+    for r in numba.prange(rows):
+        for c in range(cols):
+            dx = z[r, c + 1] - z[r, c]
+            dy = z[r + 1, c] - z[r, c]
+            if np.isfinite(dx):
+                out_x[r, c] = (dx - mean_x) * hann_rows[r] * hann_cols[c]
+            if np.isfinite(dy):
+                out_y[r, c] = (dy - mean_y) * hann_rows[r] * hann_cols[c]
+    return out_x, out_y
+
+
+@numba.njit(parallel=True, **_JIT)
+def radial_bins(spectrum_x, spectrum_y, cols, scale, pixel_size_um, log_q_min, log_step, bins):
+    """Radial log-binning of the areal PSD of the gradient: the power |X|² + |Y|² (float32) of the
+    rfft half-planes of the two differences of a (rows, cols) grid, each value divided by the
+    differences' transfer 4 (sin² pi fx + sin² pi fy) and times `scale`, columns other than 0 and
+    Nyquist counted twice (they stand for two frequencies). Bin k holds q in [10^(log_q_min + k
+    log_step), ...). Returns (sums, counts)."""
+    rows, half = spectrum_x.shape
+    chunks = min(rows, 16)
+    sums = np.zeros((chunks, bins))
+    counts = np.zeros((chunks, bins))
+    s_cols = np.sin(np.pi * (np.arange(half) / cols)) ** 2
+    for chunk in numba.prange(chunks):
+        for r in range(chunk * rows // chunks, (chunk + 1) * rows // chunks):
+            f_r = (r if r < (rows + 1) // 2 else r - rows) / rows
+            s_r = np.sin(np.pi * f_r) ** 2
+            for c in range(half):
+                if r == 0 and c == 0:
+                    continue
+                f_c = c / cols
+                q = np.sqrt(f_r * f_r + f_c * f_c) / pixel_size_um
+                k = int(np.floor((np.log10(q) - log_q_min) / log_step))
+                if k < 0 or k >= bins:
+                    continue
+                x, y = spectrum_x[r, c], spectrum_y[r, c]
+                power = (x.real * x.real + x.imag * x.imag) + (y.real * y.real + y.imag * y.imag)
+                weight = 2.0 if 1 <= c < (cols + 1) // 2 else 1.0
+                transfer = 4.0 * (s_r + s_cols[c])
+                sums[chunk, k] += weight * power * scale / transfer
+                counts[chunk, k] += weight
+    return sums.sum(axis=0), counts.sum(axis=0)
+
+
+@numba.njit(parallel=True, **_JIT)
+def sigma_statistics(z, sigma):
+    """Whether sigma is finite and >= 0 wherever z is finite, its mean square there, and the flat
+    indices of the highest and the lowest finite height (the first in row-major order on ties, as
+    np.argmax and np.argmin)."""
     rows, cols = z.shape
-    out = np.zeros((rows, cols))
     bad = np.zeros(rows)
     squares = np.zeros(rows)
     counts = np.zeros(rows)
+    highest = np.full(rows, -np.inf)
+    lowest = np.full(rows, np.inf)
+    at_highest = np.zeros(rows, dtype=np.int64)
+    at_lowest = np.zeros(rows, dtype=np.int64)
     for r in numba.prange(rows):
         for c in range(cols):
-            if np.isfinite(z[r, c]):
+            v = z[r, c]
+            if np.isfinite(v):
+                if v > highest[r]:
+                    highest[r], at_highest[r] = v, r * cols + c
+                if v < lowest[r]:
+                    lowest[r], at_lowest[r] = v, r * cols + c
                 s = sigma[r, c]
                 if not (np.isfinite(s) and s >= 0):
                     bad[r] = 1.0
                     continue
-                out[r, c] = s
                 squares[r] += s * s
                 counts[r] += 1.0
-    return out, bad.sum() == 0, squares.sum() / max(counts.sum(), 1.0)
+    mean_square = squares.sum() / max(counts.sum(), 1.0)
+    return bad.sum() == 0, mean_square, at_highest[np.argmax(highest)], at_lowest[np.argmin(lowest)]
 
 
 @numba.njit(**_JIT)
+def window_sum_squares(sums, m):
+    """The sum over every position of an m x m window, on the grid padded by m - 1 zeros on each
+    side, of the squared sum of the values under it (block grids are small: one thread)."""
+    rows, cols = sums.shape
+    padded = np.zeros((rows + 2 * (m - 1), cols + 2 * (m - 1)))
+    padded[m - 1 : m - 1 + rows, m - 1 : m - 1 + cols] = sums
+    out_rows, out_cols = rows + m - 1, cols + m - 1
+    along = np.zeros((padded.shape[0], out_cols))
+    for r in range(padded.shape[0]):
+        for j in range(out_cols):
+            total = 0.0
+            for k in range(m):
+                total += padded[r, j + k]
+            along[r, j] = total
+    result = 0.0
+    for i in range(out_rows):
+        for j in range(out_cols):
+            total = 0.0
+            for k in range(m):
+                total += along[i + k, j]
+            result += total * total
+    return result
+
+
+@numba.njit(parallel=True, **_JIT)
 def height_histogram(z, mean, low, width, bins):
     """Counts of the finite heights h = z - mean in `bins` classes of `width` from `low` (the top
     class closed)."""
-    counts = np.zeros(bins, dtype=np.int64)
-    flat = z.ravel()
-    for i in range(flat.size):
-        v = flat[i]
-        if np.isfinite(v):
-            counts[min(int((v - mean - low) / width), bins - 1)] += 1
-    return counts
+    rows, cols = z.shape
+    chunks = min(rows, 8)
+    counts = np.zeros((chunks, bins), dtype=np.int64)
+    for chunk in numba.prange(chunks):
+        for r in range(chunk * rows // chunks, (chunk + 1) * rows // chunks):
+            for c in range(cols):
+                v = z[r, c]
+                if np.isfinite(v):
+                    counts[chunk, min(int((v - mean - low) / width), bins - 1)] += 1
+    return counts.sum(axis=0)

@@ -68,7 +68,7 @@ def _validated(z_um: np.ndarray, pixel_size_um: float | None = None) -> np.ndarr
 def height_parameters(z_um: np.ndarray) -> dict[str, float]:
     """Sa, Sq, Sp, Sv, Sz (µm), Ssk, Sku (1) about the mean height (ISO 25178-2 4.1)."""
     z = _validated(z_um)
-    n, mean = _kernels.mean_height(z)
+    n, mean, _, _ = _kernels.height_summary(z)
     absolute, squares, cubes, fourths, _, sp, lowest = _kernels.central_moments(z, mean)
     sq = float(np.sqrt(squares / n))
     sv = -float(lowest)
@@ -186,7 +186,13 @@ def _block_means(z: np.ndarray, block: int) -> tuple[np.ndarray, float]:
     sums, counts = _kernels.block_sums_and_counts(np.ascontiguousarray(z[:rows, :cols]), block, 0)
     with np.errstate(invalid="ignore", divide="ignore"):
         means = np.where(counts >= block * block / 2, sums / counts, np.nan)
-    return means, float(np.nanvar(means) / np.nanvar(z))
+    return means, _variance(means) / _variance(z)
+
+
+def _variance(z: np.ndarray) -> float:
+    """The variance of the known heights (np.nanvar)."""
+    n, mean, _, _ = _kernels.height_summary(z)
+    return float(_kernels.central_moments(z, mean)[1] / n)
 
 
 def _decay(acf: np.ndarray, threshold: float) -> tuple[float, float] | None:
@@ -254,11 +260,12 @@ def material_ratio_curve(z_um: np.ndarray, *, classes: int = MATERIAL_RATIO_CLAS
     shape of ``z_um`` (a profile too); NaN left out."""
     if classes < 101:
         raise ValueError("classes must be at least 101")
-    z = np.ascontiguousarray(z_um, dtype=np.float64).reshape(1, -1)
-    n, mean = _kernels.mean_height(z)
+    z = np.ascontiguousarray(z_um, dtype=np.float64)
+    z = z if z.ndim == 2 else z.reshape(1, -1)  # rows of a map go to threads
+    n, mean, highest, lowest = _kernels.height_summary(z)
     if n < 9:
         raise ValueError("z_um has fewer than 9 finite heights")
-    *_, high, low = _kernels.central_moments(z, mean)
+    high, low = highest - mean, lowest - mean  # rounding keeps the order: the extremes of z - mean
     ratio = np.linspace(0.0, 100.0, classes)
     if high <= low:
         return MaterialRatioCurve(ratio, np.full(classes, low))
@@ -344,9 +351,9 @@ def feature_parameters(
     z = _validated(z_um, pixel_size_um)
     if not 0 <= pruning_percent < 100:
         raise ValueError("pruning_percent must be in [0, 100)")
-    known = np.isfinite(z)
-    heights = np.where(known, z - z[known].mean(), -np.inf)
-    threshold = pruning_percent / 100.0 * float(heights[known].max() - heights[known].min())
+    n, mean, highest, lowest = _kernels.height_summary(z)
+    heights = _kernels.centred_heights(z, mean)
+    threshold = pruning_percent / 100.0 * float((highest - mean) - (lowest - mean))
     labels, peak_index = _ascent_watershed(heights)
     count = peak_index.size - 1
     peak_height = heights.ravel()[peak_index]
@@ -355,12 +362,11 @@ def feature_parameters(
     with np.errstate(invalid="ignore"):  # hills of unknown points only: -inf peaks and saddles
         root = _wolf_pruning(peak_height, low, high, saddle, threshold)
     incomplete = np.zeros(count + 1, dtype=bool)
-    border = np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1], labels[ndimage.binary_dilation(~known)]])
-    incomplete[root[border]] = True
+    incomplete[root[_kernels.labels_at_gaps(labels, heights, count)]] = True
     survivors = np.unique(root[1:])
     survivors = survivors[~incomplete[survivors]]
     rows, cols = np.unravel_index(peak_index[survivors], z.shape)
-    area_um2 = known.sum() * pixel_size_um**2
+    area_um2 = n * pixel_size_um**2
     inside = (rows > 0) & (rows < z.shape[0] - 1) & (cols > 0) & (cols < z.shape[1] - 1)
     r, c = rows[inside], cols[inside]
     d2x = (heights[r, c + 1] - 2 * heights[r, c] + heights[r, c - 1]) / pixel_size_um**2
@@ -377,7 +383,8 @@ def _ascent_watershed(heights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Label each pixel 1..n with the local maximum (plateau) that steepest ascent reaches from it.
     Returns the labels and, for each label (index 0 unused), the flat index of one pixel of its
     maximum."""
-    return _kernels.ascent_labels(np.ascontiguousarray(heights))
+    index_type = np.int32 if heights.size < 2**31 else np.int64
+    return _kernels.ascent_labels(np.ascontiguousarray(heights), np.zeros(heights.size, dtype=index_type))
 
 
 def _saddles(labels: np.ndarray, heights: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

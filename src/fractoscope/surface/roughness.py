@@ -19,11 +19,14 @@ The API, the command line, the HTTP endpoint and the viewer all call `analyse`. 
 
 from __future__ import annotations
 
+import concurrent.futures
 import contextlib
 import math
+import threading
 import time
 from dataclasses import dataclass, field
 
+import numba
 import numpy as np
 
 from fractoscope.errors import InvalidInputError
@@ -33,6 +36,7 @@ FORMS = ("none", *form_removal.FORMS)
 HURST_METHODS = ("hhc", "psd")
 HURST_SIDES = ("along", "across")
 FALLBACK_MIN_WINDOWS = 2.0  # the issue's "about two matching windows", when the field is too small for more
+STEP_THREADS = 2  # the independent steps after the filters run on this many threads
 
 
 @dataclass(frozen=True)
@@ -159,7 +163,8 @@ def analyse(
     value; without it no uncertainty is computed); ``tilt_rel_uncertainty``: the relative
     uncertainty of the tilt difference (0.01 for 1 %; None: unknown, propagated as 0);
     ``features=False`` leaves out Spd and Spc (NaN); ``timings``, if given, receives each step's
-    wall-clock seconds (STEPS). Raises InvalidInputError naming what is wrong."""
+    wall-clock seconds (STEPS; the steps after the filters run two at a time, so theirs overlap).
+    Raises InvalidInputError naming what is wrong."""
     z = np.asarray(z_um, dtype=np.float64)
     if z.ndim != 2 or min(z.shape) < 16:
         raise InvalidInputError("region", f"needs at least 16 x 16 points, got {z.shape}")
@@ -187,34 +192,40 @@ def analyse(
         except ValueError as error:
             raise InvalidInputError("s_filter_um" if str(error).startswith("lambda_s") else "l_filter_um", str(error)) from None
     sl = surface.z_um
-    with step("height and hybrid parameters"):
-        parameters = areal_parameters.height_parameters(sl) | areal_parameters.hybrid_parameters(sl, pixel_size_um=pixel_size_um)
-    with step("spatial parameters"):
-        max_lag_px = None
-        if chain.lambda_c_um:  # past lambda_c the S-L surface holds no correlation to resolve
-            max_lag_px = max(1, min(min(sl.shape) // 2, int(np.ceil(chain.lambda_c_um / pixel_size_um))))
-        parameters |= areal_parameters.spatial_parameters(sl, pixel_size_um=pixel_size_um, max_lag_px=max_lag_px)
-    with step("functional parameters"):
-        parameters |= areal_parameters.functional_parameters(sl)
-    with step("feature parameters"):
-        nan = float("nan")
-        parameters |= areal_parameters.feature_parameters(sl, pixel_size_um=pixel_size_um) if features else {"Spd": nan, "Spc": nan}
-    parameters = {name: parameters[name] for name in areal_parameters.UNITS}
-    with step("Hurst exponents"):
-        hurst = _hurst(surface.sf_um, pixel_size_um, chain)
-    with step("areal PSD"):
-        q, c = scaling.radial_psd(surface.sf_um, pixel_size_um=pixel_size_um)
-    u = None
-    with step("uncertainty"):
-        if sigma_um is not None:
-            try:
-                u = uncertainty.areal_uncertainty(
-                    sl, sigma_um, pixel_size_um=pixel_size_um,
-                    parameters={k: v for k, v in parameters.items() if np.isfinite(v)},
-                    tilt_rel_uncertainty=tilt_rel_uncertainty or 0.0, correlation_px=chain.window_px,
-                )  # fmt: skip
-            except ValueError as error:
-                raise InvalidInputError("sigma_um", str(error)) from None
+    max_lag_px = None
+    if chain.lambda_c_um:  # past lambda_c the S-L surface holds no correlation to resolve
+        max_lag_px = max(1, min(min(sl.shape) // 2, int(np.ceil(chain.lambda_c_um / pixel_size_um))))
+    nan = float("nan")
+    # The steps below are independent but for the uncertainty, which needs the parameters: two
+    # threads run them, each its compiled loops on one thread. The parameters are submitted first
+    # (the longest first) and the areal PSD after the uncertainty, so that the two threads finish
+    # about together.
+    with _step_threads() as pool:
+        pending = {
+            "feature parameters": (lambda: areal_parameters.feature_parameters(sl, pixel_size_um=pixel_size_um))
+            if features else (lambda: {"Spd": nan, "Spc": nan}),
+            "spatial parameters": lambda: areal_parameters.spatial_parameters(sl, pixel_size_um=pixel_size_um, max_lag_px=max_lag_px),
+            "height and hybrid parameters": lambda: areal_parameters.height_parameters(sl)
+            | areal_parameters.hybrid_parameters(sl, pixel_size_um=pixel_size_um),
+            "functional parameters": lambda: areal_parameters.functional_parameters(sl),
+            "Hurst exponents": lambda: _hurst(surface.sf_um, pixel_size_um, chain),
+        }  # fmt: skip
+        futures = {name: pool.submit(step.timed, name, task) for name, task in pending.items()}
+        parameters = {}
+        for name in ("height and hybrid parameters", "spatial parameters", "functional parameters", "feature parameters"):
+            parameters |= futures[name].result()
+        parameters = {name: parameters[name] for name in areal_parameters.UNITS}
+        uncertain = pool.submit(step.timed, "uncertainty", lambda: None if sigma_um is None else uncertainty.areal_uncertainty(
+            sl, sigma_um, pixel_size_um=pixel_size_um, parameters={k: v for k, v in parameters.items() if np.isfinite(v)},
+            tilt_rel_uncertainty=tilt_rel_uncertainty or 0.0, correlation_px=chain.window_px,
+        ))  # fmt: skip
+        psd = pool.submit(step.timed, "areal PSD", lambda: scaling.radial_psd(surface.sf_um, pixel_size_um=pixel_size_um))
+        hurst = futures["Hurst exponents"].result()
+        q, c = psd.result()
+        try:
+            u = uncertain.result()
+        except ValueError as error:
+            raise InvalidInputError("sigma_um", str(error)) from None
     return SurfaceAnalysis(
         chain=chain, pixel_size_um=float(pixel_size_um), parameters=parameters, uncertainty=u,
         tilt_rel_uncertainty=tilt_rel_uncertainty, hurst=hurst, psd_q_per_um=q, psd_um4=c, form_parameters=form_parameters,
@@ -228,10 +239,12 @@ STEPS = (
 
 
 class _Stopwatch:
-    """``with step(name):`` adds the block's wall-clock seconds to timings[name] (nothing without)."""
+    """``with step(name):`` adds the block's wall-clock seconds to timings[name] (nothing without);
+    ``step.timed(name, task)`` does so for ``task()`` and returns its value."""
 
     def __init__(self, timings: dict[str, float] | None):
         self.timings = timings
+        self._lock = threading.Lock()
 
     @contextlib.contextmanager
     def __call__(self, name: str):
@@ -240,7 +253,23 @@ class _Stopwatch:
             yield
         finally:
             if self.timings is not None:
-                self.timings[name] = self.timings.get(name, 0.0) + time.perf_counter() - started
+                with self._lock:
+                    self.timings[name] = self.timings.get(name, 0.0) + time.perf_counter() - started
+
+    def timed(self, name: str, task):
+        with self(name):
+            return task()
+
+
+@contextlib.contextmanager
+def _step_threads():
+    """Two threads whose compiled loops (numba) run on one thread each: two steps at a time use
+    the two cores without oversubscribing them."""
+    pool = concurrent.futures.ThreadPoolExecutor(STEP_THREADS, initializer=numba.set_num_threads, initargs=(1,))
+    try:
+        yield pool
+    finally:
+        pool.shutdown(cancel_futures=True)  # after an error, the steps not yet started are not run
 
 
 def _hurst(sf_um: np.ndarray, pixel_size_um: float, chain: SurfaceChain) -> HurstResult:

@@ -113,10 +113,10 @@ def directional_profiles(z_um: np.ndarray, *, direction_deg: float, spacing_px: 
     offsets = np.arange(-half, half + 1e-9, spacing_px)
     positions = np.arange(-half, half + 1e-9, 1.0)
     profiles = _kernels.bilinear_profiles(np.ascontiguousarray(z), centre, across, along, offsets, positions)
-    keep_rows = np.isfinite(profiles).sum(axis=1) >= 8
-    profiles = profiles[keep_rows]
-    keep_cols = np.isfinite(profiles).any(axis=0)
-    return profiles[:, keep_cols]
+    finite = np.isfinite(profiles)
+    keep_rows = finite.sum(axis=1) >= 8
+    keep_cols = finite[keep_rows].any(axis=0)
+    return profiles[np.ix_(keep_rows, keep_cols)]  # one contiguous copy
 
 
 def height_height_correlation(
@@ -163,47 +163,32 @@ def profile_psd(
     off), Hann windowed and transformed at its own length, and the difference's transfer
     |2 sin(pi k dx)|² is divided out again. Percival & Walden (1993), doi:10.1017/CBO9780511622762,
     ch. 6."""
-    runs = [_longest_known_run(p) for p in profiles_um]
-    runs = [(i, run) for i, run in enumerate(runs) if run.size >= 16]
-    if not runs:
+    profiles = np.ascontiguousarray(profiles_um, dtype=np.float64)
+    starts, lengths = _kernels.longest_known_runs(profiles)
+    usable = np.flatnonzero(lengths >= 16)
+    if usable.size == 0:
         raise ValueError("profiles_um: no run of 16 known samples")
-    longest = max(run.size for _, run in runs)
+    longest = int(lengths.max())
     k_min, k_max = 1.0 / (longest * pixel_size_um), 0.5 / pixel_size_um
     edges = np.geomspace(k_min, k_max * (1 + 1e-9), int(np.ceil(np.log10(k_max / k_min) * bins_per_decade)) + 1)
-    band_of = np.repeat(np.arange(bands), np.diff(np.r_[_split_starts(profiles_um.shape[0], bands), profiles_um.shape[0]]))
+    band_of = np.repeat(np.arange(bands), np.diff(np.r_[_split_starts(profiles.shape[0], bands), profiles.shape[0]]))
     sums = np.zeros((bands, edges.size - 1))
     counts = np.zeros((bands, edges.size - 1))
     log_k = np.zeros(edges.size - 1)
     k_counts = np.zeros(edges.size - 1)
     # Runs of the same length share one batched transform.
-    lengths = np.array([run.size for _, run in runs])
-    for length in np.unique(lengths):
-        group = [runs[g] for g in np.flatnonzero(lengths == length)]
-        diffs = np.diff(np.array([run for _, run in group]), axis=1)
+    for length in np.unique(lengths[usable]):
+        group = usable[lengths[usable] == length]
+        runs = profiles[group[:, None], starts[group][:, None] + np.arange(length)]
+        diffs = np.diff(runs, axis=1)
         window = np.hanning(length - 1)
         power = np.abs(scipy.fft.rfft((diffs - diffs.mean(axis=1, keepdims=True)) * window, axis=1)) ** 2
         k = scipy.fft.rfftfreq(length - 1, d=pixel_size_um)[1:]
         power = power[:, 1:] * (2.0 * pixel_size_um / np.sum(window**2)) / (2.0 * np.sin(np.pi * k * pixel_size_um)) ** 2
-        index = np.digitize(k, edges) - 1
-        inside = (index >= 0) & (index < edges.size - 1)
-        np.add.at(log_k, index[inside], np.log(k[inside]) * len(group))
-        np.add.at(k_counts, index[inside], len(group))
-        for row, (profile, _) in enumerate(group):
-            np.add.at(sums[band_of[profile]], index[inside], power[row, inside])
-            np.add.at(counts[band_of[profile]], index[inside], 1.0)
+        _kernels.bin_spectra(power, np.log(k), np.digitize(k, edges) - 1, band_of[group], sums, counts, log_k, k_counts)
     used = k_counts > 0
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.exp(log_k[used] / k_counts[used]), (sums / counts)[:, used]
-
-
-def _longest_known_run(profile: np.ndarray) -> np.ndarray:
-    known = np.isfinite(profile)
-    if not known.any():
-        return profile[:0]
-    edges = np.flatnonzero(np.diff(np.r_[0, known.astype(np.int8), 0]))
-    starts, ends = edges[::2], edges[1::2]
-    longest = int(np.argmax(ends - starts))
-    return profile[starts[longest] : ends[longest]]
 
 
 def hurst_exponent(
@@ -348,18 +333,14 @@ def radial_psd(z_um: np.ndarray, *, pixel_size_um: float, bins_per_decade: int =
         raise ValueError("pixel_size_um must be positive")
     shape = (z.shape[0] - 1, z.shape[1] - 1)
     hann_rows, hann_cols = np.hanning(shape[0]), np.hanning(shape[1])
-    power = np.zeros((shape[0], shape[1] // 2 + 1), dtype=np.float32)
     zc = np.ascontiguousarray(z)
     # Single precision for the transforms: a spectrum is needed to a part in 1e4 at most.
-    for axis in (1, 0):
-        spectrum = scipy.fft.rfft2(_kernels.windowed_difference(zc, axis, hann_rows, hann_cols), workers=-1)
-        power += spectrum.real**2 + spectrum.imag**2
-        del spectrum
+    spectrum_x, spectrum_y = (scipy.fft.rfft2(d, workers=-1) for d in _kernels.windowed_differences(zc, hann_rows, hann_cols))
     scale = pixel_size_um**2 / (np.sum(hann_rows**2) * np.sum(hann_cols**2) * np.isfinite(z).mean())
     q_min, q_max = 1.0 / (min(shape) * pixel_size_um), 0.5 / pixel_size_um
     edges = np.logspace(np.log10(q_min), np.log10(q_max), int(np.log10(q_max / q_min) * bins_per_decade) + 1)
     log_step = (np.log10(q_max) - np.log10(q_min)) / (edges.size - 1)
-    totals, counts = _kernels.radial_bins(power, shape[1], scale, pixel_size_um, np.log10(q_min), log_step, edges.size - 1)
+    totals, counts = _kernels.radial_bins(spectrum_x, spectrum_y, shape[1], scale, pixel_size_um, np.log10(q_min), log_step, edges.size - 1)
     with np.errstate(invalid="ignore", divide="ignore"):
         c = totals / counts
     centres = np.sqrt(edges[:-1] * edges[1:])
