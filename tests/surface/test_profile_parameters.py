@@ -76,3 +76,19 @@ def test_bad_arguments_are_named():
         profile_parameters.roughness_profile(np.random.default_rng(1).random(100), spacing_um=0.1, lambda_s_um=5.0, lambda_c_um=2.0)
     with pytest.raises(ValueError, match="sections"):
         profile_parameters.profile_parameters(np.random.default_rng(1).random(100), spacing_um=0.1, sections=0)
+
+
+def test_a_short_coarse_profile_gets_no_filter_that_would_empty_it():
+    """Ten samples 1 µm apart: the ISO series' lambda_c for 9 µm (0.8 µm) is under two samples and
+    took every height for the mean line (Ra 2e-11); no L-filter is applied instead, and said."""
+    z = np.array([0.0, 1.0, -0.5, 0.7, -1.2, 0.3, 0.9, -0.8, 0.2, -0.4])
+    made = profile_parameters.roughness_profile(z, spacing_um=1.0)
+    assert made.lambda_c_um == 0.0 and made.lambda_s_um == 0.0
+    assert profile_parameters.profile_parameters(made.r_um, spacing_um=1.0)["Ra"] > 0.3
+
+
+def test_a_given_lambda_c_gets_the_lambda_s_paired_with_it():
+    x = np.arange(10000) * 0.02
+    z = np.sin(2 * np.pi * x / 1.3) + 0.1 * np.sin(2 * np.pi * x / 0.11)
+    made = profile_parameters.roughness_profile(z, spacing_um=0.02, lambda_c_um=2.5)
+    assert made.lambda_s_um == pytest.approx(0.08)  # 2.5 µm with 0.08 µm, as the series pairs them (not the 200 µm length's default, 25 µm with 0.8)

@@ -138,3 +138,43 @@ def test_polyline_positions_keep_vertices_and_spacing():
     assert distances[-1] == pytest.approx(11.0)
     assert [3.0, 4.0] in positions.tolist()
     assert np.diff(distances).max() <= 0.5 + 1e-12
+
+
+@pytest.mark.parametrize(("cutoffs", "field"), [({"lambda_c_um": 0.1}, "l_filter_um"), ({"lambda_s_um": 5e-324}, "s_filter_um")])
+def test_a_cutoff_below_two_pixels_is_refused_naming_its_filter(rough_surface, cutoffs, field):
+    """Wavelengths under two pixels are not sampled: a cut-off there filters nothing (the probe's
+    lambda_c of 0.1 µm at 0.5 µm pixels ended in a division by zero)."""
+    with pytest.raises(InvalidInputError) as raised:
+        roughness.analyse(rough_surface, pixel_size_um=0.5, chain=roughness.surface_chain(**cutoffs))
+    assert raised.value.field == field and "2 sampling steps" in raised.value.message
+    with pytest.raises(ValueError, match="2 sampling steps"):
+        profile_parameters.roughness_profile(rough_surface[0], spacing_um=0.5, **{"lambda_s_um": 0.0, **cutoffs})
+
+
+def test_a_flat_field_has_zero_heights_and_no_shape_parameters():
+    flat = np.full((64, 64), 5.0)
+    analysis = roughness.analyse(flat, pixel_size_um=0.5, sigma_um=0.01, tilt_rel_uncertainty=0.01)
+    values = analysis.parameters
+    assert max(values["Sa"], values["Sq"], values["Sz"]) < 1e-12  # the plane's rounding
+    assert np.isnan(values["Ssk"]) and np.isnan(values["Sku"])  # undefined, not 0
+    assert np.isfinite(analysis.uncertainty.u_total["Sa"]) and np.isnan(analysis.uncertainty.u_total.get("Sq", np.nan))
+
+
+def test_scattered_points_are_refused_and_a_long_strip_is_analysed():
+    scattered = np.full((64, 64), np.nan)
+    scattered[::3, ::3] = np.random.default_rng(1).normal(size=scattered[::3, ::3].shape)
+    with pytest.raises(InvalidInputError, match="scattered") as raised:
+        roughness.analyse(scattered, pixel_size_um=0.5)
+    assert raised.value.field == "region"
+    strip = synthetic.self_affine_surface((16, 4096), hurst=0.8, rms_um=1.0, seed=3)
+    values = roughness.analyse(strip, pixel_size_um=0.1).parameters
+    assert values["Sq"] > 0 and np.isfinite(values["Sdq"]) and np.isfinite(values["Std"])
+
+
+def test_an_exponent_outside_zero_to_one_is_noted():
+    """A sine is not self-affine: its H comes out above 1, and the note says what that means."""
+    x = np.arange(256) * 0.5
+    sine = np.sin(2 * np.pi * np.add.outer(x, x) / 60.0)
+    hurst = roughness.analyse(sine, pixel_size_um=0.5, chain=roughness.surface_chain(form="none", window_px=1.0)).hurst
+    assert any(not 0 <= fit.hurst <= 1 for fits in hurst.fits.values() for fit in fits.values())
+    assert "not self-affine" in hurst.note

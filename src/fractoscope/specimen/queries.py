@@ -111,7 +111,8 @@ def profile_along(
     # The chain needs equal spacing: the vertices between whole spacings are left out of it.
     steps = distances / spacing_um
     regular = np.abs(steps - np.round(steps)) < 1e-6
-    if np.isfinite(z_um[regular]).sum() < 8:
+    # ISO 21920-2's five sections need two samples each.
+    if np.isfinite(z_um[regular]).sum() < 2 * profile_parameters.SECTIONS:
         return SpecimenProfile(distances, z_um, samples.source, sources, None)
     try:
         made = profile_parameters.roughness_profile(

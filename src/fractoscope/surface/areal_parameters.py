@@ -16,6 +16,7 @@ import scipy.fft
 from scipy import ndimage
 
 from fractoscope.surface import _kernels
+from fractoscope.units import HEIGHT_ROUNDING_UM
 
 UNITS = {
     "Sa": "µm", "Sq": "µm", "Ssk": "1", "Sku": "1", "Sp": "µm", "Sv": "µm", "Sz": "µm",
@@ -75,8 +76,9 @@ def height_parameters(z_um: np.ndarray) -> dict[str, float]:
     return {
         "Sa": float(absolute / n),
         "Sq": sq,
-        "Ssk": float(cubes / n / sq**3) if sq > 0 else 0.0,
-        "Sku": float(fourths / n / sq**4) if sq > 0 else 0.0,
+        # A flat field (its spread only rounding) has no skewness or kurtosis.
+        "Ssk": float(cubes / n / sq**3) if sq > HEIGHT_ROUNDING_UM else float("nan"),
+        "Sku": float(fourths / n / sq**4) if sq > HEIGHT_ROUNDING_UM else float("nan"),
         "Sp": float(sp),
         "Sv": sv,
         "Sz": float(sp) + sv,
@@ -98,7 +100,9 @@ def hybrid_parameters(z_um: np.ndarray, *, pixel_size_um: float) -> dict[str, fl
     its two edges has area sqrt(gx² + gy² + 1) / 2 px²."""
     z = _validated(z_um, pixel_size_um)
     sx, nx, sy, ny, corners, cells = _kernels.slope_sums(z, 1.0 / pixel_size_um)
-    return {"Sdq": float(np.sqrt(sx / nx + sy / ny)), "Sdr": float((0.25 * corners / cells - 1.0) * 100.0)}
+    # Scattered known points may have no known neighbour along an axis, or no cell of four.
+    sdq = float(np.sqrt(sx / nx + sy / ny)) if nx and ny else float("nan")
+    return {"Sdq": sdq, "Sdr": float((0.25 * corners / cells - 1.0) * 100.0) if cells else float("nan")}
 
 
 # Spatial parameters ##################################################################################
@@ -129,7 +133,7 @@ def autocorrelation(z_um: np.ndarray, *, max_lag_px: int | None = None) -> np.nd
         counts = _lag_window(counts, lag)
     with np.errstate(invalid="ignore", divide="ignore"):
         acf = np.where(counts > 0, products / counts, np.nan)
-    return acf / acf[lag, lag]
+        return acf / acf[lag, lag]  # NaN on a flat field
 
 
 def _circular_autocorrelation(values: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -168,7 +172,7 @@ def spatial_parameters(
     if not 0 < threshold < 1:
         raise ValueError("threshold must be between 0 and 1")
     block = -(-max(z.shape) // SPATIAL_MAX_PX)
-    if block > 1:
+    if block > 1 and min(z.shape) >= SPATIAL_MIN_DECAY_BLOCKS * block:  # a long, narrow strip stays whole
         coarse, variance_ratio = _block_means(z, block)
         lag = None if max_lag_px is None else max(1, min(int(np.ceil(max_lag_px / block)), min(coarse.shape) - 1))
         found = _decay(autocorrelation(coarse, max_lag_px=lag) * variance_ratio, threshold)

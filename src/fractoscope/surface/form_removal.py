@@ -20,6 +20,8 @@ import numpy as np
 from numpy.polynomial import legendre
 from scipy import optimize
 
+from fractoscope.units import HEIGHT_ROUNDING_UM
+
 FORMS = ("plane", "poly2", "poly3", "poly4", "poly5", "poly6", "sphere", "cylinder")
 _HUBER_K = 1.345
 _TUKEY_C = 4.685
@@ -83,10 +85,13 @@ def remove_form(
     rows, cols = _fit_sample(usable, max_fit_points)
     needed = {"plane": 3, "sphere": 4, "cylinder": 5}.get(form) or _poly_terms(int(form[4:]))
     if rows.size < 2 * needed:
-        raise ValueError(f"region: {rows.size} usable points are too few to fit a {form}")
+        raise ValueError(f"{rows.size} usable points (finite heights in the region fitted) are too few to fit a {form}")
     if form == "plane" or form.startswith("poly"):
         degree = 1 if form == "plane" else int(form[4:])
-        return _remove_polynomial(z, rows, cols, degree, form, robust)
+        try:
+            return _remove_polynomial(z, rows, cols, degree, form, robust)
+        except np.linalg.LinAlgError:
+            raise ValueError(f"the usable points do not determine a {form} (they lie on too few rows or columns)") from None
     x_um, y_um = cols * pixel_size_um, rows * pixel_size_um
     points = np.column_stack([x_um, y_um, z[rows, cols]])
     if form == "sphere":
@@ -112,14 +117,9 @@ def _normalised(index: np.ndarray, length: int) -> np.ndarray:
     return 2.0 * index / max(length - 1, 1) - 1.0
 
 
-# Residuals spread less than this (1e-6 nm) are rounding, not data: no point is an outlier among
-# them (on a constant map, reweighting by such a scale left too few points to solve for a plane).
-_ROUNDING_SCALE_UM = 1e-9
-
-
 def _robust_weights(residual: np.ndarray, iteration: int) -> np.ndarray:
     scale = 1.4826 * np.median(np.abs(residual - np.median(residual)))
-    if scale <= _ROUNDING_SCALE_UM:
+    if scale <= HEIGHT_ROUNDING_UM:  # no outliers among rounding errors (a constant map left none to fit)
         return np.ones_like(residual)
     u = residual / scale
     if iteration < _HUBER_ITERATIONS:

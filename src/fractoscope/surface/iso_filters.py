@@ -37,6 +37,11 @@ _SAMPLES_PER_SIGMA = 24.0
 # A cut-off beyond this many times the field's longer side filters nothing the field can show
 # (its Gaussian is flat across it) and would only cost memory.
 MAX_CUTOFF_FIELDS = 10.0
+# A cut-off below two sampling steps (the shortest wavelength sampled) filters nothing.
+MIN_CUTOFF_STEPS = 2.0
+# The default lambda_c of a profile is only taken with at least this many samples per sampling
+# length: fewer leave the roughness profile a few samples per wavelength.
+_DEFAULT_LAMBDA_C_MIN_STEPS = 10.0
 
 # ISO 21920-3:2021 Table 1, the setting classes Sc1 to Sc5: lambda_c (= sampling length, with five of
 # them in the default evaluation length), lambda_s and the largest sampling distance, all µm.
@@ -69,7 +74,8 @@ class ProfileCutoffs:
 
 def default_profile_cutoffs(evaluation_length_um: float, *, spacing_um: float) -> ProfileCutoffs:
     """The ISO 21920-3 default for a profile of this evaluation length: the largest lambda_c of the
-    setting classes whose five sampling lengths fit in it (le >= 5 lambda_c), with its lambda_s."""
+    setting classes whose five sampling lengths fit in it (le >= 5 lambda_c), with its lambda_s;
+    0 (no such filter) for a lambda_c under ten samples or a lambda_s under two."""
     if not evaluation_length_um > 0:
         raise ValueError("evaluation_length_um must be positive")
     if not spacing_um > 0:
@@ -77,14 +83,26 @@ def default_profile_cutoffs(evaluation_length_um: float, *, spacing_um: float) -
     settings = sorted(_EXTRAPOLATED_SETTINGS + ISO_21920_3_SETTINGS)
     fitting = [s for s in settings if ISO_21920_3_SECTIONS * s[0] <= evaluation_length_um]
     lambda_c, lambda_s, max_sampling = fitting[-1] if fitting else settings[0]
+    # A profile too short for any setting sampled coarsely enough to carry one gets no L-filter
+    # (a 9 µm profile at 1 µm spacing got lambda_c = 0.8 µm, which took every height for the
+    # mean line); a lambda_s below two samples would do nothing and is left out too.
     return ProfileCutoffs(
-        lambda_c_um=lambda_c,
-        lambda_s_um=lambda_s,
+        lambda_c_um=lambda_c if lambda_c >= _DEFAULT_LAMBDA_C_MIN_STEPS * spacing_um else 0.0,
+        lambda_s_um=lambda_s if lambda_s >= MIN_CUTOFF_STEPS * spacing_um else 0.0,
         max_sampling_um=max_sampling,
         evaluation_length_um=float(evaluation_length_um),
         from_iso_table=lambda_c >= ISO_21920_3_SETTINGS[0][0],
         sampling_ok=spacing_um <= max_sampling * (1 + 1e-9),
     )
+
+
+def paired_lambda_s_um(lambda_c_um: float, *, spacing_um: float) -> float:
+    """The lambda_s that ISO 21920-3 pairs with ``lambda_c_um``, µm: the setting class of the
+    nearest lambda_c (on a log scale) gives the ratio; 0 (no S-filter) under two samples."""
+    settings = _EXTRAPOLATED_SETTINGS + ISO_21920_3_SETTINGS
+    lambda_c, lambda_s, _ = min(settings, key=lambda setting: abs(np.log(setting[0] / lambda_c_um)))
+    paired = lambda_c_um * lambda_s / lambda_c
+    return paired if paired >= MIN_CUTOFF_STEPS * spacing_um else 0.0
 
 
 def gaussian_sigma_px(cutoff_um: float, pixel_size_um: float) -> float:
@@ -147,18 +165,22 @@ def scale_limited_surface(
     if lambda_s_um is not None and lambda_c_um is not None and not lambda_s_um < lambda_c_um:
         raise ValueError(f"lambda_s_um ({lambda_s_um}) must be below lambda_c_um ({lambda_c_um})")
     z = np.asarray(z_um, dtype=np.float64)
-    check_cutoffs_fit(max(z.shape) * pixel_size_um, lambda_s_um=lambda_s_um, lambda_c_um=lambda_c_um)
+    check_cutoffs_fit(max(z.shape) * pixel_size_um, step_um=pixel_size_um, lambda_s_um=lambda_s_um, lambda_c_um=lambda_c_um)
     sf = z if lambda_s_um is None else s_filter(z, pixel_size_um=pixel_size_um, lambda_s_um=lambda_s_um)
     sl = sf if lambda_c_um is None else l_filter(sf, pixel_size_um=pixel_size_um, lambda_c_um=lambda_c_um)
     return ScaleLimitedSurface(z_um=sl, sf_um=sf, lambda_s_um=lambda_s_um, lambda_c_um=lambda_c_um)
 
 
-def check_cutoffs_fit(field_um: float, *, lambda_s_um: float | None, lambda_c_um: float | None) -> None:
+def check_cutoffs_fit(field_um: float, *, step_um: float, lambda_s_um: float | None, lambda_c_um: float | None) -> None:
     """ValueError naming lambda_s_um or lambda_c_um when one exceeds MAX_CUTOFF_FIELDS times the
-    field (its longer side, or the profile's length, µm); None or 0: no such filter."""
-    for name, cutoff in (("lambda_s_um", lambda_s_um), ("lambda_c_um", lambda_c_um)):
+    field (its longer side, or the profile's length, µm) or is below MIN_CUTOFF_STEPS sampling
+    steps (``step_um``, the pixel size or spacing: shorter wavelengths are not sampled, and a
+    filter there acts on nothing); None or 0: no such filter."""
+    for name, cutoff in (("lambda_c_um", lambda_c_um), ("lambda_s_um", lambda_s_um)):  # lambda_s may follow lambda_c
         if cutoff and not cutoff <= MAX_CUTOFF_FIELDS * field_um:
             raise ValueError(f"{name} ({cutoff:g} µm) must be at most {MAX_CUTOFF_FIELDS:g} times the field's {field_um:.4g} µm")
+        if cutoff and not cutoff >= MIN_CUTOFF_STEPS * step_um:
+            raise ValueError(f"{name} ({cutoff:g} µm) must be at least {MIN_CUTOFF_STEPS:g} sampling steps ({MIN_CUTOFF_STEPS * step_um:.4g} µm)")
 
 
 def _check_positive(value: float, name: str) -> None:

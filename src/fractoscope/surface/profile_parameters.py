@@ -50,16 +50,19 @@ def roughness_profile(
     """Primary profile -> roughness profile: remove the form (default the least-squares line, ISO
     21920-3's F-operator; "none" keeps it), apply the S-filter (lambda_s) and subtract the
     L-filter's mean line (lambda_c). A cut-off of None is the ISO 21920-3 default for the profile's
-    evaluation length (its whole length), 0 leaves that filter out."""
+    evaluation length (its whole length; with lambda_c given, lambda_s is the one paired with it),
+    0 leaves that filter out."""
     z = _validated(z_um, spacing_um)
     defaults = iso_filters.default_profile_cutoffs(spacing_um * (z.size - 1), spacing_um=spacing_um)
-    lambda_s = defaults.lambda_s_um if lambda_s_um is None else float(lambda_s_um)
     lambda_c = defaults.lambda_c_um if lambda_c_um is None else float(lambda_c_um)
+    lambda_s = defaults.lambda_s_um if lambda_s_um is None else float(lambda_s_um)
+    if lambda_s_um is None and lambda_c_um and np.isfinite(lambda_c) and lambda_c > 0:
+        lambda_s = iso_filters.paired_lambda_s_um(lambda_c, spacing_um=spacing_um)  # the S-filter that goes with it
     if not (np.isfinite(lambda_s) and lambda_s >= 0 and np.isfinite(lambda_c) and lambda_c >= 0):
         raise ValueError(f"lambda_s_um ({lambda_s}) and lambda_c_um ({lambda_c}) must be finite and >= 0")
     if lambda_s and lambda_c and not lambda_s < lambda_c:
         raise ValueError(f"lambda_s_um ({lambda_s}) must be below lambda_c_um ({lambda_c})")
-    iso_filters.check_cutoffs_fit(z.size * spacing_um, lambda_s_um=lambda_s, lambda_c_um=lambda_c)
+    iso_filters.check_cutoffs_fit(z.size * spacing_um, step_um=spacing_um, lambda_s_um=lambda_s, lambda_c_um=lambda_c)
     primary = z if form == "none" else form_removal.remove_profile_form(z, spacing_um=spacing_um, form=form)
     smoothed = iso_filters.gaussian_mean_line(primary, spacing_um=spacing_um, cutoff_um=lambda_s) if lambda_s else primary
     if lambda_c:

@@ -168,8 +168,14 @@ def analyse(
     z = np.asarray(z_um, dtype=np.float64)
     if z.ndim != 2 or min(z.shape) < 16:
         raise InvalidInputError("region", f"needs at least 16 x 16 points, got {z.shape}")
-    if np.count_nonzero(np.isfinite(z)) < 64:
+    known = np.isfinite(z)
+    if np.count_nonzero(known) < 64:
         raise InvalidInputError("region", "holds fewer than 64 measured points")
+    # Slopes, spectra and correlations need neighbours: scattered points have none.
+    neighbours = (np.count_nonzero(known[:, 1:] & known[:, :-1]), np.count_nonzero(known[1:] & known[:-1]))
+    if min(neighbours) < 64:
+        raise InvalidInputError("region", f"its measured points are scattered: {neighbours[0]} pairs of neighbours along x, "
+                                          f"{neighbours[1]} along y, fewer than 64")
     if chain.levelled_on_region != (levelling_region is not None):
         chain = SurfaceChain(**{**chain.__dict__, "levelled_on_region": levelling_region is not None})
     step = _Stopwatch(timings)
@@ -297,6 +303,11 @@ def _hurst(sf_um: np.ndarray, pixel_size_um: float, chain: SurfaceChain) -> Hurs
             )
         else:
             note = ""
+        outside = sorted(f"{method} {side} {fit.hurst:.2f}" for method, by_side in fits.items() for side, fit in by_side.items()
+                         if np.isfinite(fit.hurst) and not 0.0 <= fit.hurst <= 1.0)
+        if outside:  # a self-affine surface has 0 < H < 1: beyond it the heights are not self-affine over the fit range
+            note = "; ".join(filter(None, [note, f"H outside 0-1 ({', '.join(outside)}): the surface is not self-affine over "
+                                                 f"the fit range (a periodic or smooth form left in it?), so H does not describe it"]))
         return HurstResult(fits, min_windows, note)
     return HurstResult({}, chain.min_windows, note)
 

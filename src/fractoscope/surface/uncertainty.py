@@ -34,6 +34,7 @@ import numpy as np
 from scipy import ndimage
 
 from fractoscope.surface import _kernels, areal_parameters
+from fractoscope.units import HEIGHT_ROUNDING_UM
 
 SCALES_WITH_HEIGHT = ("Sa", "Sq", "Sp", "Sv", "Sz", "Sdq", "Sk", "Spk", "Svk", "Vmp", "Vmc", "Vvc", "Vvv", "Spc")
 SCALE_INVARIANT = ("Ssk", "Sku", "Sal", "Str", "Std", "Smr1", "Smr2", "Spd")
@@ -208,12 +209,13 @@ def _block_sums(z: np.ndarray, sigma: np.ndarray, mean: float, n: float, pixel_s
             "Sku": lambda: 4.0 / n * ((bh3 - m3 * b0) / sq**4 - m4 / m2**2 * bh / sq**2),
         }
         for name, derivative in derivatives.items():
-            if name in wanted:
+            # On a flat field (Sq = 0) Sq has no derivative and Ssk, Sku no value: no uncertainty.
+            if name in wanted and (name == "Sa" or sq > HEIGHT_ROUNDING_UM):
                 yield name, derivative()
     if wanted & {"Sdq", "Sdr"}:
         qx, qy, dr, scale_sum, sx, nx, sy, ny, cells = _kernels.slope_block_sums(z, sigma, 1.0 / pixel_size_um, block)
         sdq = np.sqrt(sx / nx + sy / ny)
-        if "Sdq" in wanted:
+        if "Sdq" in wanted and sdq > 0:
             yield "Sdq", qx / (nx * sdq) + qy / (ny * sdq)
         if "Sdr" in wanted:
             yield "Sdr", dr * (100.0 * 0.25 / cells)
