@@ -18,10 +18,12 @@ from conftest import fracture_pair, tiff_bytes, validate_glbs
 from fractoscope import synthetic
 from fractoscope.client import ClientError, FractoscopeClient
 from fractoscope.formats.tileset import content_uris
+from fractoscope.rpc import wire
 from fractoscope.services.server import create_server
 from fractoscope.services.tiles.http import start_http_server
 from fractoscope.specimen.store import SpecimenStore
 from fractoscope.synthetic.examples import MULTISCALE_MAGNIFICATIONS
+from fractoscope.v1 import tiles_pb2
 
 OVERVIEW_MAG, ZOOM_MAG = MULTISCALE_MAGNIFICATIONS
 
@@ -116,6 +118,16 @@ def test_roughness_carries_an_uncertainty_from_sigma_and_tilt(built):
     assert found["Sa"]["u_total"] > found["Sa"]["u_tilt"] and 0 < found["Sa"]["u_noise"] < 0.2 * zoom["Sa"]
     assert found["Ssk"]["u_tilt"] == 0 and found["Str"]["u_total"] is None  # a shape parameter; one without a derivative
     assert {"Sal", "Str", "Std", "Sk", "Vmp", "Spd", "Spc"} <= set(zoom)
+
+
+def test_roughness_without_an_area_is_the_overviews_over_grpc_as_over_http(built):
+    _, client, _, _ = built
+    overview = client.get_specimen("synthetic")["rois"][0]["id"]
+    request = tiles_pb2.GetRoughnessRequest(specimen_id="synthetic")
+    default = wire.response_to_roughness(client._tiles.GetRoughness(request))
+    assert default["Sa"] == client.roughness("synthetic", roi=overview)["Sa"]
+    request.roi = ""  # an empty id is no id, as in the HTTP API
+    assert wire.response_to_roughness(client._tiles.GetRoughness(request))["Sa"] == default["Sa"]
 
 
 def _sa(z: np.ndarray) -> float:
@@ -236,6 +248,8 @@ def test_a_rebuilt_specimen_is_never_served_from_the_caches_of_the_old_build(bui
         (lambda c: c.zoom("synthetic", (10.0, 10.0, 5.0, 20.0), magnification=100), grpc.StatusCode.INVALID_ARGUMENT, "region"),
         (lambda c: c.zoom("synthetic", (0.0, 0.0, 5.0, 5.0), magnification=-1), grpc.StatusCode.INVALID_ARGUMENT, "magnification"),
         (lambda c: c.roughness("synthetic", roi="nope"), grpc.StatusCode.NOT_FOUND, None),
+        # The message echoes the id, bounded: 20,000 characters of it overflowed gRPC's headers.
+        (lambda c: c.roughness("synthetic", roi="r" * 20_000), grpc.StatusCode.NOT_FOUND, None),
         (lambda c: c.reconstruct_specimen("two-overviews", [_roi("a"), _roi("b")]), grpc.StatusCode.INVALID_ARGUMENT, "rois"),
         (lambda c: c.reconstruct_specimen("orphan", [_roi("a"), _roi("b", parent="x")]), grpc.StatusCode.INVALID_ARGUMENT, "rois[1].parent"),
         (lambda c: c.reconstruct_specimen("bad-window", [_roi_with_window("a", 4)]), grpc.StatusCode.INVALID_ARGUMENT,

@@ -244,9 +244,7 @@ class FractoscopeClient(ChannelOwner):
         if region_um is not None:
             request.region.CopyFrom(wire.region_message(region_um))
         elif roi is not None:
-            request.roi = roi
-        else:
-            request.roi = self.get_specimen(specimen_id)["rois"][0]["id"]
+            request.roi = roi  # neither: the server takes the overview
         with raised_as_client_errors():
             response = self._tiles.GetRoughness(request, timeout=self._timeout_s)
         return wire.response_to_roughness(response)

@@ -70,7 +70,24 @@ def abort_with_error(context: grpc.ServicerContext, error: Exception) -> None:
     else:
         _log.exception("internal error")
         status = status_pb2.Status(code=code_pb2.INTERNAL, message=f"internal error ({type(error).__name__})")
+    status.message = _bounded(status.message)
+    for detail in status.details:
+        if detail.Is(error_details_pb2.BadRequest.DESCRIPTOR):
+            bad_request = error_details_pb2.BadRequest()
+            detail.Unpack(bad_request)
+            for violation in bad_request.field_violations:
+                violation.description = _bounded(violation.description)
+            detail.Pack(bad_request)
     context.abort_with_status(rpc_status.to_status(status))
+
+
+# gRPC carries the status in headers of at most 8 KiB in all: a message that echoes a client's
+# 20,000-character id would break the status itself (RESOURCE_EXHAUSTED: metadata too large).
+_MAX_MESSAGE_CHARS = 1000
+
+
+def _bounded(message: str) -> str:
+    return message if len(message) <= _MAX_MESSAGE_CHARS else message[: _MAX_MESSAGE_CHARS - 1] + "…"
 
 
 def _packed(detail) -> any_pb2.Any:

@@ -97,7 +97,7 @@ def profile_along(
         cell_um = specimen.finest_pixel_size_um((points[:, 0].min(), points[:, 1].min(), points[:, 0].max(), points[:, 1].max()))
     spacing_um = positive(spacing_um, "spacing_um") if spacing_um else cell_um
     length_um = float(np.hypot(*np.diff(points, axis=0).T).sum())
-    if length_um / spacing_um > MAX_PROFILE_SAMPLES:
+    if np.floor(length_um / spacing_um) + 1 > MAX_PROFILE_SAMPLES:  # samples at both ends
         raise InvalidInputError("spacing_um", f"gives more than {MAX_PROFILE_SAMPLES} samples; use a larger spacing")
     form = _form(chain.form)
     lambdas = [_cutoff(value, field) for value, field in ((chain.s_filter_um, "s_filter_um"), (chain.l_filter_um, "l_filter_um"))]
@@ -143,8 +143,8 @@ def height_statistics(specimen: Specimen, region_um) -> dict:
 
 
 def roughness_of(specimen: Specimen, *, roi: str | None = None, region_um=None, chain: ChainRequest = ChainRequest()) -> roughness.SurfaceAnalysis:
-    """The surface texture chain on one ROI as measured, or on a region of the fused surface
-    (clipped to the specimen) sampled at the finest pixel size there (coarser if that would exceed
+    """The surface texture chain on one ROI as measured (the overview when neither is given), or on
+    a region of the fused surface (clipped to the specimen) sampled at the finest pixel size there (coarser if that would exceed
     MAX_REGION_SAMPLES; `surface_area`). The matching noise is each ROI's stored sigma map (for a
     region: fused as the heights are; the median where a measured point has none), the tilt
     uncertainty that of the ROI (for a region: the largest of those it draws on)."""
@@ -164,8 +164,7 @@ def roughness_of(specimen: Specimen, *, roi: str | None = None, region_um=None, 
         tilt = [entry.tilt_rel_uncertainty for entry in used]
         tilt_rel = max(tilt) if tilt and None not in tilt else None
     else:
-        if roi is None:
-            raise InvalidInputError("area", "give an ROI id or a region")
+        roi = roi or specimen.rois[0].id  # neither: the overview
         entry = specimen.roi(roi)
         placed = specimen.heights(roi)
         z_um, pixel_size_um, origin_um = placed.z_um, placed.pixel_size_um, placed.origin_um

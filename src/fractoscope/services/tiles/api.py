@@ -142,8 +142,7 @@ class JsonApi:
 
         def answer():
             specimen = self._specimen(match)
-            roi = area["roi"] or (None if area["region_um"] else specimen.rois[0].id)
-            analysis = queries.roughness_of(specimen, roi=roi, region_um=area["region_um"], chain=chain)
+            analysis = queries.roughness_of(specimen, roi=area["roi"] or None, region_um=area["region_um"], chain=chain)
             return wire.response_to_roughness(roughness_response(analysis, chain))
 
         return _json(await _off_loop(answer))

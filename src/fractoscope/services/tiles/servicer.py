@@ -219,7 +219,7 @@ class TileServicer(tiles_pb2_grpc.TileServiceServicer):
         chain = rpc_tiles.chain_request(request.chain)
         with rpc_tiles.chain_fields():
             analysis = specimen_queries.roughness_of(
-                specimen, roi=request.roi if area == "roi" else None,
+                specimen, roi=request.roi or None,
                 region_um=rpc_tiles.region(request.region, "region") if area == "region" else None, chain=chain,
             )
         return rpc_tiles.roughness_response(analysis, chain)
