@@ -303,9 +303,12 @@ def _hurst(sf_um: np.ndarray, pixel_size_um: float, chain: SurfaceChain) -> Hurs
             )
         else:
             note = ""
-        outside = sorted(f"{method} {side} {fit.hurst:.2f}" for method, by_side in fits.items() for side, fit in by_side.items()
-                         if np.isfinite(fit.hurst) and not 0.0 <= fit.hurst <= 1.0)
-        if outside:  # a self-affine surface has 0 < H < 1: beyond it the heights are not self-affine over the fit range
+        # A self-affine surface has 0 < H < 1: an exponent beyond by more than two standard errors
+        # says the heights are not self-affine over the fit range.
+        outside = sorted(f"{method} {side} {fit.hurst:.2f} ± {fit.hurst_stderr:.2f}" for method, by_side in fits.items()
+                         for side, fit in by_side.items() if np.isfinite(fit.hurst)
+                         and not -2.0 * np.nan_to_num(fit.hurst_stderr) <= fit.hurst <= 1.0 + 2.0 * np.nan_to_num(fit.hurst_stderr))
+        if outside:
             note = "; ".join(filter(None, [note, f"H outside 0-1 ({', '.join(outside)}): the surface is not self-affine over "
                                                  f"the fit range (a periodic or smooth form left in it?), so H does not describe it"]))
         return HurstResult(fits, min_windows, note)
