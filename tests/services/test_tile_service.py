@@ -23,7 +23,7 @@ from fractoscope.services.server import create_server
 from fractoscope.services.tiles.http import start_http_server
 from fractoscope.specimen.store import SpecimenStore
 from fractoscope.synthetic.examples import MULTISCALE_MAGNIFICATIONS
-from fractoscope.v1 import tiles_pb2
+from fractoscope.v1 import common_pb2, tiles_pb2
 
 OVERVIEW_MAG, ZOOM_MAG = MULTISCALE_MAGNIFICATIONS
 
@@ -128,6 +128,16 @@ def test_roughness_without_an_area_is_the_overviews_over_grpc_as_over_http(built
     assert default["Sa"] == client.roughness("synthetic", roi=overview)["Sa"]
     request.roi = ""  # an empty id is no id, as in the HTTP API
     assert wire.response_to_roughness(client._tiles.GetRoughness(request))["Sa"] == default["Sa"]
+
+
+def test_a_profile_refuses_settings_only_areal_roughness_takes(built):
+    """As the HTTP API refuses their query parameters: a NaN direction was silently ignored."""
+    _, client, _, _ = built
+    points = [common_pb2.PointUm(x_um=10.0, y_um=10.0), common_pb2.PointUm(x_um=60.0, y_um=10.0)]
+    for chain in (tiles_pb2.SurfaceChain(direction_deg=float("nan")), tiles_pb2.SurfaceChain(window_px=-3.0)):
+        with pytest.raises(grpc.RpcError) as caught:
+            client._tiles.GetProfile(tiles_pb2.GetProfileRequest(specimen_id="synthetic", points=points, chain=chain))
+        assert caught.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "chain." in caught.value.details()
 
 
 def _sa(z: np.ndarray) -> float:

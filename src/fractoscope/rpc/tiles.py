@@ -104,6 +104,19 @@ def chain_fields(field: str = "chain"):
         raise
 
 
+# A profile's chain is its form and its two filters; the rest is areal roughness only.
+AREAL_ONLY_CHAIN_FIELDS = ("direction_deg", "levelling_region", "window_px", "min_windows", "robust_form")
+
+
+def profile_chain_request(message: tiles_pb2.SurfaceChain, field: str = "chain") -> ChainRequest:
+    """`chain_request` for a profile: a field that only areal roughness takes is refused (as the
+    HTTP API refuses its query parameter) rather than ignored."""
+    for name in AREAL_ONLY_CHAIN_FIELDS:
+        if message.HasField(name):
+            raise InvalidInputError(f"{field}.{name}", "profiles take only form, s_filter_um and l_filter_um")
+    return chain_request(message, field)
+
+
 def chain_request(message: tiles_pb2.SurfaceChain, field: str = "chain") -> ChainRequest:
     """A request's SurfaceChain as the queries take it (absent fields None: the defaults)."""
 

@@ -208,7 +208,7 @@ class TileServicer(tiles_pb2_grpc.TileServiceServicer):
         with rpc_tiles.chain_fields():
             found = specimen_queries.profile_along(
                 specimen, [[p.x_um, p.y_um] for p in request.points], spacing_um=request.spacing_um, magnification=request.magnification,
-                chain=rpc_tiles.chain_request(request.chain),
+                chain=rpc_tiles.profile_chain_request(request.chain),
             )
         return rpc_tiles.profile_response(found)
 
