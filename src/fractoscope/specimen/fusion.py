@@ -126,18 +126,18 @@ class FusedSurface:
             row = ((flat_y - roi.origin_um[1]) / roi.pixel_size_um - (scale - 1) / 2) / scale
             maps = (col.astype(np.float32), row.astype(np.float32))
             arrays = pyramid[level]
-            roi_z = _remap(arrays.z_um, maps, np.nan)
-            roi_weight = _remap(arrays.weight, maps, 0.0)
+            inside = _inside(maps, arrays.z_um.shape)  # every array of a level shares its grid
+            roi_z = _remap(arrays.z_um, maps, inside, np.nan)
+            roi_weight = _remap(arrays.weight, maps, inside, 0.0)
             roi_weight[~np.isfinite(roi_z)] = 0.0
-            roi_texture = _remap(arrays.texture, maps, 0.0)
-            roi_texture_weight = _remap(arrays.texture_weight, maps, 0.0)
-            roi_sigma = _remap(arrays.sigma_um, maps, np.nan)
+            roi_texture = _remap(arrays.texture, maps, inside, 0.0)
+            roi_texture_weight = _remap(arrays.texture_weight, maps, inside, 0.0)
+            roi_sigma = _remap(arrays.sigma_um, maps, inside, np.nan)
             unknown = ~np.isfinite(z)
             # Where nothing coarser is known, an ROI's height counts in full, up to its very edge.
             blend = np.where(unknown & np.isfinite(roi_z), 1.0, roi_weight).astype(np.float32)
             z = np.where(blend > 0, np.where(unknown, roi_z, z * (1 - blend) + np.nan_to_num(roi_z) * blend), z)
             sigma = np.where(blend > 0, np.where(unknown, roi_sigma, sigma * (1 - blend) + roi_sigma * blend), sigma)
-            inside = _inside(maps, arrays.texture.shape)
             texture_blend = np.where(~pictured & inside, 1.0, roi_texture_weight).astype(np.float32)
             texture = texture * (1 - texture_blend) + roi_texture * texture_blend
             pictured |= inside
@@ -156,12 +156,12 @@ def _pyramid_level(cell_um: float, pixel_size_um: float, levels: int) -> int:
     return int(min(max(math.floor(math.log2(ratio) + 1e-9), 0), levels - 1)) if ratio > 1 else 0
 
 
-def _remap(values: np.ndarray, maps, fill: float) -> np.ndarray:
-    """`values` bilinearly at (col, row) `maps`, `fill` outside the pixel centres' span: points on
-    the outermost row or column get its values (a constant border would blend them with the
-    fill, and a NaN fill made the whole border unknown)."""
+def _remap(values: np.ndarray, maps, inside: np.ndarray, fill: float) -> np.ndarray:
+    """`values` bilinearly at (col, row) `maps`, `fill` where they are not `inside` the pixel
+    centres' span (`_inside`): points on the outermost row or column get its values (a constant
+    border would blend them with the fill, and a NaN fill made the whole border unknown)."""
     sampled = cv2.remap(values, maps[0], maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    sampled[~_inside(maps, values.shape)] = fill
+    sampled[~inside] = fill
     return sampled
 
 
