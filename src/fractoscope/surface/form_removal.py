@@ -199,9 +199,7 @@ def _remove_sphere(z: np.ndarray, points: np.ndarray, pixel_size_um: float, robu
     a, b, c, curvatures, _ = _plane_and_curvatures(p)
     params, weights = _fit_tangent_quadric(p, [np.array([a, b, c, 0.0]), np.array([a, b, c, np.mean(curvatures)])], robust)
     quadric = _tangent_quadric(params)
-    n_rows, n_cols = z.shape
-    form_um = shift[2] + quadric.height((np.arange(n_cols) * pixel_size_um - shift[0])[None, :],
-                                        (np.arange(n_rows) * pixel_size_um - shift[1])[:, None])
+    form_um = _on_grid(quadric, shift, z.shape, pixel_size_um)
     return FormFit(
         residual_um=z - form_um,
         form_um=form_um,
@@ -231,10 +229,8 @@ def _remove_cylinder(z: np.ndarray, points: np.ndarray, pixel_size_um: float, ro
               np.array([a, b, c, theta0 + np.pi / 2, curvatures[1 - curved]])]
     params, weights = _fit_tangent_quadric(p, starts, robust)
     quadric = _tangent_quadric(params)
-    n_rows, n_cols = z.shape
-    form_um = shift[2] + quadric.height((np.arange(n_cols) * pixel_size_um - shift[0])[None, :],
-                                        (np.arange(n_rows) * pixel_size_um - shift[1])[:, None])
-    axis = quadric.axis if quadric.axis[0] >= 0 or (quadric.axis[0] == 0 and quadric.axis[1] >= 0) else -quadric.axis
+    form_um = _on_grid(quadric, shift, z.shape, pixel_size_um)
+    axis = quadric.axis if quadric.axis[0] >= 0 else -quadric.axis  # the azimuth is taken modulo 180°
     return FormFit(
         residual_um=z - form_um,
         form_um=form_um,
@@ -249,6 +245,14 @@ def _remove_cylinder(z: np.ndarray, points: np.ndarray, pixel_size_um: float, ro
         fit_points=len(points),
         inlier_fraction=float(np.mean(weights > 0)),
     )
+
+
+def _on_grid(quadric: _TangentQuadric, shift: np.ndarray, shape: tuple[int, int], pixel_size_um: float) -> np.ndarray:
+    """The quadric's height, µm, at the pixel centres of a (rows, cols) map, for a quadric fitted to
+    points less their mean ``shift`` (x, y, z µm)."""
+    rows, cols = shape
+    return shift[2] + quadric.height((np.arange(cols) * pixel_size_um - shift[0])[None, :],
+                                     (np.arange(rows) * pixel_size_um - shift[1])[:, None])
 
 
 def _plane_and_curvatures(p: np.ndarray):
