@@ -144,8 +144,8 @@ def height_statistics(specimen: Specimen, region_um) -> dict:
 
 def roughness_of(specimen: Specimen, *, roi: str | None = None, region_um=None, chain: ChainRequest = ChainRequest()) -> roughness.SurfaceAnalysis:
     """The surface texture chain on one ROI as measured (the overview when neither is given), or on
-    a region of the fused surface (clipped to the specimen) sampled at the finest pixel size there (coarser if that would exceed
-    MAX_REGION_SAMPLES; `surface_area`). The matching noise is each ROI's stored sigma map (for a
+    a region of the fused surface (clipped to the specimen) sampled at the finest pixel size there
+    (coarser if that would exceed MAX_REGION_SAMPLES; `surface_area`). The matching noise is each ROI's stored sigma map (for a
     region: fused as the heights are; the median where a measured point has none), the tilt
     uncertainty that of the ROI (for a region: the largest of those it draws on)."""
     if region_um is not None:

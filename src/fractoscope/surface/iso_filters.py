@@ -88,7 +88,7 @@ def default_profile_cutoffs(evaluation_length_um: float, *, spacing_um: float) -
     # mean line); a lambda_s below two samples would do nothing and is left out too.
     return ProfileCutoffs(
         lambda_c_um=lambda_c if lambda_c >= _DEFAULT_LAMBDA_C_MIN_STEPS * spacing_um else 0.0,
-        lambda_s_um=lambda_s if lambda_s >= MIN_CUTOFF_STEPS * spacing_um else 0.0,
+        lambda_s_um=_sampled(lambda_s, spacing_um),
         max_sampling_um=max_sampling,
         evaluation_length_um=float(evaluation_length_um),
         from_iso_table=lambda_c >= ISO_21920_3_SETTINGS[0][0],
@@ -101,8 +101,12 @@ def paired_lambda_s_um(lambda_c_um: float, *, spacing_um: float) -> float:
     nearest lambda_c (on a log scale) gives the ratio; 0 (no S-filter) under two samples."""
     settings = _EXTRAPOLATED_SETTINGS + ISO_21920_3_SETTINGS
     lambda_c, lambda_s, _ = min(settings, key=lambda setting: abs(np.log(setting[0] / lambda_c_um)))
-    paired = lambda_c_um * lambda_s / lambda_c
-    return paired if paired >= MIN_CUTOFF_STEPS * spacing_um else 0.0
+    return _sampled(lambda_c_um * lambda_s / lambda_c, spacing_um)
+
+
+def _sampled(lambda_s_um: float, spacing_um: float) -> float:
+    """A default lambda_s, or 0 (no S-filter) under MIN_CUTOFF_STEPS samples, where it would do nothing."""
+    return lambda_s_um if lambda_s_um >= MIN_CUTOFF_STEPS * spacing_um else 0.0
 
 
 def gaussian_sigma_px(cutoff_um: float, pixel_size_um: float) -> float:
