@@ -3,12 +3,13 @@ requests per RFC 9110) and its body cache."""
 
 import gzip
 import http.client
+import json
 import urllib.parse
 
 import pytest
 
 from conftest import write_small_specimen
-from fractoscope.services.tiles.http import _Body, accepts_gzip, body_cache, not_modified, start_http_server
+from fractoscope.services.tiles.http import MAX_TARGET_BYTES, _Body, accepts_gzip, body_cache, not_modified, start_http_server
 from fractoscope.specimen.store import SpecimenStore
 
 
@@ -64,6 +65,16 @@ def _get(endpoint, path: str, **headers: str):
         return response.status, response.headers, response.read()
     finally:
         connection.close()
+
+
+def test_a_request_target_too_long_is_refused_as_414_in_the_apis_json_or_plain_text(endpoint):
+    for length in (MAX_TARGET_BYTES + 1, 20_000, 60_000):  # aiohttp's own parser stops at 8190 bytes by default
+        status, headers, body = _get(endpoint, "/api/specimens?roi=" + "a" * length)
+        assert status == 414 and headers["Content-Type"].startswith("application/json"), length
+        assert json.loads(body)["field"] == "url" and str(MAX_TARGET_BYTES) in json.loads(body)["error"]
+        status, headers, body = _get(endpoint, "/specimens/steel-1/" + "a" * length)
+        assert status == 414 and headers["Content-Type"].startswith("text/plain"), length
+    assert _get(endpoint, "/api/specimens?x=" + "a" * (MAX_TARGET_BYTES - 20))[0] != 414
 
 
 def test_a_tile_has_one_uri_and_its_aliases_are_not_found(endpoint):

@@ -105,13 +105,13 @@ class JsonApi:
             grant = self._authorize(request, route.access)
             return await getattr(self, route.handler)(request, match, grant)
         except ApiError as error:
-            return _error(error.status, error.message, error.field, **error.headers)
+            return json_error(error.status, error.message, error.field, **error.headers)
         except NotFoundError as error:
-            return _error(HTTPStatus.NOT_FOUND, str(error), error.field)
+            return json_error(HTTPStatus.NOT_FOUND, str(error), error.field)
         except InvalidInputError as error:
-            return _error(HTTPStatus.BAD_REQUEST, str(error), error.field)
+            return json_error(HTTPStatus.BAD_REQUEST, str(error), error.field)
         except FractoscopeError as error:
-            return _error(HTTPStatus.BAD_REQUEST, str(error), None)
+            return json_error(HTTPStatus.BAD_REQUEST, str(error), None)
 
     def _authorize(self, request: web.Request, access: str) -> Grant | None:
         """The caller's grant, checked against the scope the route needs before anything is read."""
@@ -465,7 +465,8 @@ def _json(value, *, status: HTTPStatus = HTTPStatus.OK, **headers: str) -> web.R
     return web.Response(status=status, body=body, headers={**_CORS, "Content-Type": _JSON, "Cache-Control": "no-store", **headers})
 
 
-def _error(status: HTTPStatus, message: str, field: str | None, **headers: str) -> web.Response:
+def json_error(status: HTTPStatus, message: str, field: str | None, **headers: str) -> web.Response:
+    """An error in the API's format: {"error": message, "field": the request field it names or null}."""
     return _json({"error": message, "field": field}, status=status, **headers)
 
 

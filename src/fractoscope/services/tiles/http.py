@@ -26,7 +26,7 @@ from aiohttp import web
 from fractoscope.errors import FractoscopeError, NotFoundError
 from fractoscope.services.auth import TokenTable
 from fractoscope.services.caches import BoundedCache
-from fractoscope.services.tiles.api import DEFAULT_MAX_UPLOAD_BYTES, JsonApi
+from fractoscope.services.tiles.api import DEFAULT_MAX_UPLOAD_BYTES, JsonApi, json_error
 from fractoscope.specimen.quadtree import TILE_URI
 from fractoscope.specimen.store import SpecimenStore
 
@@ -42,6 +42,12 @@ VENDOR_ROOTS = {"three": _VENDOR / "three", "3d-tiles-renderer": _VENDOR / "3d-t
 _STATIC = re.compile(r"/(?P<area>viewer|vendor)/(?P<path>[A-Za-z0-9_./-]*)")
 # An entity tag in If-None-Match: its opaque part, weak or not.
 _ENTITY_TAG = re.compile(r'(?:W/)?("[^"]*")')
+# The longest request target (path and query) served; a longer one is refused as 414 in the
+# API's JSON (plain text elsewhere). aiohttp's own parser, which answers in plain text before any
+# handler runs, is let take lines and headers up to eight times as long, so that our answer is
+# the one clients get.
+MAX_TARGET_BYTES = 8190
+_PARSER_LINE_BYTES = 8 * MAX_TARGET_BYTES
 
 
 class _Body:
@@ -75,6 +81,11 @@ class _TileApp:
             return web.Response(status=HTTPStatus.NO_CONTENT, headers={
                 **_CORS, "Access-Control-Allow-Methods": "GET, HEAD, POST, OPTIONS", "Access-Control-Allow-Headers": "*",
             })
+        if len(request.raw_path) > MAX_TARGET_BYTES:
+            message = f"the request target is {len(request.raw_path)} bytes long, at most {MAX_TARGET_BYTES} are served"
+            if request.path.startswith("/api/"):
+                return json_error(HTTPStatus.REQUEST_URI_TOO_LONG, message, "url")
+            return _plain(HTTPStatus.REQUEST_URI_TOO_LONG, message + "\n")
         if request.path.startswith("/api/"):
             return await self.api.handle(request)  # its own JSON errors, scopes and methods
         if request.method not in ("GET", "HEAD"):
@@ -181,7 +192,9 @@ class HttpTileServer:
         app = _TileApp(store, tokens, api)
         application = web.Application()
         application.router.add_route("*", r"/{tail:[\s\S]*}", app.handle)  # any path, new lines too
-        self._runner = web.AppRunner(application, access_log=None, handle_signals=False)
+        self._runner = web.AppRunner(
+            application, access_log=None, handle_signals=False, max_line_size=_PARSER_LINE_BYTES, max_field_size=_PARSER_LINE_BYTES,
+        )
         self._loop.run_until_complete(self._runner.setup())
         site = web.TCPSite(self._runner, host, port, reuse_address=True)
         self._loop.run_until_complete(site.start())

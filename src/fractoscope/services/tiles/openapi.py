@@ -15,11 +15,12 @@ _ERRORS = {
     "401": "A valid bearer token is required (when the server has tokens).",
     "403": "The token may only read.",
     "404": "The specimen, ROI, upload or job does not exist; `field` names what named it.",
+    "414": "The request target (path and query) is too long; `field` is `url`.",
 }
 
 
 def _error_responses(*codes: str, **extra: str) -> dict:
-    described = {code: _ERRORS[code] for code in codes} | extra
+    described = {code: _ERRORS[code] for code in (*codes, "414")} | extra
     return {code: {"description": text, "content": {"application/json": {"schema": {"$ref": "#/components/schemas/Error"}}}}
             for code, text in described.items()}
 
