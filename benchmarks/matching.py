@@ -27,6 +27,7 @@ import numpy as np
 from fractoscope import synthetic
 from fractoscope.sem.image import SemImage
 from benchmarks import peers
+from fractoscope.stereo.semi_global import sgbm_disparity
 from fractoscope.services.runtime import keep_freed_memory
 from fractoscope.stereo.disparity import MatchingMethod
 from fractoscope.stereo.matching import match_disparity
@@ -64,14 +65,9 @@ def _heights_from_matcher_only(first, second, *, method=MatchingMethod.TGV_ZNCC,
 
 
 def _heights_from_sgbm(first, second):
-    """OpenCV's semi-global block matching; its disparity is x_left - x_right in 1/16 px."""
-    half_range = 16 * int(np.ceil((DISPARITY_RANGE_PX + 8) / 16))
-    matcher = cv2.StereoSGBM_create(
-        minDisparity=-half_range, numDisparities=2 * half_range, blockSize=5,
-        P1=8 * 25, P2=32 * 25, uniquenessRatio=5, disp12MaxDiff=1, mode=cv2.STEREO_SGBM_MODE_SGBM,
-    )
-    raw = matcher.compute(first, second).astype(np.float32) / 16.0
-    disparity = np.where(raw > -half_range, -raw, np.nan)
+    """OpenCV's semi-global block matching (block 5, five paths, uniqueness 5)."""
+    limit = DISPARITY_RANGE_PX + 8
+    disparity = sgbm_disparity(first, second, min_px=-limit, max_px=limit, block_px=5, uniqueness_percent=5)
     return disparity * PIXEL_SIZE_UM / (2 * np.sin(np.radians(5.0)))
 
 

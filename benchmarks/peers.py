@@ -14,26 +14,21 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-
-def _sgbm(left, right, max_disparity_px: int, *, block_px: int, mode: int, uniqueness: int) -> np.ndarray:
-    half = 16 * int(np.ceil((max_disparity_px + 1) / 16))
-    matcher = cv2.StereoSGBM_create(
-        minDisparity=-half, numDisparities=2 * half, blockSize=block_px, P1=8 * block_px**2, P2=32 * block_px**2,
-        uniquenessRatio=uniqueness, disp12MaxDiff=1, mode=mode,
-    )
-    raw = matcher.compute(np.ascontiguousarray(left), np.ascontiguousarray(right)).astype(np.float32) / 16.0
-    return np.where(raw > -half, -raw, np.nan)  # OpenCV's disparity is x_left - x_right
+from fractoscope.stereo.semi_global import sgbm_disparity
 
 
 def sgbm_3d_sem(left: np.ndarray, right: np.ndarray, max_disparity_px: int) -> np.ndarray:
     """3D-SEM's StereoSGBM on uint8 images."""
-    return _sgbm(left, right, max_disparity_px, block_px=1, mode=cv2.STEREO_SGBM_MODE_HH, uniqueness=15)
+    return sgbm_disparity(left, right, min_px=-max_disparity_px, max_px=max_disparity_px, block_px=1, mode=cv2.STEREO_SGBM_MODE_HH,
+                          uniqueness_percent=15)
 
 
 def sgbm_pollen3d(left: np.ndarray, right: np.ndarray, max_disparity_px: int) -> np.ndarray:
     """pollen3d's StereoSGBM in both directions (block 5, five paths), consistent within 1 px, averaged."""
-    forward = _sgbm(left, right, max_disparity_px, block_px=5, mode=cv2.STEREO_SGBM_MODE_SGBM, uniqueness=10)
-    backward = _sgbm(right, left, max_disparity_px, block_px=5, mode=cv2.STEREO_SGBM_MODE_SGBM, uniqueness=10)
+    forward, backward = (
+        sgbm_disparity(first, second, min_px=-max_disparity_px, max_px=max_disparity_px, block_px=5, uniqueness_percent=10)
+        for first, second in ((left, right), (right, left))
+    )
     cols = np.arange(left.shape[1], dtype=np.float32)[None, :]
     map_cols = np.nan_to_num(cols + forward, nan=-1.0).astype(np.float32)
     map_rows = np.broadcast_to(np.arange(left.shape[0], dtype=np.float32)[:, None], left.shape)

@@ -116,6 +116,29 @@ def test_tilt_axis_is_estimated_from_the_parallax_and_a_wrong_one_is_flagged(tru
     assert bool(result.report["warnings"]) == warned
 
 
+@pytest.mark.parametrize("third", ["the first again", "noise"])
+def test_a_view_that_is_not_the_area_tilted_as_stated_is_refused_by_name(third):
+    """Calibration mends tilts a few percent off; a third view that repeats the first (zero
+    parallax for a 12° step, which the fit once turned into a tilt of 172 ± 7948° and heights of
+    -9e5 µm) or shows nothing of it is an INVALID_ARGUMENT naming that view (with the first one
+    when the fit moved both), not a result; the views in their right order pass."""
+    from fractoscope import synthetic
+    from fractoscope.errors import InvalidInputError
+    from fractoscope.sem.image import SemImage
+    from fractoscope.stereo.pipeline import MatchingOptions, compute_series_height_map
+
+    surface = synthetic.self_affine_surface((384, 384), hurst=0.8, rms_um=2.5, seed=5)
+    images, _ = synthetic.render_tilt_series(surface, pixel_size_um=0.1, tilt_deg=(-6.0, 0.0, 6.0), output_shape=(320, 320), seed=5)
+    noise = np.random.default_rng(0).integers(0, 256, images[0].shape, dtype=np.uint8)
+    views = [SemImage(image, None, 0.1, 0) for image in (images[0], images[1], images[0] if third == "the first again" else noise)]
+    with pytest.raises(InvalidInputError) as refused:
+        compute_series_height_map(views, tilt_deg=(-6.0, 0.0, 6.0), options=MatchingOptions(calibrate_tilt=True))
+    assert refused.value.field.startswith(("images[2]", "images")) and "images[2]" in str(refused.value)
+    good = compute_series_height_map([SemImage(image, None, 0.1, 0) for image in images], tilt_deg=(-6.0, 0.0, 6.0),
+                                     options=MatchingOptions(calibrate_tilt=True))
+    assert np.abs(np.array(good.report["tilt_deg"]) - (-6.0, 0.0, 6.0)).max() < 0.5
+
+
 def test_unknown_magnification_uncertainty_keeps_sigma_and_warns(monkeypatch):
     """When a view's magnification can be measured neither on the matched images nor from SIFT
     features (a featureless view), the calibrated tilts' sigma is unknown: the report says NaN

@@ -48,7 +48,7 @@ def height_map_bytes(
     """Estimated peak bytes of a height map of `views` images of `shape` (rows, cols): the full
     images on the canvas that turns the tilt axis vertical, and the largest strip the matcher cuts."""
     _, canvas = alignment.rotation_to_vertical_axis(shape, tilt_axis_deg)
-    disparity = max_disparity_px or max(canvas[1] // 4, 8)
+    disparity = max_disparity_px or matching.default_max_disparity_px(canvas[1])
     strips = matching.strip_bounds(canvas, window_px=window_px, max_disparity_px=disparity, strip_pixels=strip_pixels)
     strip_pixels_max = max(bottom - top for top, _, _, bottom in strips) * canvas[1]
     full_pixels = canvas[0] * canvas[1]

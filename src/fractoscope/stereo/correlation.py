@@ -54,9 +54,15 @@ def window_stats(image: np.ndarray, window_px: int) -> WindowStats:
     return WindowStats(mean, 1.0 / np.sqrt(np.maximum(variance, 1e-8)))
 
 
-def zncc_scores(left: np.ndarray, left_stats: WindowStats, warped: np.ndarray, window_px: int, radius: int):
-    """ZNCC of the left windows with the warped windows shifted by -radius..radius columns,
-    in that order. Shifted copies are views into arrays padded once (edges replicated)."""
+def zncc_scores(left: np.ndarray, left_stats: WindowStats, warped: np.ndarray, window_px: int, radius: int) -> list[np.ndarray]:
+    """ZNCC of the left windows with the warped windows shifted by -radius..radius columns, in
+    that order, (rows, cols) float32 each."""
+    return list(zncc_scores_by_shift(left, left_stats, warped, window_px, radius))
+
+
+def zncc_scores_by_shift(left: np.ndarray, left_stats: WindowStats, warped: np.ndarray, window_px: int, radius: int):
+    """`zncc_scores` one shift at a time (a generator). Shifted copies are views into arrays
+    padded once (edges replicated)."""
     warped_stats = window_stats(warped, window_px)
     cols = left.shape[1]
 
@@ -64,15 +70,13 @@ def zncc_scores(left: np.ndarray, left_stats: WindowStats, warped: np.ndarray, w
         return cv2.copyMakeBorder(values, 0, 0, radius, radius, cv2.BORDER_REPLICATE)
 
     warped_p, mean_p, inverse_std_p = padded(warped), padded(warped_stats.mean), padded(warped_stats.inverse_std)
-    scores = []
     for start in range(2 * radius + 1):
         columns = slice(start, start + cols)
         score = box_mean(left * warped_p[:, columns], window_px)
         score -= left_stats.mean * mean_p[:, columns]
         score *= left_stats.inverse_std
         score *= inverse_std_p[:, columns]
-        scores.append(score)
-    return scores
+        yield score
 
 
 def peak_sigma_px(score, curvature, window_px):

@@ -20,6 +20,10 @@ from fractoscope.stereo.disparity import DisparityResult, MatchingMethod, StripM
 DEFAULT_WINDOW_PX = 15
 DEFAULT_MIN_CONFIDENCE = 0.3
 DEFAULT_MAX_LR_DIFFERENCE_PX = 1.0
+# The default search reaches a quarter of the width, at most this far: a thin strip of an image
+# cannot be matched coarse to fine, and its full search costs a pass over the image per shift.
+# 1024 px covers ±9° pairs of relief several times the pollen grain's (disparities over 200 px).
+_MAX_DEFAULT_DISPARITY_PX = 1024
 # Pixels per strip: bounds the matcher's memory, and is the unit of work replicas share.
 DEFAULT_STRIP_PIXELS = 2_000_000
 _LOCAL_CONTRAST_SIGMA_PX = 6.0
@@ -61,7 +65,7 @@ def match_disparity(
         raise ValueError(f"window_px must be odd and >= 3, got {window_px}")
     report = progress or silent
     if max_disparity_px is None:
-        max_disparity_px = max(left.shape[1] // 4, 8)
+        max_disparity_px = default_max_disparity_px(left.shape[1])
     if normalize_local_contrast:  # on the whole images, so that every strip sees the same values
         with ThreadPoolExecutor(max_workers=2) as pool:  # OpenCV releases the GIL
             left, right = pool.map(local_contrast, (left, right))
@@ -80,6 +84,12 @@ def match_disparity(
             out[start:stop] = values
         report((index + 1) / len(bounds), f"matched strip {index + 1} of {len(bounds)}")
     return DisparityResult(disparity, confidence, sigma_px)
+
+
+def default_max_disparity_px(cols: int) -> int:
+    """The search range of images `cols` wide when none is given: a quarter of the width, at
+    least 8 and at most 1024 px."""
+    return min(max(cols // 4, 8), _MAX_DEFAULT_DISPARITY_PX)
 
 
 def strip_bounds(shape: tuple[int, int], *, window_px: int, max_disparity_px: int, strip_pixels: int) -> list[tuple[int, int, int, int]]:

@@ -263,12 +263,36 @@ def _tilts(x1_px, matched: _MatchedViews, nominal, options: MatchingOptions, rep
         return np.array(nominal), None, {}
     report_progress(0.87, "calibrating tilts")
     sample = (slice(None, None, 4), slice(None, None, 4))  # sparse points: neighbours' errors correlate
-    estimate = tilt_series.estimate_tilts(
-        x1_px[sample].ravel(), matched.disparities[(slice(None), *sample)].reshape(len(matched.disparities), -1), nominal,
-        magnification_sigma=matched.magnification_sigma,
-    )
+    disparities = matched.disparities[(slice(None), *sample)].reshape(len(matched.disparities), -1)
+    for view in range(1, len(disparities)):
+        if np.isfinite(disparities[view]).sum() < tilt_series.MIN_CALIBRATION_POINTS:
+            raise InvalidInputError(f"images[{view}]", "too little of this view could be matched with the first to calibrate the tilts")
+    try:
+        estimate = tilt_series.estimate_tilts(x1_px[sample].ravel(), disparities, nominal, magnification_sigma=matched.magnification_sigma)
+    except tilt_series.TooFewPointsError as error:
+        raise InvalidInputError("images", f"{error}: the views share too little texture to calibrate the tilts") from None
+    _check_calibrated(estimate, nominal)
     calibration = {"tilt_deg_nominal": list(nominal), "tilt_sigma_deg": estimate.sigma_deg.tolist(), "tilt_residual_px": estimate.residual_px}
     return estimate.tilt_deg, estimate.offsets_px, calibration
+
+
+def _check_calibrated(estimate: tilt_series.TiltEstimate, nominal) -> None:
+    """Refuses calibrated tilts that are not corrections of the nominal ones: calibration mends a
+    stage's errors of a few percent, while a tilt step moved by half its size or more (or beyond
+    ±90°, or not determined) means a view that shows another area or repeats one. Which view is
+    at fault the fit cannot always tell, so every view it moved so far is named."""
+    moved = []
+    for view in range(1, len(nominal)):
+        tilt, sigma, step = float(estimate.tilt_deg[view]), float(estimate.sigma_deg[view]), nominal[view] - nominal[0]
+        undetermined = np.isinf(sigma) or sigma > 45.0  # NaN: the magnification's part is unknown, the fit's is not
+        if undetermined or not (abs(tilt) < 90.0 and abs(tilt - nominal[view]) < 0.5 * abs(step)):
+            moved.append((view, f"images[{view}] at {tilt:.2f} ± {sigma:.2g}° against the nominal {nominal[view]:g}°"))
+    if moved:
+        raise InvalidInputError(
+            f"images[{moved[0][0]}].tilt_deg" if len(moved) == 1 else "images",
+            "the views do not show the first view's area tilted as stated (first view at "
+            f"{nominal[0]:g}°): the images put {'; '.join(text for _, text in moved)}",
+        )
 
 
 def _tilt_uncertainty_deg(options: MatchingOptions, calibration: dict, warnings: list[str]) -> float:

@@ -1,7 +1,8 @@
-"""The default matching method: the window ZNCC matcher's disparities (`window_zncc`), refined in
-both directions by TGV² over a 5 × 5 px ZNCC data term (`tgv_refinement`), which recovers
-structure finer than the window, such as dimple rims and river steps, and averages noise where
-the surface is smooth.
+"""The default matching method: semi-global matching's disparities (`semi_global`, which
+places steps and keeps facets whole), the window ZNCC matcher's
+(`window_zncc`) where it has none, refined in both directions by TGV² over a 5 × 5 px ZNCC data
+term (`tgv_refinement`), which recovers structure finer than the window, such as dimple rims and
+river steps, and averages noise where the surface is smooth.
 
 Before the refinement every pixel also tries the disparities found 8, 16 and 32 px to its
 left, right, above and below, scored by a 9 × 9 px window, and keeps one that correlates
@@ -26,7 +27,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fractoscope.stereo import correlation, tgv_refinement, window_zncc
+from fractoscope.stereo import correlation, semi_global, tgv_refinement, window_zncc
 from fractoscope.stereo.disparity import DisparityResult, StripTask
 
 # The refined disparities err less than the window's: on the synthetic surfaces 68 % of their
@@ -49,8 +50,8 @@ def match_strip(task: StripTask) -> DisparityResult:
     """Dense disparity of one strip of a rectified pair (the unit of work that replicas share)."""
     directions = window_zncc.match_directions(task)
     window_valid, _ = window_zncc.consistent(task, directions, directions.forward.disparity, directions.backward_px)
-    forward = tgv_refinement.refine_disparity(directions.left, directions.right, _propagated(directions.left, directions.right, directions.forward.disparity))
-    backward = tgv_refinement.refine_disparity(directions.right, directions.left, _propagated(directions.right, directions.left, directions.backward_px))
+    forward = _refined(directions.left, directions.right, directions.forward.disparity)
+    backward = _refined(directions.right, directions.left, directions.backward_px)
     backward_at_match = correlation.sample_along_rows(backward, forward)
     disparity = 0.5 * (forward - backward_at_match)  # the directions err independently
     difference = np.abs(forward + backward_at_match)
@@ -60,6 +61,14 @@ def match_strip(task: StripTask) -> DisparityResult:
     window = directions.forward
     sigma_px = _REFINED_SIGMA_SCALE * correlation.peak_sigma_px(window.score, window.curvature, task.window_px)
     return window_zncc.kept_result(task, valid, disparity, window.score, sigma_px)
+
+
+def _refined(left: np.ndarray, right: np.ndarray, window_px: np.ndarray) -> np.ndarray:
+    """One direction's disparities: semi-global matching's where it has them, the window
+    matcher's (`window_px`) elsewhere, propagated and refined."""
+    seed = semi_global.seed_disparity(left, right, window_px)
+    start = np.where(np.isfinite(seed), seed, window_px).astype(np.float32)
+    return tgv_refinement.refine_disparity(left, right, _propagated(left, right, start))
 
 
 def _propagated(left: np.ndarray, right: np.ndarray, disparity_px: np.ndarray) -> np.ndarray:

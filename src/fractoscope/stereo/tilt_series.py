@@ -17,6 +17,13 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
+# Points matched in every view that a tilt fit needs at least (after sampling every 4th pixel).
+MIN_CALIBRATION_POINTS = 100
+
+
+class TooFewPointsError(ValueError):
+    """Too few points are matched in every view to estimate the tilts."""
+
 
 @dataclass(frozen=True)
 class TiltEstimate:
@@ -90,8 +97,8 @@ def estimate_tilts(
         raise ValueError("tilt angles are observable from three or more views only")
     others = [view for view in range(views) if view != reference]
     known = np.all(np.isfinite(disparities_px[others]), axis=0)
-    if known.sum() < 100:
-        raise ValueError(f"only {known.sum()} points are matched in every view; at least 100 are needed")
+    if known.sum() < MIN_CALIBRATION_POINTS:
+        raise TooFewPointsError(f"only {known.sum()} points are matched in every view; at least {MIN_CALIBRATION_POINTS} are needed")
     x_mean = float(x_px[known].mean())
     d_mean = disparities_px[:, known].mean(axis=1)
     x = x_px[known] - x_mean

@@ -174,19 +174,25 @@ def residual_search(left, left_stats, right, disparity, window_px, radius) -> Re
     consistent deformation, and per-pixel noise is not fed back into the next iteration."""
     disparity = cv2.GaussianBlur(disparity, (0, 0), window_px / 4.0)
     warped = correlation.warp_along_rows(right, disparity)
-    scores = correlation.zncc_scores(left, left_stats, warped, window_px, radius)
     if radius == 1:  # the full-resolution case, run most often: one compiled pass
-        return Refinement(*_peak_of_three(*scores, disparity))
-    best, best_index = scores[0].copy(), np.zeros(left.shape, np.int16)
-    for index, score in enumerate(scores[1:], start=1):
-        better = score > best
-        np.copyto(best, score, where=better)
-        np.copyto(best_index, index, where=better)
-    before, after = np.zeros_like(best), np.zeros_like(best)
-    for index in range(1, 2 * radius):
-        at_index = best_index == index
-        np.copyto(before, scores[index - 1], where=at_index)
-        np.copyto(after, scores[index + 1], where=at_index)
+        return Refinement(*_peak_of_three(*correlation.zncc_scores(left, left_stats, warped, window_px, 1), disparity))
+    # A full search at the coarsest level can span thousands of shifts: the scores come one shift
+    # at a time, and only the best and its two neighbours are kept, so memory does not grow with them.
+    best_index = np.zeros(left.shape, np.int32)
+    best = before = after = previous = newly_best = None
+    for index, score in enumerate(correlation.zncc_scores_by_shift(left, left_stats, warped, window_px, radius)):
+        if best is None:
+            best, before, after, newly_best = score.copy(), np.zeros_like(score), np.zeros_like(score), np.zeros(left.shape, bool)
+        else:
+            np.copyto(after, score, where=newly_best)  # the shift after the best so far
+            newly_best = score > best
+            np.copyto(best, score, where=newly_best)
+            np.copyto(before, previous, where=newly_best)
+            np.copyto(best_index, index, where=newly_best)
+        previous = score
+    at_edge = (best_index == 0) | (best_index == 2 * radius)  # no neighbour on one side
+    before[at_edge] = 0.0
+    after[at_edge] = 0.0
     curvature = before - 2.0 * best + after
     at_centre = (best_index > 0) & (best_index < 2 * radius) & (curvature < 0)
     offset = best_index.astype(np.float32) - radius
