@@ -179,3 +179,74 @@ def test_export_of_an_npz_to_x3p_carries_its_calibration(capsys, tmp_path):
     surface = read_x3p(tmp_path / "map.x3p")
     assert surface.z_um.shape == (20, 30) and surface.step_x_um == pytest.approx(0.5)
     assert Calibration.from_dict(json.loads(surface.comment)["calibration"]) == CALIBRATION
+
+
+def _grey_tiff(path, values) -> None:
+    import tifffile
+
+    tifffile.imwrite(path, np.asarray(values, np.uint8))
+
+
+@pytest.mark.parametrize("outputs, flag", [
+    (["-o", "heights.txt"], "-o"), (["-o", ""], "-o"), (["-o", "."], "-o"), (["-o", "missing/heights.npz"], "-o"),
+    (["-o", "first.npz"], "-o"), (["-o", "heights.npz", "--png", "heights.bmp"], "--png"),
+    (["-o", "heights.npz", "--png", "first.tif"], "--png"),
+])
+def test_height_outputs_are_checked_before_any_matching(capsys, tmp_path, monkeypatch, outputs, flag):
+    """A name the map would not be written under, a missing folder, or an input image to be
+    overwritten (`--png first.tif` once replaced the SEM image with the picture)."""
+    monkeypatch.chdir(tmp_path)
+    texture = np.random.default_rng(2).integers(0, 256, (64, 64))
+    _grey_tiff(tmp_path / "first.tif", texture)
+    _grey_tiff(tmp_path / "second.tif", texture)
+    (tmp_path / "first.npz").write_bytes((tmp_path / "first.tif").read_bytes())  # an input named like a map
+    images = ["first.npz" if outputs[1] == "first.npz" else "first.tif", "second.tif"]
+    before = {path.name: path.read_bytes() for path in tmp_path.iterdir()}
+    code, out, err = _fracto(capsys, "height", *images, "--tilt", "-5", "5", "--pixel-size-um", "0.1", *outputs)
+    assert code == 2 and _one_error_line(err).startswith(f"error: {flag}: ")
+    assert {path.name: path.read_bytes() for path in tmp_path.iterdir()} == before
+
+
+@pytest.mark.parametrize("second", ["constant", "noise"])
+def test_a_pair_that_shares_nothing_is_refused_naming_the_second_image(capsys, tmp_path, second):
+    """No pixel of a constant or a noise image matches a textured one: an empty map is not a
+    measurement, so there is no output and the error names the image."""
+    from fractoscope.synthetic import self_affine_surface
+
+    rng = np.random.default_rng(3)
+    texture = self_affine_surface((128, 128), hurst=0.3, rms_um=1.0, seed=1, min_wavelength_px=3.0)
+    first = (texture - texture.min()) / np.ptp(texture) * 200 + 20
+    _grey_tiff(tmp_path / "first.tif", first)
+    _grey_tiff(tmp_path / "second.tif", np.full(first.shape, 128) if second == "constant" else rng.integers(0, 256, first.shape))
+    code, _, err = _fracto(capsys, "height", tmp_path / "first.tif", tmp_path / "second.tif", "--tilt", "-5", "5",
+                           "--pixel-size-um", "0.1", "-o", tmp_path / "heights.npz")
+    assert code == 2 and _one_error_line(err).startswith(f"error: {tmp_path / 'second.tif'}: almost nothing of it could be matched")
+    assert not (tmp_path / "heights.npz").exists()
+
+
+@pytest.mark.parametrize("stage_t_rad, pixel_width_m, named", [
+    ("nan", "2.5e-08", "the stage tilt in its metadata"), ("100", "2.5e-08", "the stage tilt in its metadata"),
+    ("0.0872665", "1e-300", "the pixel size in its metadata"),
+])
+def test_unusable_metadata_names_the_file_not_a_flag_the_user_never_gave(capsys, tmp_path, stage_t_rad, pixel_width_m, named):
+    import tifffile
+
+    texture = np.random.default_rng(4).integers(40, 200, (64, 64)).astype(np.uint8)
+    paths = []
+    for name, stage_t in (("bad.tif", stage_t_rad), ("good.tif", "-0.0872665")):
+        ini = f"[Stage]\nStageT={stage_t}\n[Scan]\nPixelWidth={pixel_width_m}\n[Image]\nResolutionX=64\nResolutionY=64\n"
+        tifffile.imwrite(tmp_path / name, texture, extratags=[(34682, "s", 0, ini, True)])
+        paths.append(tmp_path / name)
+    code, _, err = _fracto(capsys, "height", *paths, "-o", tmp_path / "heights.npz")
+    line = _one_error_line(err)
+    assert code == 2 and line.startswith(f"error: {paths[0]}: {named}") and "--tilt" not in line and "--pixel-size-um" not in line
+
+
+@pytest.mark.parametrize("axis", ["1e300", "-400", "nan"])
+def test_a_tilt_axis_no_angle_can_be_is_refused(capsys, tmp_path, axis):
+    texture = np.random.default_rng(5).integers(40, 200, (64, 64))
+    _grey_tiff(tmp_path / "first.tif", texture)
+    _grey_tiff(tmp_path / "second.tif", texture)
+    code, _, err = _fracto(capsys, "height", tmp_path / "first.tif", tmp_path / "second.tif", "--tilt", "-5", "5",
+                           "--pixel-size-um", "0.1", "--tilt-axis-deg", axis, "-o", tmp_path / "heights.npz")
+    assert code == 2 and _one_error_line(err).startswith("error: --tilt-axis-deg: must be an angle within ±360°")

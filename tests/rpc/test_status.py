@@ -81,3 +81,29 @@ def test_the_decorator_covers_unary_and_streaming_methods():
     with pytest.raises(_Aborted):
         next(events)
     assert streaming.status.code == grpc.StatusCode.NOT_FOUND
+
+
+def test_a_request_id_longer_than_http_allows_is_refused_before_the_method_runs():
+    """A 10 MB request id was accepted and logged as one line; gRPC now keeps HTTP's 128 characters."""
+    from fractoscope.v1 import matching_pb2
+
+    ran = []
+
+    class Servicer:
+        @abort_on_error
+        def Unary(self, request, context):
+            ran.append(request.request_id)
+
+        @abort_on_error
+        def Streaming(self, request, context):
+            ran.append(request.request_id)
+            yield "done"
+
+    too_long = matching_pb2.ComputeHeightMapRequest(request_id="x" * 129)
+    for call in (lambda context: Servicer().Unary(too_long, context), lambda context: list(Servicer().Streaming(too_long, context))):
+        context = _Context()
+        with pytest.raises(_Aborted):
+            call(context)
+        assert context.status.code == grpc.StatusCode.INVALID_ARGUMENT and "request_id" in context.status.details
+    Servicer().Unary(matching_pb2.ComputeHeightMapRequest(request_id="x" * 128), _Context())
+    assert ran == ["x" * 128]

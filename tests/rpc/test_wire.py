@@ -53,6 +53,14 @@ def test_reports_round_trip_and_unknown_keys_stay_home():
     assert back["pixel_size_um"] == 0.25 and back["valid_fraction"] == 0.5 and "not_in_the_api" not in back
 
 
+@pytest.mark.parametrize("method", list(MatchingMethod))
+def test_the_parameters_as_used_name_the_method_run(method):
+    """A report's parameters repeat the run: its method too, not MATCHING_METHOD_UNSPECIFIED."""
+    message = wire.report_to_message({"method": method.value, "parameters": {"window_px": 15}})
+    assert message.parameters.method == rpc_matching.method_to_message(method) != matching_pb2.MATCHING_METHOD_UNSPECIFIED
+    assert rpc_matching.options_from_message(message.parameters).method == method
+
+
 def test_regions_zoom_kinds_roughness_and_profile_parameters_round_trip():
     assert wire.message_to_region(wire.region_message((1.0, 2.0, 3.5, 4.5))) == (1.0, 2.0, 3.5, 4.5)
     assert [wire.zoom_name(wire.ZOOM_KINDS[name]) for name in ("optical", "digital")] == ["optical", "digital"]

@@ -47,6 +47,31 @@ def test_fei_metadata_gives_tilt_pixel_size_and_data_bar():
     assert read.image.shape == (256, 300)
 
 
+def _fei_tiff(image, ini) -> bytes:
+    buffer = io.BytesIO()
+    tifffile.imwrite(buffer, image, extratags=[(34682, "s", 0, ini, True)])
+    return buffer.getvalue()
+
+
+def test_metadata_that_leaves_too_few_rows_above_the_data_bar_is_refused_naming_the_file():
+    """ResolutionY=1 once cut 255 of 256 rows off as a data bar, and the pair came back 0 % valid."""
+    ini = "[Stage]\nStageT=0.0872665\n[Scan]\nPixelWidth=2.5e-08\n[Image]\nResolutionX=300\nResolutionY=1\n"
+    with pytest.raises(InvalidInputError) as refused:
+        read_sem_image(_fei_tiff(_textured(), ini), field="left.tif")
+    assert refused.value.field == "left.tif" and "ResolutionY" in refused.value.message
+
+
+def test_one_hot_pixel_does_not_crush_a_float_image_into_one_grey_level():
+    image = _textured(dtype=np.uint16).astype(np.float32)
+    hot = image.copy()
+    hot[10, 10] = 1e30
+    buffer = io.BytesIO()
+    tifffile.imwrite(buffer, hot)
+    read = read_sem_image(buffer.getvalue()).pixels.astype(np.float64)
+    assert np.corrcoef(read[hot < 1e30], image[hot < 1e30])[0, 1] > 0.999
+    assert read.std() > 0.1 * read.max()
+
+
 def test_png_16_bit_without_metadata():
     image = _textured(dtype=np.uint16)
     buffer = io.BytesIO()

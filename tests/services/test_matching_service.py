@@ -95,6 +95,7 @@ def peers(server_address):
         (lambda task: dataclasses.replace(task, max_disparity_px=0), "parameters.max_disparity_px"),
         (lambda task: dataclasses.replace(task, window_px=4), "parameters.window_px"),
         (lambda task: dataclasses.replace(task, keep_rows=(10, 500)), "keep_to_row"),
+        (lambda task: dataclasses.replace(task, left=task.left[:1, :1], right=task.right[:1, :1]), "left"),
     ],
 )
 def test_a_bad_strip_gets_invalid_argument_naming_the_field(peers, change, field):
@@ -107,3 +108,15 @@ def test_a_bad_strip_gets_invalid_argument_naming_the_field(peers, change, field
     with pytest.raises(ClientError) as error:
         peers.match_strip(change(task), timeout_s=120)
     assert error.value.code == grpc.StatusCode.INVALID_ARGUMENT and error.value.field == field
+
+
+def test_a_raster_that_holds_fewer_bytes_than_it_declares_is_invalid_not_too_large(server_address):
+    """65536 x 65536 declared with 64 KiB of data: the memory estimate, which trusts the declared
+    size, once answered RESOURCE_EXHAUSTED (880 GiB) for what is a malformed request."""
+    from fractoscope.v1 import common_pb2, matching_pb2, matching_pb2_grpc
+
+    raster = common_pb2.Raster(rows=65536, cols=65536, data_type=common_pb2.DATA_TYPE_UINT8, data=bytes(65536))
+    request = matching_pb2.MatchStripRequest(left=raster, right=raster, parameters=matching_pb2.MatchingParameters(max_disparity_px=8))
+    with grpc.insecure_channel(server_address) as channel, pytest.raises(grpc.RpcError) as error:
+        matching_pb2_grpc.MatchingServiceStub(channel).MatchStrip(request, timeout=30)
+    assert error.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "left.data" in error.value.details()

@@ -101,13 +101,17 @@ def test_three_synthetic_sem_views_with_wrong_nominal_tilts():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("true_axis_deg, given_axis_deg, warned", [(60.0, 60.0, False), (60.0, 64.0, True), (90.0, 87.0, True)])
-def test_tilt_axis_is_estimated_from_the_parallax_and_a_wrong_one_is_flagged(true_axis_deg, given_axis_deg, warned):
+@pytest.mark.parametrize("true_axis_deg, given_axis_deg, rotation_deg, warned", [
+    (60.0, 60.0, 0.0, False), (60.0, 64.0, 0.0, True), (90.0, 87.0, 0.0, True), (90.0, 90.0, 3.0, False), (80.0, 80.0, -3.0, False),
+])
+def test_tilt_axis_is_estimated_from_the_parallax_and_a_wrong_one_is_flagged(true_axis_deg, given_axis_deg, rotation_deg, warned):
+    """A second view turned by the stage (3°, which the principal direction of the displacements
+    once took for an axis 22° off) is no wrong axis."""
     from conftest import fracture_pair
     from fractoscope.sem.image import SemImage
     from fractoscope.stereo.pipeline import compute_height_map
 
-    pair = fracture_pair(tilt_axis_deg=true_axis_deg, seed=2)
+    pair = fracture_pair(tilt_axis_deg=true_axis_deg, rotation_deg=rotation_deg, seed=2)
     result = compute_height_map(
         SemImage(pair.first, None, None, 0), SemImage(pair.second, None, None, 0),
         tilt_deg=(-5, 5), pixel_size_um=0.1, tilt_axis_deg=given_axis_deg,

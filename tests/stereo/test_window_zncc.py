@@ -1,5 +1,7 @@
 """The dense matcher on pairs whose disparity is known exactly."""
 
+import tracemalloc
+
 import numpy as np
 import pytest
 
@@ -29,6 +31,32 @@ def test_search_range_as_wide_as_a_small_image_is_searched():
     right = correlation.warp_along_rows(left, np.full(left.shape, -3.0, np.float32))
     result = matching.match_disparity(left, right, max_disparity_px=200)
     assert np.nanmedian(np.abs(result.disparity_px[20:-20, 20:-20] - 3.0)) < 0.05
+
+
+@pytest.mark.parametrize("method", list(matching.MatchingMethod))
+def test_no_match_beyond_the_search_range_is_kept(method):
+    """A 6.5 px shift searched within ±4 px: window correlation's peak sits at the search's edge
+    and the refinement is not bound by it; neither may pass for a measurement."""
+    left = _texture((200, 240), seed=3)
+    right = correlation.warp_along_rows(left, np.full(left.shape, -6.5, np.float32))
+    wide = matching.match_disparity(left, right, max_disparity_px=16, method=method).disparity_px
+    narrow = matching.match_disparity(left, right, max_disparity_px=4, method=method).disparity_px
+    assert np.isfinite(wide[20:-20, 20:-20]).mean() > 0.98
+    assert not np.any(np.abs(narrow[np.isfinite(narrow)]) >= 3.0)
+
+
+def test_a_full_search_of_a_thin_strip_needs_no_memory_per_shift():
+    """A strip too thin for a pyramid is searched at full resolution over every shift; the
+    scores come one shift at a time (a 48 × 20000 pair once took 24 GB this way)."""
+    left = _texture((24, 3000), seed=4)
+    right = correlation.warp_along_rows(left, np.full(left.shape, -2.0, np.float32))
+    stats = correlation.window_stats(left, 15)
+    tracemalloc.start()
+    refined = window_zncc.residual_search(left, stats, right, np.zeros(left.shape, np.float32), 15, 600)
+    _, peak_bytes = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    assert np.nanmedian(np.abs(refined.disparity[5:-5, 20:-20] - 2.0)) < 0.1
+    assert peak_bytes < 40 * left.nbytes  # all 1201 scores at once: 1201 times
 
 
 @pytest.mark.parametrize("propagate_at_full_resolution", [False, True])

@@ -82,6 +82,22 @@ def existing_file(text: str) -> Path:
     return path
 
 
+def output_file(text: str, flag: str, *, suffixes: tuple[str, ...], inputs: tuple[Path, ...] = ()) -> Path:
+    """The path a flag names for a file to write, checked before any work: a name ending in one of
+    `suffixes` (lower case), in an existing folder, and none of `inputs` (UsageError naming the
+    flag otherwise)."""
+    path = Path(text)
+    if path.suffix.lower() not in suffixes:
+        raise UsageError(f"{flag}: give a file name ending in {' or '.join(suffixes)}, got {text!r}")
+    if path.is_dir():
+        raise UsageError(f"{flag}: {text} is a folder")
+    if not path.parent.is_dir():
+        raise UsageError(f"{flag}: no folder {path.parent} to write {path.name} into")
+    if any(path.exists() and path.samefile(given) for given in inputs):
+        raise UsageError(f"{flag}: {text} is one of the inputs; it would be overwritten")
+    return path
+
+
 def given_pixel_size_um(value: float | None) -> float | None:
     """--pixel-size-um checked as every command checks it (InvalidInputError naming it), None when
     not given."""

@@ -9,13 +9,16 @@ from pathlib import Path
 
 import numpy as np
 
-from fractoscope.cli.common import SERVER_HELP, UsageError, connected, err, existing_file, print_json, progress_bar
+from fractoscope.cli.common import SERVER_HELP, UsageError, connected, err, existing_file, output_file, print_json, progress_bar
 from fractoscope.client import FractoscopeClient, HeightMap
 from fractoscope.formats.calibration import Calibration
 from fractoscope.formats.height_npz import write_height_npz
 from fractoscope.sem.image import read_sem_image
 from fractoscope.stereo import geometry
 from fractoscope.surface import datum
+
+# What --png may write (matplotlib's raster and vector formats).
+_PICTURE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".pdf", ".svg")
 
 
 def add_parsers(commands) -> None:
@@ -102,11 +105,13 @@ def compute_height(client: FractoscopeClient, args, quiet: bool) -> HeightMap:
 
 
 def command_height(args) -> int:
+    inputs = tuple(Path(image) for image in args.images if Path(image).is_file())
+    out = output_file(args.output, "-o", suffixes=(".npz",), inputs=inputs)
+    picture = output_file(args.png, "--png", suffixes=_PICTURE_SUFFIXES, inputs=(*inputs, out)) if args.png else None
     with connected(args.server) as client:
         result = compute_height(client, args, quiet=args.json)
     for warning in result.report.get("warnings", []):
         print(f"warning: {warning}", file=sys.stderr)
-    out = Path(args.output)
     report = result.report
     local_sigma_um = geometry.matching_sigma_um(
         result.z_um, result.sigma_um,
@@ -132,9 +137,9 @@ def command_height(args) -> int:
     summary = {"output": str(out), **height_summary(result)}
     if levelled:
         summary["datum"] = levelled.to_dict()
-    if args.png:
-        plot_height_map(result, Path(args.png))
-        summary["png"] = args.png
+    if picture:
+        plot_height_map(result, picture)
+        summary["png"] = str(picture)
     if args.json:
         print_json(summary)
     else:

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 DEFAULT_MAX_MESSAGE_MB = 512
+# A request id is a caller's key for retries and logs, not a payload (HTTP and gRPC alike).
+MAX_REQUEST_ID_CHARS = 128
 
 
 def message_size_options(max_message_mb: int) -> list[tuple[str, int]]:

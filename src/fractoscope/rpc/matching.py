@@ -81,6 +81,8 @@ def request_to_strip_task(request: matching_pb2.MatchStripRequest) -> StripTask:
     options = options_from_message(request.parameters)
     if options.max_disparity_px is None:
         raise InvalidInputError("parameters.max_disparity_px", "is required for a strip")
+    if min(left.shape) < options.window_px:
+        raise InvalidInputError("left", f"a strip of {left.shape[1]} x {left.shape[0]} pixels is smaller than the {options.window_px} px window")
     validate_options(options, image_cols=left.shape[1])
     keep_rows = None
     if request.keep_from_row or request.keep_to_row:

@@ -24,6 +24,7 @@ from fractoscope.errors import (
     UnauthenticatedError,
     UnavailableError,
 )
+from fractoscope.rpc.limits import MAX_REQUEST_ID_CHARS
 
 _log = logging.getLogger("fractoscope.services")
 
@@ -86,6 +87,12 @@ def abort_with_error(context: grpc.ServicerContext, error: Exception) -> None:
 _MAX_MESSAGE_CHARS = 1000
 
 
+def _check_request_id(request) -> None:
+    request_id = getattr(request, "request_id", "")
+    if len(request_id) > MAX_REQUEST_ID_CHARS:
+        raise InvalidInputError("request_id", f"must be at most {MAX_REQUEST_ID_CHARS} characters, got {len(request_id)}")
+
+
 def _bounded(message: str) -> str:
     return message if len(message) <= _MAX_MESSAGE_CHARS else message[: _MAX_MESSAGE_CHARS - 1] + "…"
 
@@ -98,11 +105,13 @@ def _packed(detail) -> any_pb2.Any:
 
 def abort_on_error(method):
     """Decorates a servicer method (unary or server-streaming): every exception it raises ends
-    the call through `abort_with_error`."""
+    the call through `abort_with_error`, and a request id over MAX_REQUEST_ID_CHARS is refused
+    before it runs."""
     if inspect.isgeneratorfunction(method):
         @functools.wraps(method)
         def streaming(self, request, context):
             try:
+                _check_request_id(request)
                 yield from method(self, request, context)
             except Exception as error:
                 abort_with_error(context, error)
@@ -112,6 +121,7 @@ def abort_on_error(method):
     @functools.wraps(method)
     def unary(self, request, context):
         try:
+            _check_request_id(request)
             return method(self, request, context)
         except Exception as error:
             abort_with_error(context, error)

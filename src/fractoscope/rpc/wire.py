@@ -56,7 +56,11 @@ _MESSAGE_REPORT_FIELDS = {field.name for field in matching_pb2.MatchingReport.DE
 def report_to_message(report: dict) -> matching_pb2.MatchingReport:
     """The `report` dict of a height map (keys as in MatchingReport; `parameters` a dict of
     MatchingParameters fields) to its message."""
-    return matching_pb2.MatchingReport(**{key: report[key] for key in REPORT_FIELDS if key in report})
+    fields = {key: report[key] for key in REPORT_FIELDS if key in report}
+    if "parameters" in fields and report.get("method"):  # the parameters as used name the method run ("tgv_zncc")
+        method = matching_pb2.MatchingMethod.Value(f"MATCHING_METHOD_{report['method'].upper()}")
+        fields["parameters"] = {**fields["parameters"], "method": method}
+    return matching_pb2.MatchingReport(**fields)
 
 
 def message_to_report(message: matching_pb2.MatchingReport) -> dict:

@@ -53,14 +53,23 @@ class SemImage:
         return self.pixels[: self.pixels.shape[0] - self.data_bar_rows]
 
 
+# The smallest side an image may have, data bar excluded (a correlation window needs room).
+_MIN_SIDE_PX = 32
+
+
 def read_sem_image(content: bytes, *, field: str = "image") -> SemImage:
     """Decodes a TIFF or PNG file's bytes; `field` names the input in error messages."""
     if _is_png(content, field):
         pixels, tilt_deg, pixel_size_um, bar_rows = _read_png(content, field), None, None, None
     else:
         pixels, tilt_deg, pixel_size_um, bar_rows = _read_tiff(content, field)
-    if pixels.ndim != 2 or min(pixels.shape) < 32:
-        raise InvalidInputError(field, f"expected a grey image of at least 32x32 pixels, got shape {pixels.shape}")
+    if pixels.ndim != 2 or min(pixels.shape) < _MIN_SIDE_PX:
+        raise InvalidInputError(field, f"expected a grey image of at least {_MIN_SIDE_PX}x{_MIN_SIDE_PX} pixels, got shape {pixels.shape}")
+    if bar_rows is not None and pixels.shape[0] - bar_rows < _MIN_SIDE_PX:
+        raise InvalidInputError(
+            field, f"its metadata puts {pixels.shape[0] - bar_rows} of its {pixels.shape[0]} rows above the data bar (ResolutionY), "
+            f"fewer than {_MIN_SIDE_PX}",
+        )
     if bar_rows is None:
         bar_rows = detect_data_bar_rows(pixels)
     return SemImage(pixels, tilt_deg, pixel_size_um, bar_rows)
@@ -162,9 +171,11 @@ def _as_grey_integer(pixels: np.ndarray, field: str) -> np.ndarray:
         values = pixels.astype(np.float64)
         if not np.all(np.isfinite(values)):
             raise InvalidInputError(field, "the image contains NaN or infinite values")
-        low, high = float(values.min()), float(values.max())
+        # The grey range between the 0.01 and 99.99 % points: one hot pixel (1e30 in a float
+        # image) must not crush the rest into one grey level.
+        low, high = (float(value) for value in np.percentile(values, [0.01, 99.99]))
         span = high - low if high > low else 1.0
-        return np.round((values - low) / span * 65535.0).astype(np.uint16)
+        return np.round(np.clip((values - low) / span, 0.0, 1.0) * 65535.0).astype(np.uint16)
     raise InvalidInputError(field, f"unsupported pixel type {pixels.dtype}")
 
 

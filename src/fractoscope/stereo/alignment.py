@@ -108,7 +108,7 @@ def estimate_alignment(
     parallax = parallax[np.abs(parallax - np.median(parallax)) < 8.0 * spread]
     low, median, high = np.percentile(parallax, [2, 50, 98])
     return Alignment(
-        parallax_direction_deg=_parallax_direction_deg(points2[inliers] - points1[inliers]),
+        parallax_direction_deg=_parallax_direction_deg(points1[inliers], points2[inliers]),
         shift_parallel_px=float(median),
         shift_across_px=float(shift_across),
         rotation_deg=float(np.degrees(rotation)),
@@ -120,17 +120,34 @@ def estimate_alignment(
     )
 
 
-def _parallax_direction_deg(displacements: np.ndarray) -> float:
-    """Direction along which feature displacements vary (the parallax), degrees from the column
-    axis counter-clockwise as displayed, in (-90, 90]: 0 when the tilt axis is vertical as assumed."""
-    deviations = displacements - np.median(displacements, axis=0)
-    deviations = deviations[np.hypot(*deviations.T) < 8 * max(np.median(np.hypot(*deviations.T)), 0.1)]
-    if len(deviations) < 8:
+def _parallax_direction_deg(points1: np.ndarray, points2: np.ndarray) -> float:
+    """Direction of the parallax between matched features (N, 2: col, row, about the centre),
+    degrees from the first image's column axis counter-clockwise as displayed, in (-45, 45): 0
+    when the tilt axis is vertical as assumed; NaN with fewer than 8 features.
+
+    The second view is the first turned, scaled and shifted, each point moved by its own height
+    along the parallax direction. Across that direction only the similarity moves points, so
+    the direction is the one across which a similarity fits the displacements best (scanned in
+    steps of 0.25°, robustly by the median of the absolute residuals), turned back by the
+    similarity's rotation: the second view's parallax runs along its own, rotated, columns. The
+    displacements' principal direction, used before, took a 3° rotation for an axis 22° off."""
+    if len(points1) < 8:
         return float("nan")
-    eigenvalues, eigenvectors = np.linalg.eigh(np.cov(deviations.T))
-    col, row = eigenvectors[:, np.argmax(eigenvalues)]
-    angle = np.degrees(np.arctan2(-row, col))  # rows grow downwards
-    return float((angle + 90.0) % 180.0 - 90.0)
+    x, y = points1.T
+    displacement = points2 - points1
+    design_x = np.column_stack([x, -y, np.ones_like(x), np.zeros_like(x)])  # (scale cos - 1, scale sin, shift col, shift row)
+    design_y = np.column_stack([y, x, np.zeros_like(x), np.ones_like(x)])
+    angles = np.radians(np.arange(-44.75, 45.0, 0.25))
+    spreads, rotations = [], []
+    for angle in angles:
+        across = np.array([np.sin(angle), np.cos(angle)])  # the normal of the direction (cos, -sin) in (col, row)
+        design = across[0] * design_x + across[1] * design_y
+        target = displacement @ across
+        coef, *_ = np.linalg.lstsq(design, target, rcond=None)
+        spreads.append(np.median(np.abs(target - design @ coef)))
+        rotations.append(np.arctan2(coef[1], 1.0 + coef[0]))
+    best = int(np.argmin(spreads))
+    return float(np.degrees(angles[best] + rotations[best]))
 
 
 def second_to_first_matrix(alignment: Alignment, shape: tuple[int, int]) -> np.ndarray:

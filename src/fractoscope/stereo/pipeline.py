@@ -110,13 +110,13 @@ def compute_series_height_map(
     sources |= given_sources
     rectified = _rectify(images, tilt_axis_deg)
     matched = _match_views(rectified.views, options, strip_matcher, report_progress)
+    warnings = _matched_enough(matched, rectified)
     tilts, offsets, calibration = _tilts(rectified.x1_px, matched, nominal, options, report_progress)
     if calibration:  # the reference keeps its tilt: only differences are observable
         sources["tilt_source"][1:] = [TILT_CALIBRATION] * (len(images) - 1)
     report_progress(0.92, "heights")
     z_px, _ = tilt_series.heights_px(rectified.x1_px, matched.disparities, tilts, offsets_px=offsets)
     z_um = (z_px * pixel_size).astype(np.float32)
-    warnings = []
     tilt_uncertainty = _tilt_uncertainty_deg(options, calibration, warnings)
     sigma_um = geometry.height_sigma_um(
         z_um, matched.sigmas, tilt_deg=tilts, pixel_size_um=pixel_size, tilt_uncertainty_deg=tilt_uncertainty
@@ -148,7 +148,9 @@ def _calibration(images, tilt_deg, pixel_size_um, tilt_axis_deg, options) -> tup
         raise InvalidInputError("images[].tilt_deg", f"{len(given)} tilts for {len(images)} images")
     nominal = [_resolve_tilt(image, explicit, index) for index, (image, explicit) in enumerate(zip(images, given))]
     for index in range(1, len(images)):
-        geometry.validate_tilts((nominal[0], nominal[index]), field=f"images[{index}].tilt_deg")
+        # A tilt read from a file is the file's fault, not the caller's tilt_deg.
+        from_files = given[0] is None or given[index] is None
+        geometry.validate_tilts((nominal[0], nominal[index]), field=f"images[{index}]" if from_files else f"images[{index}].tilt_deg")
     pixel_size = _resolve_pixel_size(images[0], pixel_size_um)
     for index in range(1, len(images)):
         _validate(images[0], images[index], tilt_axis_deg, options, index=index)
@@ -254,6 +256,31 @@ def _match_view(reference: np.ndarray, view: np.ndarray, options: MatchingOption
     disparity = matched.disparity_px + placement.shift_parallel_px - (epsilon * columns_px).astype(np.float32)
     placement = dataclasses.replace(placement, scale=placement.scale * (1.0 + epsilon))
     return disparity, matched, placement, epsilon_sigma, strip_count
+
+
+# Views of which less than the first share is matched with the first view are refused (what
+# matches of a noise, mirrored or unrelated view is chance), less than the second reported.
+_TOO_FEW_MATCHED = 0.01
+_FEW_MATCHED = 0.05
+
+
+def _matched_enough(matched: _MatchedViews, rectified: _Rectified) -> list[str]:
+    """Refuses views of which almost nothing could be matched with the first (such a map is not
+    a measurement); the warnings for views of which little could be."""
+    area = ~rectified.outside
+    warnings = []
+    for view in range(1, len(matched.disparities)):
+        share = float(np.isfinite(matched.disparities[view][area]).mean()) if area.any() else 0.0
+        if share < _TOO_FEW_MATCHED:
+            raise InvalidInputError(
+                f"images[{view}]", f"almost nothing of it could be matched with the first view ({100 * share:.2f} % of the pixels, as "
+                "chance matches): the two "
+                "share no texture (a constant or noise image), do not show one area tilted about the tilt axis (another area, a "
+                "mirrored or rotated view), or differ by more parallax than parameters.max_disparity_px lets the matcher search",
+            )
+        if share < _FEW_MATCHED:
+            warnings.append(f"only {100 * share:.1f} % of images[{view}] could be matched with the first view; are they one area tilted about the tilt axis?")
+    return warnings
 
 
 def _tilts(x1_px, matched: _MatchedViews, nominal, options: MatchingOptions, report_progress):
@@ -362,17 +389,24 @@ def _report(*, tilts, tilt_axis_deg, pixel_size, matched: _MatchedViews, z_um, b
 
 
 def _resolve_tilt(image: SemImage, explicit: float | None, index: int) -> float:
-    value = explicit if explicit is not None else image.tilt_deg
-    if value is None:
+    if explicit is not None:
+        return float(explicit)
+    if image.tilt_deg is None:
         raise InvalidInputError(f"images[{index}].tilt_deg", "no tilt given and the image file carries no stage tilt metadata")
-    return float(value)
+    if not (np.isfinite(image.tilt_deg) and abs(image.tilt_deg) < 90.0):
+        raise InvalidInputError(f"images[{index}]", f"the stage tilt in its metadata, {image.tilt_deg}°, is not an angle within ±90°; give the tilts")
+    return float(image.tilt_deg)
 
 
 def _resolve_pixel_size(first: SemImage, pixel_size_um: float | None) -> float:
-    value = pixel_size_um if pixel_size_um is not None else first.pixel_size_um
-    if value is None:
+    if pixel_size_um is not None:
+        return geometry.validate_pixel_size_um(pixel_size_um)
+    if first.pixel_size_um is None:
         raise InvalidInputError("pixel_size_um", "no pixel size given and the image file carries no calibration")
-    return geometry.validate_pixel_size_um(value)
+    try:
+        return geometry.validate_pixel_size_um(first.pixel_size_um)
+    except InvalidInputError as error:  # the file's fault, not the caller's pixel_size_um
+        raise InvalidInputError("images[0]", f"the pixel size in its metadata {error.message}; give the pixel size") from None
 
 
 def _validate(first: SemImage, second: SemImage, tilt_axis_deg: float, options: MatchingOptions, *, index: int = 1) -> None:
@@ -385,9 +419,10 @@ def _validate(first: SemImage, second: SemImage, tilt_axis_deg: float, options: 
 
 
 def validate_tilt_axis_deg(tilt_axis_deg: float) -> None:
-    """Raises InvalidInputError naming tilt_axis_deg unless it is finite."""
-    if not np.isfinite(tilt_axis_deg):
-        raise InvalidInputError("tilt_axis_deg", f"must be finite, got {tilt_axis_deg}")
+    """Raises InvalidInputError naming tilt_axis_deg unless it is within ±360° (1e300 is finite,
+    but no angle a float can turn by)."""
+    if not (np.isfinite(tilt_axis_deg) and abs(tilt_axis_deg) <= 360.0):
+        raise InvalidInputError("tilt_axis_deg", f"must be an angle within ±360°, got {tilt_axis_deg}")
 
 
 def validate_options(options: MatchingOptions, *, image_cols: int) -> None:

@@ -101,9 +101,12 @@ def textured(directions: Directions) -> np.ndarray:
 
 
 def kept_result(task: StripTask, valid, disparity, score, sigma_px) -> DisparityResult:
-    """The strip's rows that `task` keeps, NaN where not valid."""
+    """The strip's rows that `task` keeps, NaN where not valid or where the match lies within
+    1 px of the search's limit (±`task.max_disparity_px`) or beyond it: a peak at the edge of
+    the search may belong to a disparity outside it, and the refinement is not bound by it."""
     kept = slice(*task.keep_rows) if task.keep_rows else slice(None)
     valid, score, disparity, sigma_px = valid[kept], score[kept], disparity[kept], sigma_px[kept]
+    valid = valid & (np.abs(disparity) < task.max_disparity_px - 1.0)
     confidence = np.clip(score, 0.0, 1.0).astype(np.float32)
     disparity = np.where(valid, disparity, np.nan).astype(np.float32)
     sigma_px = np.where(valid, sigma_px, np.nan).astype(np.float32)

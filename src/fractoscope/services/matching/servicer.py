@@ -16,6 +16,7 @@ import numpy as np
 from fractoscope.errors import InvalidInputError
 from fractoscope.progress import ProgressCallback
 from fractoscope.rpc import matching as rpc_matching
+from fractoscope.rpc import wire
 from fractoscope.rpc.status import abort_on_error
 from fractoscope.sem.image import image_shape, read_sem_image
 from fractoscope.services import budget
@@ -102,6 +103,8 @@ class MatchingServicer(matching_pb2_grpc.MatchingServiceServicer):
 
     @abort_on_error
     def MatchStrip(self, request, context):
+        for name in ("left", "right"):  # the estimate below trusts the declared sizes: the data must hold them
+            wire.raster_to_array(getattr(request, name), field=name)
         self._memory.check(budget.strip_bytes((request.left.rows, request.left.cols)), f"a strip of {request.left.cols} x {request.left.rows} pixels")
         task = rpc_matching.request_to_strip_task(request)
         return self._strips.result(context, lambda job: rpc_matching.strip_response(match_strip(task), worker=WORKER_ID))

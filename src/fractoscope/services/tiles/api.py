@@ -39,6 +39,7 @@ from fractoscope.formats import strict_json
 from fractoscope.formats.exports import MEDIA_TYPES
 from fractoscope.rpc import wire
 from fractoscope.rpc.channel import open_channel
+from fractoscope.rpc.limits import MAX_REQUEST_ID_CHARS
 from fractoscope.rpc.manifest import parse_manifest
 from fractoscope.rpc.status import ClientError, raised_as_client_errors
 from fractoscope.rpc.tiles import profile_response, roughness_response, specimen_message, tile_message
@@ -245,8 +246,8 @@ class JsonApi:
             upload_id, request_id = body.get("upload_id"), body.get("request_id", "")
             if not isinstance(upload_id, str):
                 raise InvalidInputError("upload_id", "is required (a string)")
-            if not isinstance(request_id, str) or len(request_id) > 128:
-                raise InvalidInputError("request_id", "must be a string of at most 128 characters")
+            if not isinstance(request_id, str) or len(request_id) > MAX_REQUEST_ID_CHARS:
+                raise InvalidInputError("request_id", f"must be a string of at most {MAX_REQUEST_ID_CHARS} characters")
         else:
             raise ApiError(HTTPStatus.UNSUPPORTED_MEDIA_TYPE, "send application/json ({\"upload_id\": ...}) or multipart/form-data "
                            "(manifest and images)", "content-type")
