@@ -77,6 +77,23 @@ def heights_px(x_px: np.ndarray, disparities_px: np.ndarray, tilt_deg, *, refere
     return z, residual
 
 
+def view_residuals_px(x_px, disparities_px, tilt_deg, z_px, *, reference: int = 0, offsets_px=None) -> np.ndarray:
+    """Median absolute deviation of every view's reprojection residual from its median (px,
+    (N,): 0 for the reference, NaN for a view with no point matched) given the heights `z_px`,
+    shapes as in heights_px. The median is left out: a view's constant offset (a stage that is
+    not eucentric) is no inconsistency."""
+    a, b = coefficients(tilt_deg, reference=reference)
+    offsets = np.zeros(len(a)) if offsets_px is None else np.asarray(offsets_px, np.float64)
+    residuals = np.zeros(len(a))
+    for view in range(len(a)):
+        if view == reference:
+            continue
+        rest = disparities_px[view] - x_px * a[view] - offsets[view] - z_px * b[view]
+        known = np.isfinite(rest)
+        residuals[view] = float(np.median(np.abs(rest[known] - np.median(rest[known])))) if known.any() else np.nan
+    return residuals
+
+
 def estimate_tilts(
     x_px: np.ndarray, disparities_px: np.ndarray, nominal_tilt_deg, *, reference: int = 0, magnification_sigma=None
 ) -> TiltEstimate:
