@@ -276,10 +276,10 @@ def _matched_enough(matched: _MatchedViews, rectified: _Rectified) -> list[str]:
         share = float(np.isfinite(matched.disparities[view][area]).mean()) if area.any() else 0.0
         if share < _TOO_FEW_MATCHED:
             raise InvalidInputError(
-                f"images[{view}]", f"almost nothing of it could be matched with the first view ({100 * share:.2f} % of the pixels, as "
-                "chance matches): the two "
-                "share no texture (a constant or noise image), do not show one area tilted about the tilt axis (another area, a "
-                "mirrored or rotated view), or differ by more parallax than parameters.max_disparity_px lets the matcher search",
+                f"images[{view}]",
+                f"almost nothing of it could be matched with the first view ({100 * share:.2f} % of the pixels, as chance matches): "
+                "the two share no texture (a constant or noise image), do not show one area tilted about the tilt axis (another "
+                "area, a mirrored or rotated view), or differ by more parallax than parameters.max_disparity_px lets the matcher search",
             )
         if share < _FEW_MATCHED:
             warnings.append(f"only {100 * share:.1f} % of images[{view}] could be matched with the first view; are they one area tilted about the tilt axis?")
@@ -304,10 +304,10 @@ def _disagreeing_views(x1_px, matched: _MatchedViews, tilts, offsets, z_px) -> l
     if not np.nanmax(residuals) > _DISAGREEING_PX:
         return []
     misses = ", ".join(f"images[{view}]'s by {residual:.2f} px" for view, residual in enumerate(residuals) if view)
-    return [f"the views disagree with their tilts ({', '.join(f'{tilt:g}' for tilt in tilts)}°): the heights miss the parallax of "
-            f"{misses} (median deviation; views consistent with their tilts: under 0.1 px); a tilt may be wrong or a view show "
-            "another area: check them, "
-            "or give --calibrate-tilt"]
+    stated = ", ".join(f"{tilt:g}" for tilt in tilts)
+    return [f"the views disagree with their tilts ({stated}°): the heights miss the parallax of {misses} (median deviation; "
+            "views consistent with their tilts: under 0.1 px); a tilt may be wrong or a view show another area: check them, or "
+            "give --calibrate-tilt"]
 
 
 def _tilts(x1_px, matched: _MatchedViews, nominal, options: MatchingOptions, report_progress):
