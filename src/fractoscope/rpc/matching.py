@@ -18,7 +18,6 @@ _METHODS = {
     matching_pb2.MATCHING_METHOD_TGV_ZNCC: MatchingMethod.TGV_ZNCC,
     matching_pb2.MATCHING_METHOD_WINDOW_ZNCC: MatchingMethod.WINDOW_ZNCC,
 }
-_METHOD_CODES = {method: code for code, method in _METHODS.items() if code != matching_pb2.MATCHING_METHOD_UNSPECIFIED}
 
 
 def method_from_message(code: int) -> MatchingMethod:
@@ -29,7 +28,7 @@ def method_from_message(code: int) -> MatchingMethod:
 
 
 def method_to_message(method: MatchingMethod) -> int:
-    return _METHOD_CODES[MatchingMethod(method)]
+    return wire.method_code(MatchingMethod(method).value)
 
 
 def options_from_message(parameters: matching_pb2.MatchingParameters) -> MatchingOptions:

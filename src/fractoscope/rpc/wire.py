@@ -57,10 +57,14 @@ def report_to_message(report: dict) -> matching_pb2.MatchingReport:
     """The `report` dict of a height map (keys as in MatchingReport; `parameters` a dict of
     MatchingParameters fields) to its message."""
     fields = {key: report[key] for key in REPORT_FIELDS if key in report}
-    if "parameters" in fields and report.get("method"):  # the parameters as used name the method run ("tgv_zncc")
-        method = matching_pb2.MatchingMethod.Value(f"MATCHING_METHOD_{report['method'].upper()}")
-        fields["parameters"] = {**fields["parameters"], "method": method}
+    if "parameters" in fields and report.get("method"):  # the parameters as used name the method run
+        fields["parameters"] = {**fields["parameters"], "method": method_code(report["method"])}
     return matching_pb2.MatchingReport(**fields)
+
+
+def method_code(method: str) -> int:
+    """The MatchingMethod enum value of a matching method's name ("tgv_zncc": MATCHING_METHOD_TGV_ZNCC)."""
+    return matching_pb2.MatchingMethod.Value(f"MATCHING_METHOD_{method.upper()}")
 
 
 def message_to_report(message: matching_pb2.MatchingReport) -> dict:
