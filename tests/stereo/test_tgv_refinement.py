@@ -1,6 +1,10 @@
 """TGV² refinement on pairs whose disparity is known exactly: it keeps slopes, and recovers kinks
 and steps that a window rounds."""
 
+import os
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -81,3 +85,28 @@ def test_constant_shift_is_recovered_to_a_twentieth_of_a_pixel(shift_px):
     result = matching.match_disparity(left, right, max_disparity_px=8, method=MatchingMethod.TGV_ZNCC)
     assert np.isfinite(result.disparity_px[INNER]).mean() > 0.98
     assert np.nanmedian(np.abs(result.disparity_px - shift_px)[INNER]) < 0.05
+
+
+_REFINE_IN_A_PROCESS = """
+import sys
+import numpy as np
+from fractoscope.stereo import tgv_refinement
+rng = np.random.default_rng(0)
+left = rng.standard_normal((48, 96)).astype(np.float32)
+right = np.roll(left, 3, axis=1) + 0.1 * rng.standard_normal((48, 96)).astype(np.float32)
+np.save(sys.argv[1], tgv_refinement.refine_disparity(left, right, np.full((48, 96), 2.5, np.float32)))
+"""
+
+
+@pytest.mark.slow
+def test_code_compiled_afresh_and_code_from_the_cache_agree_to_the_bit(tmp_path):
+    """Processes share numba's cache: the first compiles the refinement and stores it, the next
+    loads it. Both must give the same disparities, or a farmed-out strip differs from one
+    matched at home (it did, by 1e-5 px, while the kernels allowed fastmath reassociation)."""
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba-cache")}
+    outputs = [tmp_path / "compiled.npy", tmp_path / "cached.npy"]
+    for output in outputs:
+        subprocess.run([sys.executable, "-c", _REFINE_IN_A_PROCESS, str(output)], env=env, check=True, timeout=600)
+    assert any((tmp_path / "numba-cache").rglob("*.nbi")), "the first process stored no compiled code"
+    compiled, cached = (np.load(output) for output in outputs)
+    np.testing.assert_array_equal(compiled, cached)

@@ -133,8 +133,11 @@ class _State:
 # only a handful of arrays: LLVM then vectorizes them (AVX2), where one loop over all fourteen
 # arrays stayed scalar and took 2-4 times as long. The loops handle the last (or first) column
 # apart, so that the rest run without branches. Every constant is float32: a float64 literal
-# would turn the whole expression into float64.
-_JIT = dict(nogil=True, fastmath=True, cache=True, boundscheck=False, error_model="numpy")
+# would turn the whole expression into float64. The arithmetic is IEEE (no fastmath): with
+# reassociation allowed, code compiled afresh and code loaded from numba's cache rounded
+# differently (inlined into its caller or not), so two processes gave heights 1e-6 apart; the
+# loops vectorize either way, at the same speed.
+_JIT = dict(nogil=True, cache=True, boundscheck=False, error_model="numpy")
 
 
 @numba.njit(**_JIT)
