@@ -63,6 +63,8 @@ def apply_affine(image: np.ndarray, matrix: np.ndarray, shape: tuple[int, int], 
 
 # Row spread (standard deviation, full-resolution pixels) the matched features need for a magnification.
 _MIN_ROW_SPREAD_PX = 32.0
+# Features the parallax's spread needs (else it is NaN, unknown).
+_MIN_SPREAD_FEATURES = 50
 
 
 def estimate_alignment(
@@ -114,13 +116,16 @@ def estimate_alignment(
     spread = max(1.4826 * np.median(np.abs(parallax - np.median(parallax))), 1.0)
     parallax = parallax[np.abs(parallax - np.median(parallax)) < 8.0 * spread]
     low, median, high = np.percentile(parallax, [2, 50, 98])
+    # A few dozen features sample the parallax too thinly to bound it: on a cleavage surface 8
+    # features on two facets gave ±2 px where the heights span −16 to +41 px.
+    spread_px = float(max(median - low, high - median)) if len(parallax) >= _MIN_SPREAD_FEATURES else float("nan")
     return Alignment(
         parallax_direction_deg=_parallax_direction_deg(points1[inliers], points2[inliers]),
         shift_parallel_px=float(median),
         shift_across_px=float(shift_across),
         rotation_deg=float(np.degrees(rotation)),
         residual_vertical_parallax_px=float(np.sqrt(np.mean(residual[inliers] ** 2))),
-        parallax_spread_px=float(max(median - low, high - median)),
+        parallax_spread_px=spread_px,
         matched_features=int(inliers.sum()),
         scale=float(magnification),
         scale_sigma=scale_sigma,
