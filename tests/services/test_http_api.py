@@ -116,6 +116,26 @@ def test_a_bad_upload_names_the_field_and_stores_nothing(api, input_directory):
     assert sorted(path.name for path in (data / "uploads").iterdir()) == before
 
 
+@pytest.mark.parametrize("setting, field", [
+    ({"matching": {"window_px": 4}}, "manifest.rois[0].matching.window_px"),
+    ({"matching": {"max_disparity_px": 100_000}}, "manifest.rois[0].matching.max_disparity_px"),
+    ({"tilt_axis_deg": 500}, "manifest.rois[0].tilt_axis_deg"),
+])
+def test_a_manifest_the_build_would_refuse_is_refused_before_a_job_is_accepted(api, input_directory, setting, field):
+    """Matching parameters out of range fail the upload (400, naming the manifest's key), not a
+    job accepted with 202 that fails later."""
+    base, data = api
+    before = sorted(path.name for path in (data / "uploads").iterdir())
+    parts = _upload_parts(input_directory, "bad-setting")
+    manifest = json.loads(parts[0][1][1])
+    manifest["rois"][0].update(setting)
+    parts[0] = ("manifest", (None, json.dumps(manifest), "application/json"))
+    for path in ("/api/uploads", "/api/jobs"):
+        answer = requests.post(base + path, files=parts, timeout=60)
+        assert answer.status_code == 400 and answer.json()["field"] == field, answer.text
+    assert sorted(path.name for path in (data / "uploads").iterdir()) == before
+
+
 def test_a_height_map_export_over_http_is_the_file_of_the_map(api):
     base, _ = api
     z_um = np.arange(48 * 64, dtype=np.float32).reshape(48, 64) / 100

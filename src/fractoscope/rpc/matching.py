@@ -9,7 +9,7 @@ from fractoscope.errors import InvalidInputError
 from fractoscope.rpc import wire
 from fractoscope.sem import image as sem_image
 from fractoscope.stereo.disparity import DisparityResult, MatchingMethod, StripTask
-from fractoscope.stereo.pipeline import HeightMapResult, MatchingOptions, validate_options
+from fractoscope.stereo.pipeline import DEFAULT_TILT_AXIS_DEG, HeightMapResult, MatchingOptions, validate_options, validate_tilt_axis_deg
 from fractoscope.v1 import matching_pb2
 
 
@@ -47,6 +47,24 @@ def options_from_message(parameters: matching_pb2.MatchingParameters) -> Matchin
         propagate_at_full_resolution=parameters.propagate_at_full_resolution,
         method=method_from_message(parameters.method),
     )
+
+
+def checked_height_map_request(request: matching_pb2.ComputeHeightMapRequest) -> tuple[tuple[int, int], MatchingOptions]:
+    """The first image's (rows, cols) and the options of `request`, checked before any work: at
+    least two images, a readable first image, the parameters and the tilt axis (InvalidInputError
+    names the field)."""
+    if len(request.images) < 2:
+        raise InvalidInputError("images", f"at least two images are needed, got {len(request.images)}")
+    shape = sem_image.image_shape(request.images[0].image.content, field="images[0].image")
+    options = options_from_message(request.parameters)
+    validate_options(options, image_cols=shape[1])
+    validate_tilt_axis_deg(tilt_axis_deg(request))
+    return shape, options
+
+
+def tilt_axis_deg(request: matching_pb2.ComputeHeightMapRequest) -> float:
+    """The request's tilt axis, degrees (the default where it gives none)."""
+    return request.tilt_axis_deg if request.HasField("tilt_axis_deg") else DEFAULT_TILT_AXIS_DEG
 
 
 def strip_request(task: StripTask, *, request_id: str = "") -> matching_pb2.MatchStripRequest:

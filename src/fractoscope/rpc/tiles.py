@@ -5,16 +5,17 @@ from __future__ import annotations
 
 import contextlib
 import math
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 from fractoscope.errors import InvalidInputError
-from fractoscope.rpc import wire
+from fractoscope.rpc import calls, wire
+from fractoscope.rpc import matching as rpc_matching
 from fractoscope.rpc.calls import CHUNK_BYTES
 from fractoscope.formats.calibration import Calibration
 from fractoscope.sem.image import nominal_magnification
 from fractoscope.specimen import exports
-from fractoscope.specimen.build import RoiRequest
+from fractoscope.specimen.build import RoiRequest, ordered_rois
 from fractoscope.specimen.exports import ExportedFile
 from fractoscope.specimen.quadtree import TileRecord
 from fractoscope.specimen.queries import ChainRequest, SpecimenProfile, checked_region
@@ -24,7 +25,7 @@ from fractoscope.surface.datum import LEVELS
 from fractoscope.surface.areal_parameters import UNITS
 from fractoscope.surface.roughness import SurfaceAnalysis, SurfaceChain
 from fractoscope.units import METRES_PER_UM
-from fractoscope.v1 import common_pb2, tiles_pb2
+from fractoscope.v1 import common_pb2, matching_pb2, tiles_pb2
 
 
 def specimen_message(specimen: Specimen) -> tiles_pb2.Specimen:
@@ -82,6 +83,44 @@ def roi_request(spec: tiles_pb2.RoiSpec, index: int) -> RoiRequest:
     magnification = spec.magnification or nominal_magnification(spec.images[0].image.content) or 0.0
     images = tuple((item.image.filename, item.image.content) for item in spec.images)
     return RoiRequest(spec.id, spec.parent, magnification, centre, spec.level, images)
+
+
+def checked_rois(
+    specs: Sequence[tiles_pb2.RoiSpec], request_id: str = ""
+) -> tuple[list[RoiRequest], list[matching_pb2.ComputeHeightMapRequest], list[tuple[int, int]]]:
+    """A reconstruction's ROIs, their height-map requests and their first images' (rows, cols),
+    all checked before any work: placements, parents, images and matching parameters
+    (InvalidInputError names `rois[index]`'s field)."""
+    rois = [roi_request(spec, index) for index, spec in enumerate(specs)]
+    ordered_rois(rois)
+    height_requests = [height_map_request(spec, request_id) for spec in specs]
+    shapes = []
+    for index, request in enumerate(height_requests):
+        with in_roi(index):
+            shapes.append(rpc_matching.checked_height_map_request(request)[0])
+    return rois, height_requests, shapes
+
+
+def height_map_request(spec: tiles_pb2.RoiSpec, request_id: str) -> matching_pb2.ComputeHeightMapRequest:
+    """The ComputeHeightMap of one ROI's pair."""
+    tilts = [item.tilt_deg for item in spec.images] if all(item.HasField("tilt_deg") for item in spec.images) else None
+    return calls.height_map_request(
+        [(item.image.content, "") for item in spec.images],
+        tilt_deg=tilts,
+        pixel_size_um=spec.pixel_size_um if spec.HasField("pixel_size_um") else None,
+        tilt_axis_deg=spec.tilt_axis_deg if spec.HasField("tilt_axis_deg") else None,
+        parameters=spec.parameters,
+        request_id=request_id,
+    )
+
+
+@contextlib.contextmanager
+def in_roi(index: int):
+    """Input errors about a height-map request, renamed as fields of `rois[index]`."""
+    try:
+        yield
+    except InvalidInputError as error:
+        raise InvalidInputError(f"rois[{index}].{error.field}", error.message) from None
 
 
 def region(message: tiles_pb2.RegionUm, field: str) -> tuple[float, float, float, float]:

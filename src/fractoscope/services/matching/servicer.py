@@ -13,17 +13,16 @@ import socket
 
 import numpy as np
 
-from fractoscope.errors import InvalidInputError
 from fractoscope.progress import ProgressCallback
 from fractoscope.rpc import matching as rpc_matching
 from fractoscope.rpc import wire
 from fractoscope.rpc.status import abort_on_error
-from fractoscope.sem.image import image_shape, read_sem_image
+from fractoscope.sem.image import read_sem_image
 from fractoscope.services import budget
 from fractoscope.services.jobs import Job, JobRunner
 from fractoscope.services.matching.peers import PeerStripMatcher, StripPeers
 from fractoscope.stereo.matching import DEFAULT_STRIP_PIXELS, match_strip
-from fractoscope.stereo.pipeline import DEFAULT_TILT_AXIS_DEG, HeightMapResult, compute_series_height_map, validate_options, validate_tilt_axis_deg
+from fractoscope.stereo.pipeline import HeightMapResult, compute_series_height_map
 from fractoscope.v1 import common_pb2, matching_pb2, matching_pb2_grpc
 
 _log = logging.getLogger("fractoscope.matching")
@@ -66,14 +65,9 @@ class MatchingServicer(matching_pb2_grpc.MatchingServiceServicer):
 
     def _estimate(self, request: matching_pb2.ComputeHeightMapRequest) -> tuple[int, tuple[int, int]]:
         """`peak_bytes` and the first image's (rows, cols)."""
-        if len(request.images) < 2:
-            raise InvalidInputError("images", f"at least two images are needed, got {len(request.images)}")
-        shape = image_shape(request.images[0].image.content, field="images[0].image")
-        options = rpc_matching.options_from_message(request.parameters)
-        validate_options(options, image_cols=shape[1])
-        validate_tilt_axis_deg(_tilt_axis_deg(request))
+        shape, options = rpc_matching.checked_height_map_request(request)
         estimate = budget.height_map_bytes(
-            shape, len(request.images), tilt_axis_deg=_tilt_axis_deg(request), window_px=options.window_px,
+            shape, len(request.images), tilt_axis_deg=rpc_matching.tilt_axis_deg(request), window_px=options.window_px,
             max_disparity_px=options.max_disparity_px, strip_pixels=self.strip_pixels,
         )
         return estimate, shape
@@ -109,6 +103,3 @@ class MatchingServicer(matching_pb2_grpc.MatchingServiceServicer):
         task = rpc_matching.request_to_strip_task(request)
         return self._strips.result(context, lambda job: rpc_matching.strip_response(match_strip(task), worker=WORKER_ID))
 
-
-def _tilt_axis_deg(request: matching_pb2.ComputeHeightMapRequest) -> float:
-    return request.tilt_axis_deg if request.HasField("tilt_axis_deg") else DEFAULT_TILT_AXIS_DEG

@@ -42,7 +42,7 @@ from fractoscope.rpc.channel import open_channel
 from fractoscope.rpc.limits import MAX_REQUEST_ID_CHARS
 from fractoscope.rpc.manifest import parse_manifest
 from fractoscope.rpc.status import ClientError, raised_as_client_errors
-from fractoscope.rpc.tiles import profile_response, roughness_response, specimen_message, tile_message
+from fractoscope.rpc.tiles import checked_rois, profile_response, roughness_response, specimen_message, tile_message
 from fractoscope.services.auth import READ, WRITE, Grant, TokenTable
 from fractoscope.services.tiles import openapi
 from fractoscope.specimen import exports, quadtree, queries
@@ -565,8 +565,10 @@ class Uploads:
 
         specimen_id, rois = parse_manifest((directory / "manifest.field").read_bytes(), read_image, source="the uploaded manifest")
         validate_id(specimen_id, field="manifest.specimen")
-        for index, roi in enumerate(rois):
-            validate_id(roi.id, field=f"manifest.rois[{index}].id")
+        try:  # what the build would refuse, refused before a job is accepted
+            checked_rois(rois)
+        except InvalidInputError as error:  # named as the manifest names it: its "matching" holds the parameters
+            raise InvalidInputError("manifest." + error.field.replace("].parameters.", "].matching.", 1), error.message) from None
         return specimen_id, rois
 
     def load(self, upload_id: str) -> tuple[str, list[tiles_pb2.RoiSpec]]:

@@ -20,14 +20,13 @@ from fractoscope.rpc import calls, wire
 from fractoscope.rpc import tiles as rpc_tiles
 from fractoscope.rpc.channel import open_channel
 from fractoscope.rpc.status import ClientError, abort_on_error, raised_as_client_errors
-from fractoscope.sem.image import image_shape
 from fractoscope.services import budget
 from fractoscope.services.caches import BoundedCache
 from fractoscope.services.jobs import Job, JobRunner
 from fractoscope.specimen import quadtree
 from fractoscope.specimen.quadtree import TileSamples
 from fractoscope.specimen import queries as specimen_queries
-from fractoscope.specimen.build import MeasuredHeights, RoiRequest, ordered_rois, reconstruct_specimen
+from fractoscope.specimen.build import MeasuredHeights, RoiRequest, reconstruct_specimen
 from fractoscope.specimen.store import Specimen, SpecimenStore, validate_id
 from fractoscope.stereo.pipeline import HeightMapResult
 from fractoscope.surface.filtering import FilterReport
@@ -88,10 +87,8 @@ class TileServicer(tiles_pb2_grpc.TileServiceServicer):
         specimen_id = validate_id(request.specimen_id, field="specimen_id")
         stored = self._stored(specimen_id, request.request_id)
         if stored is None:
-            rois = [rpc_tiles.roi_request(spec, index) for index, spec in enumerate(request.rois)]
-            ordered_rois(rois)  # refused before it takes a place in the queue
-            height_requests = [_height_map_request(spec, request.request_id) for spec in request.rois]
-            estimate, shapes = self._estimate(height_requests)
+            rois, height_requests, shapes = rpc_tiles.checked_rois(request.rois, request.request_id)  # before it takes a place in the queue
+            estimate = self._estimate(height_requests, shapes)
             rows, cols = max(shapes, key=lambda shape: shape[0] * shape[1])
             self._memory.check(estimate, f"specimen {specimen_id!r} ({len(rois)} ROIs, the largest of {cols} x {rows} pixels)")
             key = (specimen_id, request.request_id) if request.request_id else None
@@ -104,16 +101,14 @@ class TileServicer(tiles_pb2_grpc.TileServiceServicer):
         if stored is not None:
             yield tiles_pb2.ReconstructSpecimenResponse(specimen=rpc_tiles.specimen_message(stored))
 
-    def _estimate(self, height_requests: list[matching_pb2.ComputeHeightMapRequest]) -> tuple[int, list[tuple[int, int]]]:
-        """A reconstruction's estimated peak memory (see budget) and its ROIs' image shapes (rows,
-        cols); InvalidInputError names the ROI."""
-        shapes, matched_here = [], []
-        for index, height_request in enumerate(height_requests):
-            with _in_roi(index):
-                shapes.append(image_shape(height_request.images[0].image.content, field="images[0].image"))
-                if self._local_matching is not None:
+    def _estimate(self, height_requests: list[matching_pb2.ComputeHeightMapRequest], shapes: list[tuple[int, int]]) -> int:
+        """A reconstruction's estimated peak memory (see budget); InvalidInputError names the ROI."""
+        matched_here = []
+        if self._local_matching is not None:
+            for index, height_request in enumerate(height_requests):
+                with rpc_tiles.in_roi(index):
                     matched_here.append(self._local_matching.peak_bytes(height_request))
-        return budget.specimen_bytes(shapes, matched_here=matched_here), shapes
+        return budget.specimen_bytes(shapes, matched_here=matched_here)
 
     def _reconstruct(
         self, request: tiles_pb2.ReconstructSpecimenRequest, rois: list[RoiRequest],
@@ -133,7 +128,7 @@ class TileServicer(tiles_pb2_grpc.TileServiceServicer):
 
             def measure(roi: RoiRequest, progress: ProgressCallback) -> MeasuredHeights:
                 index = indices[roi.id]
-                with _in_roi(index):
+                with rpc_tiles.in_roi(index):
                     if matching is None:
                         result, texture = self._local_matching.height_map(height_requests[index], job, progress)
                         return MeasuredHeights(result.z_um, texture, result.report["pixel_size_um"], result.report, result.sigma_um)
@@ -264,28 +259,6 @@ class SerializedGetTile(grpc.ServerInterceptor):
         if handler_call_details.method == GET_TILE_METHOD:
             return self._handler
         return continuation(handler_call_details)
-
-
-def _height_map_request(spec: tiles_pb2.RoiSpec, request_id: str) -> matching_pb2.ComputeHeightMapRequest:
-    """The ComputeHeightMap of one ROI's pair."""
-    tilts = [item.tilt_deg for item in spec.images] if all(item.HasField("tilt_deg") for item in spec.images) else None
-    return calls.height_map_request(
-        [(item.image.content, "") for item in spec.images],
-        tilt_deg=tilts,
-        pixel_size_um=spec.pixel_size_um if spec.HasField("pixel_size_um") else None,
-        tilt_axis_deg=spec.tilt_axis_deg if spec.HasField("tilt_axis_deg") else None,
-        parameters=spec.parameters,
-        request_id=request_id,
-    )
-
-
-@contextlib.contextmanager
-def _in_roi(index: int):
-    """Input errors about a height-map request, renamed as fields of `rois[index]`."""
-    try:
-        yield
-    except InvalidInputError as error:
-        raise InvalidInputError(f"rois[{index}].{error.field}", error.message) from None
 
 
 @contextlib.contextmanager
