@@ -94,3 +94,23 @@ def test_a_child_that_matches_nothing_in_its_parent_is_not_placed_automatically(
         client.reconstruct_specimen("steel-3", [overview, lost])
     assert refused.value.code == grpc.StatusCode.INVALID_ARGUMENT and refused.value.field == "rois[1].center_um"
     assert "registration score 0." in str(refused.value) and "give its center_um" in str(refused.value)
+
+
+@pytest.mark.parametrize("method", [
+    "/fractoscope.v1.TileService/GetSpecimen",  # unary
+    "/fractoscope.v1.TileService/GetTile",  # unary, its own registration
+    "/fractoscope.v1.MatchingService/ComputeHeightMap",  # server-streaming
+])
+def test_bytes_that_are_not_the_request_message_are_invalid_argument_about_the_request(server_address, method):
+    """gRPC Python answers a request it cannot parse with INTERNAL, as if the server had failed;
+    the client sent it, so it is INVALID_ARGUMENT naming `request`."""
+    from fractoscope.rpc.status import raised_as_client_errors
+
+    with grpc.insecure_channel(server_address) as channel:
+        streaming = method.endswith("ComputeHeightMap")
+        call = (channel.unary_stream if streaming else channel.unary_unary)(method)
+        with pytest.raises(ClientError) as refused, raised_as_client_errors():
+            answer = call(b"\xff\xff\xff\xff", timeout=30)  # a field tag with no end
+            list(answer) if streaming else answer
+    assert refused.value.code == grpc.StatusCode.INVALID_ARGUMENT and refused.value.field == "request"
+    assert method in str(refused.value)

@@ -21,6 +21,7 @@ from fractoscope.rpc.limits import DEFAULT_MAX_MESSAGE_MB, message_size_options
 from fractoscope.services.auth import AuthInterceptor, TokenTable, peer_token_problem
 from fractoscope.services.budget import MemoryBudget
 from fractoscope.services.config import DEFAULT_BUILD_QUEUE, DEFAULT_DATA_DIR, SERVICE_NAMES, build_parser, default_build_workers
+from fractoscope.services.decoding import MalformedRequests
 from fractoscope.services.jobs import JobRunner
 from fractoscope.services.matching.servicer import MatchingServicer
 from fractoscope.services.meshing.servicer import MeshingServicer
@@ -94,6 +95,7 @@ def create_server(
     tokens = tokens if tokens is not None and tokens.enabled else None
     interceptors = [AuthInterceptor(tokens)] if tokens else []
     interceptors.append(ThreadPoolRouting(_JOB_METHODS, job_call_threads=builds.max_followers + strips.max_followers + _SPARE_JOB_CALL_THREADS))
+    interceptors.append(MalformedRequests())  # within the routing, which keeps its deserializer
     if "tiles" in services:
         store = store or SpecimenStore(Path(data_dir))
         restored, _ = store.recover()  # this server is the store's one writer
