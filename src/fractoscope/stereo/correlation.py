@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import cv2
+import numba
 import numpy as np
 
 SIGMA_CALIBRATION = 3.5
@@ -23,7 +24,16 @@ def normalized(image: np.ndarray) -> np.ndarray:
     return values
 
 
+# OpenCV's box filter has a fast path up to 5 px only: from 7 to 19 px its separable filter with
+# equal taps is 1.3-2.1 times as fast (1024², 9 px: 1.3 against 2.7 ms), beyond that slower.
+_SEPARABLE_BOX_PX = range(7, 20)
+
+
 def box_mean(values: np.ndarray, window_px: int) -> np.ndarray:
+    """Mean of every `window_px` square window of (rows, cols) `values`, float32, edges reflected."""
+    if window_px in _SEPARABLE_BOX_PX:
+        taps = np.full(window_px, 1.0 / window_px, np.float32)
+        return cv2.sepFilter2D(values, cv2.CV_32F, taps, taps, borderType=cv2.BORDER_REFLECT)
     return cv2.boxFilter(values, cv2.CV_32F, (window_px, window_px), borderType=cv2.BORDER_REFLECT)
 
 
@@ -54,10 +64,13 @@ def window_stats(image: np.ndarray, window_px: int) -> WindowStats:
     return WindowStats(mean, 1.0 / np.sqrt(np.maximum(variance, 1e-8)))
 
 
-def zncc_scores(left: np.ndarray, left_stats: WindowStats, warped: np.ndarray, window_px: int, radius: int) -> list[np.ndarray]:
-    """ZNCC of the left windows with the warped windows shifted by -radius..radius columns, in
-    that order, (rows, cols) float32 each."""
-    return list(zncc_scores_by_shift(left, left_stats, warped, window_px, radius))
+def zncc_scores_within_one_px(left: np.ndarray, left_stats: WindowStats, warped: np.ndarray, window_px: int):
+    """ZNCC of the left windows with the warped windows shifted by -1, 0 and +1 column, (rows,
+    cols) float32 each: `zncc_scores_by_shift` at radius 1, the same values, with the products
+    and the normalization each in one compiled pass instead of a dozen array operations."""
+    products = _products_within_one_px(left, warped)
+    sums = [box_mean(values, window_px) for values in (*products, warped, warped * warped)]
+    return _normalized_within_one_px(*sums, left_stats.mean, left_stats.inverse_std)
 
 
 def zncc_scores_by_shift(left: np.ndarray, left_stats: WindowStats, warped: np.ndarray, window_px: int, radius: int):
@@ -77,6 +90,44 @@ def zncc_scores_by_shift(left: np.ndarray, left_stats: WindowStats, warped: np.n
         score *= left_stats.inverse_std
         score *= inverse_std_p[:, columns]
         yield score
+
+
+@numba.njit(nogil=True, cache=True, boundscheck=False, error_model="numpy")
+def _products_within_one_px(left, warped):  # pragma: no cover
+    """left × warped shifted by -1, 0 and +1 column (edges replicated)."""
+    rows, cols = left.shape
+    before, centre, after = np.empty_like(left), np.empty_like(left), np.empty_like(left)
+    for i in range(rows):
+        for j in range(cols):
+            value = left[i, j]
+            before[i, j] = value * warped[i, max(j - 1, 0)]
+            centre[i, j] = value * warped[i, j]
+            after[i, j] = value * warped[i, min(j + 1, cols - 1)]
+    return before, centre, after
+
+
+@numba.njit(nogil=True, cache=True, boundscheck=False, error_model="numpy")
+def _normalized_within_one_px(before, centre, after, warped_mean, warped_square_mean, left_mean, left_inverse_std):  # pragma: no cover
+    """The three shifts' ZNCC from their window means, as `window_stats` and
+    `zncc_scores_by_shift` compute it, operation for operation (IEEE float32). Row loops without
+    branches, the edge columns apart, so that LLVM vectorizes them."""
+    rows, cols = centre.shape
+    one, least = np.float32(1.0), np.float32(1e-8)
+    inverse_std = np.empty(cols, np.float32)
+    scores = (np.empty_like(centre), np.empty_like(centre), np.empty_like(centre))
+    for i in range(rows):
+        mean, lm, lis = warped_mean[i], left_mean[i], left_inverse_std[i]
+        for j in range(cols):
+            inverse_std[j] = one / np.sqrt(max(warped_square_mean[i, j] - mean[j] * mean[j], least))
+        for shift, products in zip((-1, 0, 1), (before, centre, after)):
+            score, product = scores[shift + 1][i], products[i]
+            first, stop = max(-shift, 0), cols - max(shift, 0)
+            for j in range(first, stop):
+                score[j] = (product[j] - lm[j] * mean[j + shift]) * lis[j] * inverse_std[j + shift]
+            if shift != 0:  # the edge column: its shifted window is its own (edges replicated)
+                j = 0 if shift < 0 else cols - 1
+                score[j] = (product[j] - lm[j] * mean[j]) * lis[j] * inverse_std[j]
+    return scores
 
 
 def peak_sigma_px(score, curvature, window_px):

@@ -81,7 +81,7 @@ def _data_term(left, left_stats, right, disparity, window_px):
     """The ZNCC parabola's peak (target disparity) and its precision 1/σ² (0 where the scores have
     no peak), from the right image warped by `disparity`."""
     warped = correlation.warp_along_rows(right, disparity)
-    before, centre, after = correlation.zncc_scores(left, left_stats, warped, window_px, 1)
+    before, centre, after = correlation.zncc_scores_within_one_px(left, left_stats, warped, window_px)
     curvature = before - 2.0 * centre + after
     peaked = (curvature < -1e-4) & (centre > 0.0)
     with np.errstate(invalid="ignore", divide="ignore"):

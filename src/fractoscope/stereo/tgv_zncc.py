@@ -25,6 +25,8 @@ Convention: disparity d at left pixel (row, col) means it matches right pixel (r
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 
 from fractoscope.stereo import correlation, semi_global, tgv_refinement, window_zncc
@@ -50,8 +52,12 @@ def match_strip(task: StripTask) -> DisparityResult:
     """Dense disparity of one strip of a rectified pair (the unit of work that replicas share)."""
     directions = window_zncc.match_directions(task)
     window_valid, _ = window_zncc.consistent(task, directions, directions.forward.disparity, directions.backward_px)
-    forward = _refined(directions.left, directions.right, directions.forward.disparity)
-    backward = _refined(directions.right, directions.left, directions.backward_px)
+    # The directions are independent, and OpenCV, numpy and the compiled kernels release the GIL,
+    # so they overlap (semi-global matching and the propagation run on one thread each).
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        forward_job = pool.submit(_refined, directions.left, directions.right, directions.forward.disparity)
+        backward = _refined(directions.right, directions.left, directions.backward_px)
+        forward = forward_job.result()
     backward_at_match = correlation.sample_along_rows(backward, forward)
     disparity = 0.5 * (forward - backward_at_match)  # the directions err independently
     difference = np.abs(forward + backward_at_match)

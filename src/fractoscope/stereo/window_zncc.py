@@ -178,7 +178,7 @@ def residual_search(left, left_stats, right, disparity, window_px, radius) -> Re
     disparity = cv2.GaussianBlur(disparity, (0, 0), window_px / 4.0)
     warped = correlation.warp_along_rows(right, disparity)
     if radius == 1:  # the full-resolution case, run most often: one compiled pass
-        return Refinement(*_peak_of_three(*correlation.zncc_scores(left, left_stats, warped, window_px, 1), disparity))
+        return Refinement(*_peak_of_three(*correlation.zncc_scores_within_one_px(left, left_stats, warped, window_px), disparity))
     # A full search at the coarsest level can span thousands of shifts: the scores come one shift
     # at a time, and only the best and its two neighbours are kept, so memory does not grow with them.
     best_index = np.zeros(left.shape, np.int32)
