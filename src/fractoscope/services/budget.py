@@ -5,7 +5,8 @@ The factors are measured peaks with headroom: a fracto-server process's VmHWM du
 call above its VmRSS before (glibc keeping freed memory, as it serves), which
 tests/services/test_budget.py checks. A height map by the default method (TGV_ZNCC: the request
 read, decoding, alignment, dense matching, the response serialized) took 156 MiB for a 512² pair,
-349 MiB for 1,024² in one strip and 281 MiB in 300,000-pixel strips, 813 MiB for 2,048², and
+349 MiB for 1,024² in one strip and 281 MiB in 300,000-pixel strips (247 MiB with its
+directions on two threads and malloc held to two arenas), 813 MiB for 2,048², and
 in-process 1,224 MB for 4,096² (estimates: 275, 500, 357, 1,091 and 2,099 MiB); WINDOW_ZNCC
 took 222 MiB for 1,024² in 300,000-pixel strips, and in-process 1,215 MB for 4,096² and
 2,098 MB for a 4,096² three-view series. Meshing took about 30 MB plus 51-60 B per height-map
