@@ -57,7 +57,7 @@ def keep_freed_memory() -> None:
     stays near its peak. Two arenas at most (glibc's default is eight per CPU): each arena keeps its
     own freed memory, and the default matcher's two directions run on threads of their own, new
     for every strip, so with the default a 1024² pair in 300,000-pixel strips peaked 442 MiB above
-    the server's start, 243 MiB with two arenas. Does nothing where the C library is not glibc."""
+    the server's start, 247 MiB with two arenas. Does nothing where the C library is not glibc."""
     try:
         libc = ctypes.CDLL("libc.so.6")
     except OSError:
