@@ -4,10 +4,11 @@ and refused (RESOURCE_EXHAUSTED naming the size) when it exceeds FRACTO_MAX_REQU
 The factors are measured peaks with headroom: a fracto-server process's VmHWM during its first
 call above its VmRSS before (glibc keeping freed memory, as it serves), which
 tests/services/test_budget.py checks. A height map by the default method (TGV_ZNCC: the request
-read, decoding, alignment, dense matching, the response serialized) took 156 MiB for a 512² pair,
-349 MiB for 1,024² in one strip and 281 MiB in 300,000-pixel strips (247 MiB with its
-directions on two threads and malloc held to two arenas), 813 MiB for 2,048², and
-in-process 1,224 MB for 4,096² (estimates: 275, 500, 357, 1,091 and 2,099 MiB); WINDOW_ZNCC
+read, decoding, alignment, dense matching with its two directions on threads of their own, the
+response serialized; malloc held to two arenas) took 160 MiB for a 512² pair, 406 MiB for 1,024²
+in one strip and 251 MiB in 300,000-pixel strips, 1,478 MiB for 2,048² in one strip, 1,039 MiB
+in 2,000,000-pixel strips (1,136 MiB on CI's machine) and 549 MiB in 500,000-pixel strips, and
+1,676 MiB for 4,096² (estimates: 310, 640, 407, 1,960, 1,454, 773 and 2,492 MiB). WINDOW_ZNCC
 took 222 MiB for 1,024² in 300,000-pixel strips, and in-process 1,215 MB for 4,096² and
 2,098 MB for a 4,096² three-view series. Meshing took about 30 MB plus 51-60 B per height-map
 pixel (1,024² to 2,048², every level).
@@ -29,8 +30,8 @@ MB = 1024 * 1024
 BASE_BYTES = 200 * MB
 # Full-image arrays per pixel and matched view (measured 50-75 B).
 HEIGHT_MAP_BYTES_PER_PIXEL = 80
-# Per pixel of the largest strip (measured 100-180 B).
-STRIP_BYTES_PER_PIXEL = 220
+# Per pixel of the largest strip, its two directions matched at once (measured 260-310 B).
+STRIP_BYTES_PER_PIXEL = 360
 # Per height-map pixel, every level of detail (measured 51-60 B).
 MESH_BYTES_PER_PIXEL = 100
 # What a built ROI keeps until its specimen is stored, per pixel: heights and texture as
