@@ -1,4 +1,5 @@
 import io
+import warnings
 
 import numpy as np
 import pytest
@@ -6,7 +7,7 @@ import tifffile
 from PIL import Image
 
 from fractoscope.errors import InvalidInputError
-from fractoscope.sem.image import detect_data_bar_rows, read_sem_image
+from fractoscope.sem.image import detect_data_bar_rows, image_shape, read_sem_image
 
 
 def _textured(rows=256, cols=300, dtype=np.uint8, seed=0):
@@ -92,3 +93,34 @@ def test_unreadable_files_raise_a_named_error(content):
     with pytest.raises(InvalidInputError) as error:
         read_sem_image(content, field="images[0].image")
     assert error.value.field == "images[0].image"
+
+
+def _tiff(pixels: np.ndarray) -> bytes:
+    buffer = io.BytesIO()
+    with warnings.catch_warnings():  # tifffile warns that a 0 x 0 page is nonconformant, as meant here
+        warnings.simplefilter("ignore")
+        tifffile.imwrite(buffer, pixels)
+    return buffer.getvalue()
+
+
+def _declaring(tag: str, value: int) -> bytes:
+    """A 64 x 64 TIFF whose header says `tag` (ImageWidth, ImageLength) is `value` (< 65536)."""
+    content = bytearray(_tiff(_textured(64, 64)))
+    with tifffile.TiffFile(io.BytesIO(bytes(content))) as tiff:
+        offset = tiff.pages.first.tags[tag].valueoffset
+    content[offset:offset + 2] = value.to_bytes(2, "little")  # a SHORT, or a LONG's low half
+    return bytes(content)
+
+
+@pytest.mark.parametrize("content", [
+    pytest.param(_tiff(np.zeros((0, 0), np.uint8)), id="0x0"),
+    pytest.param(_tiff(np.zeros((1, 100), np.uint8)), id="1x100"),
+    pytest.param(_declaring("ImageWidth", 0), id="declared width 0"),
+    pytest.param(_declaring("ImageLength", 0), id="declared height 0"),
+])
+def test_images_too_small_to_match_are_refused_by_their_header_and_when_decoded(content):
+    """The memory estimate reads the declared size before decoding; it once divided by a width of 0."""
+    for read in (image_shape, read_sem_image):
+        with pytest.raises(InvalidInputError, match="at least 32x32 pixels") as error:
+            read(content, field="images[0].image")
+        assert error.value.field == "images[0].image"

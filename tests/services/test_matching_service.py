@@ -52,6 +52,7 @@ def test_height_map_of_images_larger_than_four_mib_with_progress(client):
         ("equal tilts", "images[1].tilt_deg"),
         ("missing tilt", "images[0].tilt_deg"),
         ("unreadable image", "images[0].image"),
+        ("empty image", "images[0].image"),  # its declared 0 x 0 once divided the memory estimate by zero
         ("one image", "images"),
         ("bad pixel size", "pixel_size_um"),
     ],
@@ -69,6 +70,8 @@ def test_bad_requests_get_invalid_argument_naming_the_field(client, case, field)
         arguments.pop("tilt_deg")
     elif case == "unreadable image":
         images = [b"garbage", second]
+    elif case == "empty image":
+        images = [tiff_bytes(np.zeros((0, 0), np.uint8)), second]
     elif case == "one image":
         images = [first]
     elif case == "bad pixel size":

@@ -63,8 +63,9 @@ def read_sem_image(content: bytes, *, field: str = "image") -> SemImage:
         pixels, tilt_deg, pixel_size_um, bar_rows = _read_png(content, field), None, None, None
     else:
         pixels, tilt_deg, pixel_size_um, bar_rows = _read_tiff(content, field)
-    if pixels.ndim != 2 or min(pixels.shape) < _MIN_SIDE_PX:
-        raise InvalidInputError(field, f"expected a grey image of at least {_MIN_SIDE_PX}x{_MIN_SIDE_PX} pixels, got shape {pixels.shape}")
+    if pixels.ndim != 2:
+        raise InvalidInputError(field, f"expected a grey image, got pixels of shape {pixels.shape}")
+    _check_size(pixels.shape, field)
     if bar_rows is not None and pixels.shape[0] - bar_rows < _MIN_SIDE_PX:
         raise InvalidInputError(
             field, f"its metadata puts {pixels.shape[0] - bar_rows} of its {pixels.shape[0]} rows above the data bar (ResolutionY), "
@@ -126,7 +127,7 @@ def _read_tiff(content: bytes, field: str):
     try:
         with tifffile.TiffFile(io.BytesIO(content)) as tiff:
             page = tiff.pages.first
-            _check_size(page.shape[:2], field)
+            _check_size((page.imagelength, page.imagewidth), field)
             pixels = page.asarray()
             if page.photometric == tifffile.PHOTOMETRIC.PALETTE and page.colormap is not None:
                 pixels = _palette_to_grey(pixels, page.colormap)
@@ -148,7 +149,11 @@ def _read_tiff(content: bytes, field: str):
 
 
 def _check_size(shape, field: str) -> None:
-    rows, cols = (int(v) for v in shape[:2])
+    """InvalidInputError unless (rows, cols, ...) `shape` is at least _MIN_SIDE_PX a side and
+    within the pixel limit."""
+    rows, cols = (int(v) for v in (*shape, 1)[:2])
+    if min(rows, cols) < _MIN_SIDE_PX:
+        raise InvalidInputError(field, f"expected an image of at least {_MIN_SIDE_PX}x{_MIN_SIDE_PX} pixels, got {cols}x{rows}")
     if rows * cols > MAX_IMAGE_PIXELS:
         raise InvalidInputError(field, f"{cols}x{rows} pixels is larger than the limit of {MAX_IMAGE_PIXELS} (FRACTO_MAX_IMAGE_PIXELS)")
 
