@@ -40,9 +40,26 @@ def test_an_roi_carries_its_images_tilts_and_matching_parameters(tmp_path):
         ({"matching": None}, "manifest.rois[0].matching"),
         ({"tilt_deg": [5]}, "manifest.rois[0].tilt_deg"),
         ({"colour": "red"}, "manifest.rois[0]"),
+        ({"parent": 7}, "manifest.rois[0].parent"),  # once a TypeError from protobuf
     ],
 )
 def test_a_bad_entry_is_named(tmp_path, roi, field):
     with pytest.raises(InvalidInputError) as error:
         load_manifest(_write(tmp_path, **roi))
     assert error.value.field == field and "\n" not in str(error.value)
+
+
+@pytest.mark.parametrize(
+    "content",
+    [
+        pytest.param(b"\xff\xfe{", id="not UTF-8"),
+        pytest.param(b"[" * 30_000 + b"]" * 30_000, id="nested too deeply"),  # once a RecursionError
+        pytest.param(json.dumps({"specimen": "s", "rois": [], "comment": 1}).encode(), id="unknown key"),
+    ],
+)
+def test_a_manifest_that_is_not_one_is_named(tmp_path, content):
+    path = tmp_path / "manifest.json"
+    path.write_bytes(content)
+    with pytest.raises(InvalidInputError) as error:
+        load_manifest(path)
+    assert error.value.field == "manifest" and "\n" not in str(error.value)

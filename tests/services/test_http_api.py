@@ -120,6 +120,7 @@ def test_a_bad_upload_names_the_field_and_stores_nothing(api, input_directory):
     ({"matching": {"window_px": 4}}, "manifest.rois[0].matching.window_px"),
     ({"matching": {"max_disparity_px": 100_000}}, "manifest.rois[0].matching.max_disparity_px"),
     ({"tilt_axis_deg": 500}, "manifest.rois[0].tilt_axis_deg"),
+    ({"parent": 7}, "manifest.rois[0].parent"),  # once a TypeError from protobuf, HTTP 500
 ])
 def test_a_manifest_the_build_would_refuse_is_refused_before_a_job_is_accepted(api, input_directory, setting, field):
     """Matching parameters out of range fail the upload (400, naming the manifest's key), not a
@@ -134,6 +135,18 @@ def test_a_manifest_the_build_would_refuse_is_refused_before_a_job_is_accepted(a
         answer = requests.post(base + path, files=parts, timeout=60)
         assert answer.status_code == 400 and answer.json()["field"] == field, answer.text
     assert sorted(path.name for path in (data / "uploads").iterdir()) == before
+
+
+def test_json_nested_too_deeply_is_refused_naming_it(api, input_directory):
+    """60 kB of brackets, within the body limit: Python's JSON parser raises RecursionError, once
+    an HTTP 500."""
+    base, _ = api
+    nested = "[" * 30_000 + "]" * 30_000
+    answer = requests.post(f"{base}/api/jobs", data=nested, headers={"Content-Type": "application/json"}, timeout=30)
+    assert answer.status_code == 400 and answer.json()["field"] == "body", answer.text
+    parts = [("manifest", (None, nested, "application/json"))] + _upload_parts(input_directory, "nested")[1:]
+    answer = requests.post(f"{base}/api/uploads", files=parts, timeout=60)
+    assert answer.status_code == 400 and answer.json()["field"] == "manifest", answer.text
 
 
 def test_a_height_map_export_over_http_is_the_file_of_the_map(api):

@@ -14,7 +14,7 @@ def load_manifest(path: str | Path) -> tuple[str, list[tiles_pb2.RoiSpec]]:
     """(specimen id, ROI messages with the images' bytes); InvalidInputError names the bad entry."""
     path = Path(path)
     try:
-        text = path.read_text()
+        text = path.read_bytes()  # JSON's own decoding, whose errors parse_manifest names
     except OSError as error:
         raise InvalidInputError("manifest", f"cannot read {path}: {error.strerror}") from None
 

@@ -22,6 +22,7 @@ from google.protobuf import json_format
 from fractoscope.errors import InvalidInputError
 from fractoscope.v1 import common_pb2, tiles_pb2
 
+_MANIFEST_KEYS = {"specimen", "rois"}
 _KEYS = {"id", "left", "right", "tilt_deg", "pixel_size_um", "tilt_axis_deg", "magnification", "parent", "center_um", "matching", "level"}
 
 
@@ -32,10 +33,13 @@ def parse_manifest(text: str | bytes, read_image: Callable[[str, str], bytes], *
     messages."""
     try:
         manifest = json.loads(text)
-    except (json.JSONDecodeError, UnicodeDecodeError) as error:
+    except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as error:
         raise InvalidInputError("manifest", f"{source} is not JSON: {error}") from None
     if not isinstance(manifest, dict) or not isinstance(manifest.get("specimen"), str):
         raise InvalidInputError("manifest.specimen", "the manifest must be an object with a specimen id")
+    unknown = set(manifest) - _MANIFEST_KEYS
+    if unknown:
+        raise InvalidInputError("manifest", f"unknown keys {sorted(unknown)}; known: {sorted(_MANIFEST_KEYS)}")
     entries = manifest.get("rois")
     if not isinstance(entries, list) or not entries:
         raise InvalidInputError("manifest.rois", "must be a non-empty list")
@@ -47,7 +51,7 @@ def image_names(text: str | bytes) -> list[str]:
     that must gather them first; [] when it is not a manifest (parse_manifest says why)."""
     try:
         manifest = json.loads(text)
-    except (json.JSONDecodeError, UnicodeDecodeError):
+    except (json.JSONDecodeError, UnicodeDecodeError, RecursionError):
         return []
     entries = manifest.get("rois") if isinstance(manifest, dict) else None
     return [entry[side] for entry in entries or [] if isinstance(entry, dict) for side in ("left", "right") if isinstance(entry.get(side), str)]
@@ -63,6 +67,8 @@ def _roi(entry, index: int, read_image: Callable[[str, str], bytes]) -> tiles_pb
     for key in ("id", "left", "right"):
         if not isinstance(entry.get(key), str):
             raise InvalidInputError(f"{where}.{key}", "is required (a string)")
+    if not isinstance(entry.get("parent", ""), str):
+        raise InvalidInputError(f"{where}.parent", "must be the id of another ROI (a string)")
     tilts = entry.get("tilt_deg")
     if tilts is not None and not (isinstance(tilts, list) and len(tilts) == 2 and all(_number(t) for t in tilts)):
         raise InvalidInputError(f"{where}.tilt_deg", "must be two numbers [t1, t2]")

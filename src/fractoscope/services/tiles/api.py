@@ -372,7 +372,7 @@ async def _json_body(request: web.Request, *, limit_bytes: int) -> dict:
         raise ApiError(HTTPStatus.REQUEST_ENTITY_TOO_LARGE, f"a JSON body of at most {limit_bytes} bytes", "body")
     try:
         body = json.loads(raw)
-    except (json.JSONDecodeError, UnicodeDecodeError) as error:
+    except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as error:
         raise InvalidInputError("body", f"is not JSON: {error}") from None
     if not isinstance(body, dict):
         raise InvalidInputError("body", "must be a JSON object")
