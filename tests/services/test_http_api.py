@@ -161,6 +161,27 @@ def test_a_height_map_export_over_http_is_the_file_of_the_map(api):
     np.testing.assert_array_equal(tifffile.imread(io.BytesIO(answer.content)), z_um)
 
 
+@pytest.mark.parametrize("stored_um, form, field", [
+    (None, {"map_pixel_size_um": "1e308"}, "map_pixel_size_um"),  # once an STL of inf coordinates
+    (None, {"map_pixel_size_um": "0"}, "map_pixel_size_um"),
+    (None, {}, "map_pixel_size_um"),
+    (1e-300, {}, "height_map.pixel_size_um"),
+    ("tiff", {}, "height_map"),  # once "pickled data" from np.load
+])
+def test_a_height_map_export_over_http_checks_the_map_as_grpc_does(api, stored_um, form, field):
+    base, _ = api
+    buffer = io.BytesIO()
+    if stored_um == "tiff":
+        import tifffile
+
+        tifffile.imwrite(buffer, np.zeros((32, 32), np.float32))
+    else:
+        np.savez(buffer, z_um=np.zeros((32, 32), np.float32), **({} if stored_um is None else {"pixel_size_um": np.float64(stored_um)}))
+    files = {"height_map": ("map.npz", buffer.getvalue()), "format": (None, "stl"), **{key: (None, value) for key, value in form.items()}}
+    answer = requests.post(f"{base}/api/exports", files=files, timeout=60)
+    assert answer.status_code == 400 and answer.json()["field"] == field, answer.text
+
+
 def test_a_region_export_over_http_at_a_chosen_pixel_size_is_grpcs(api, built, tmp_path, monkeypatch):
     """GET .../export with region= and pixel_size_um=: the X3P holds the same heights as the
     Export RPC's on the 0.25 µm grid asked for, with the API's Sa after surfalize's plane; a solid

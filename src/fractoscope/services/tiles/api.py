@@ -47,6 +47,7 @@ from fractoscope.services.auth import READ, WRITE, Grant, TokenTable
 from fractoscope.services.tiles import openapi
 from fractoscope.specimen import exports, quadtree, queries
 from fractoscope.specimen.store import SpecimenStore, validate_id
+from fractoscope.stereo.geometry import validate_pixel_size_um
 from fractoscope.v1 import tiles_pb2, tiles_pb2_grpc
 
 _JSON = "application/json"
@@ -204,7 +205,10 @@ class JsonApi:
                                  limit_bytes=self.uploads.max_bytes)
         options = _export_options(form)
         z_um, sigma_um, stored = _npz_height_map(form.get("height_map"))
-        map_pixel_size_um = stored if stored is not None else _number(form, "map_pixel_size_um", minimum=0.0)
+        if stored is not None:
+            map_pixel_size_um = validate_pixel_size_um(stored, field="height_map.pixel_size_um")
+        else:
+            map_pixel_size_um = validate_pixel_size_um(_number(form, "map_pixel_size_um"), field="map_pixel_size_um")
         export_pixel_size_um = options.pop("pixel_size_um")
 
         def write(directory: Path) -> tuple[Path, str]:
@@ -440,6 +444,8 @@ def _npz_height_map(content: bytes | None) -> tuple[np.ndarray, np.ndarray | Non
     """z_um (and sigma_um, pixel_size_um if stored) of an uploaded npz, as `fracto height` writes it."""
     if not content:
         raise InvalidInputError("height_map", "is required: an .npz with z_um (as fracto height writes it)")
+    if not content.startswith(b"PK"):  # npz files are zip archives; np.load would try a pickle
+        raise InvalidInputError("height_map", "is not an npz file (a zip archive with z_um, as fracto height writes it)")
     try:
         with np.load(io.BytesIO(content), allow_pickle=False) as arrays:
             z_um = np.asarray(arrays["z_um"])
@@ -449,8 +455,6 @@ def _npz_height_map(content: bytes | None) -> tuple[np.ndarray, np.ndarray | Non
         raise InvalidInputError("height_map", f"is not an npz with z_um: {error}") from None
     if z_um.dtype.kind not in "fiu" or (sigma_um is not None and sigma_um.dtype.kind not in "fiu"):
         raise InvalidInputError("height_map", "z_um and sigma_um must be real numbers")
-    if stored is not None and not (math.isfinite(stored) and stored > 0):
-        raise InvalidInputError("height_map", f"stores pixel_size_um {stored}, which is not positive")
     return z_um, sigma_um, stored
 
 
