@@ -113,6 +113,15 @@ def test_a_bad_strip_gets_invalid_argument_naming_the_field(peers, change, field
     assert error.value.code == grpc.StatusCode.INVALID_ARGUMENT and error.value.field == field
 
 
+def test_a_strip_searched_across_its_whole_width_is_matched(peers):
+    """max_disparity_px may be the strip's width; semi-global matching, which cannot search that
+    far, once failed the call with INTERNAL."""
+    pair = fracture_pair(size_px=128)
+    task = StripTask(pair.first.astype(np.float32), pair.second.astype(np.float32), 15, 128, 0.5, 1.0)
+    result, _ = peers.match_strip(task, timeout_s=120)
+    assert np.isfinite(result.disparity_px).mean() > 0.5
+
+
 def test_a_raster_that_holds_fewer_bytes_than_it_declares_is_invalid_not_too_large(server_address):
     """65536 x 65536 declared with 64 KiB of data: the memory estimate, which trusts the declared
     size, once answered RESOURCE_EXHAUSTED (880 GiB) for what is a malformed request."""

@@ -29,6 +29,18 @@ def test_sgbm_disparity_follows_our_convention(shift_px):
     assert np.nanmedian(inner) == pytest.approx(shift_px, abs=0.25)
 
 
+@pytest.mark.parametrize("min_px, max_px", [(-125, 5), (-200, -150)])
+def test_a_search_as_wide_as_the_image_is_cut_to_what_opencv_can_score(min_px, max_px):
+    """OpenCV refuses a search that leaves no block inside the image (a 128 px strip searched to
+    ±128 px came back INTERNAL from MatchStrip): what is left of it is searched."""
+    left = _grey(_texture((64, 128), seed=1))
+    right = np.roll(left, -9, axis=1)
+    disparity = sgbm_disparity(left, right, min_px=min_px, max_px=max_px, block_px=5)
+    assert disparity.shape == left.shape
+    found = disparity[np.isfinite(disparity)]
+    assert np.all((found >= min_px - 16) & (found <= max_px))
+
+
 def test_the_seed_places_a_step_where_the_pixels_put_it():
     rows, cols, step_col = 200, 320, 160
     near_px, far_px = 10, 2  # the left plane is nearer: it hides the right one's first 8 px

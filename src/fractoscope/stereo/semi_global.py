@@ -45,10 +45,14 @@ def sgbm_disparity(
     mode: int = cv2.STEREO_SGBM_MODE_SGBM, uniqueness_percent: int = 10, speckle_pixels: int = 0, speckle_range_px: int = 0,
 ) -> np.ndarray:
     """StereoSGBM's disparities of a rectified uint8 pair (rows, cols each) searched over at least
-    [min_px, max_px], with P1 = 8 w² and P2 = 32 w² for blocks of w = `block_px` and its
+    [min_px, max_px] (less the shifts that leave no block inside the image), with P1 = 8 w² and P2 = 32 w² for blocks of w = `block_px` and its
     left-right check within 1 px; (rows, cols) float32 px, NaN where it gives none."""
     lowest = int(np.floor(-max_px))  # OpenCV's disparity is x_left - x_right, our -d
     count = 16 * int(np.ceil((int(np.ceil(-min_px)) - lowest + 1) / 16))
+    # OpenCV needs width - (lowest + count) > block_px // 2.
+    count = min(count, 16 * ((left_u8.shape[1] - block_px // 2 - 1 - lowest) // 16))
+    if count < 16:
+        return np.full(left_u8.shape, np.nan, np.float32)
     matcher = cv2.StereoSGBM_create(
         minDisparity=lowest, numDisparities=count, blockSize=block_px, P1=8 * block_px**2, P2=32 * block_px**2,
         uniquenessRatio=uniqueness_percent, disp12MaxDiff=1, speckleWindowSize=speckle_pixels, speckleRange=speckle_range_px, mode=mode,
