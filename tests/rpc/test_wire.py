@@ -146,6 +146,11 @@ def test_mesh_requests_decode_to_their_options_arrays_and_origin():
     np.testing.assert_array_equal(sigma_um, z_um / 10)
     np.testing.assert_array_equal(decoded_texture, np.arange(12, dtype=np.uint8).reshape(3, 4))  # 16-bit grey to 8-bit
     assert pixel_size_um == 0.5 and rpc_meshing.origin_from_request(request) == (1.0, 2.0)
+    for far_um in (float("nan"), 1e40):  # 1e40 once overflowed the GLB's float32 bounds: INTERNAL
+        far = meshing_pb2.BuildMeshRequest(origin_um={"x_um": far_um})
+        with pytest.raises(InvalidInputError) as error:
+            rpc_meshing.origin_from_request(far)
+        assert error.value.field == "origin_um"
     request.max_slope = -1
     with pytest.raises(InvalidInputError) as error:
         rpc_meshing.options_from_request(request)

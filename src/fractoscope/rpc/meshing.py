@@ -3,6 +3,8 @@ and arrays, encoded tiles and filter reports to responses."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from fractoscope.errors import InvalidInputError
@@ -76,10 +78,15 @@ def height_map_arrays(height_map: common_pb2.HeightMap, *, field: str = "height_
     return z_um, texture, pixel_size_um, sigma_um
 
 
+# GLB positions are float32 and offset by the origin: beyond a metre they lose the map's detail
+# (float32 resolves 0.06 µm there), and far beyond it they overflow.
+MAX_ORIGIN_UM = 1e6
+
+
 def origin_from_request(request: meshing_pb2.BuildMeshRequest) -> tuple[float, float]:
     origin_um = (request.origin_um.x_um, request.origin_um.y_um)
-    if not np.all(np.isfinite(origin_um)):
-        _invalid("origin_um", "must be finite")
+    if not all(math.isfinite(value) and abs(value) <= MAX_ORIGIN_UM for value in origin_um):
+        _invalid("origin_um", f"must be finite and within ±{MAX_ORIGIN_UM:g} µm (a metre), got {origin_um}")
     return origin_um
 
 
