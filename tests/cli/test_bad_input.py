@@ -207,6 +207,26 @@ def test_height_outputs_are_checked_before_any_matching(capsys, tmp_path, monkey
     assert {path.name: path.read_bytes() for path in tmp_path.iterdir()} == before
 
 
+_PROFILE = ["profile", "s", "--from", "0,0", "--to", "1,1"]
+
+
+@pytest.mark.parametrize("argv, flag", [
+    ([*_PROFILE, "-o", "p.txt"], "-o"), ([*_PROFILE, "-o", "."], "-o"),  # "." once gave [Errno 21]
+    ([*_PROFILE, "-o", "p.csv", "--plot", "p.exe"], "--plot"),  # once matplotlib's traceback, after the CSV
+    (["export", "map.npz", "-o", "missing/map.x3p"], "-o"),  # once made the folders
+    (["export", "map.npz", "-o", "map.npz"], "-o"), (["report", "s", "-o", "r.pdf"], "-o"),
+    (["report", "s", "-o", "r.html", "--pdf", "missing/r.pdf"], "--pdf"),
+    (["mesh", "map.npz", "-o", "map.npz"], "-o"), (["tiles", "s", "-o", "map.npz/tiles"], "-o"),  # once [Errno 20]
+])
+def test_outputs_of_every_command_are_checked_before_any_work(capsys, tmp_path, monkeypatch, argv, flag):
+    monkeypatch.chdir(tmp_path)
+    _height_map(tmp_path / "map.npz", _noise())
+    before = {path.name: path.read_bytes() for path in tmp_path.iterdir()}
+    code, _, err = _fracto(capsys, *argv, *(["--data", "data"] if argv[0] != "mesh" else []))
+    assert code == 2 and _one_error_line(err).startswith(f"error: {flag}: ")
+    assert {path.name: path.read_bytes() for path in tmp_path.iterdir()} == before
+
+
 @pytest.mark.parametrize("second", ["constant", "noise"])
 def test_a_pair_that_shares_nothing_is_refused_naming_the_second_image(capsys, tmp_path, second):
     """No pixel of a constant or a noise image matches a textured one: an empty map is not a

@@ -82,6 +82,10 @@ def existing_file(text: str) -> Path:
     return path
 
 
+# What a picture flag (--png, --plot) may write: matplotlib's raster and vector formats.
+PICTURE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".pdf", ".svg")
+
+
 def output_file(text: str, flag: str, *, suffixes: tuple[str, ...], inputs: tuple[Path, ...] = ()) -> Path:
     """The path a flag names for a file to write, checked before any work: a name ending in one of
     `suffixes` (lower case), in an existing folder, and none of `inputs` (UsageError naming the
@@ -95,6 +99,16 @@ def output_file(text: str, flag: str, *, suffixes: tuple[str, ...], inputs: tupl
         raise UsageError(f"{flag}: no folder {path.parent} to write {path.name} into")
     if any(path.exists() and path.samefile(given) for given in inputs):
         raise UsageError(f"{flag}: {text} is one of the inputs; it would be overwritten")
+    return path
+
+
+def output_folder(text: str, flag: str) -> Path:
+    """The folder a flag names for files to write (made as they are written), checked before any
+    work: UsageError naming the flag if it, or the nearest existing folder above it, is a file."""
+    path = Path(text)
+    existing = next(candidate for candidate in (path, *path.absolute().parents) if candidate.exists())
+    if not existing.is_dir():
+        raise UsageError(f"{flag}: {existing} is a file, not a folder to write into")
     return path
 
 

@@ -6,9 +6,11 @@ from __future__ import annotations
 from pathlib import Path
 
 from fractoscope.cli.common import (
-    SERVER_HELP, UsageError, connected, existing_file, given_pixel_size_um, print_json, recorded_pixel_size_um, region_argument,
+    SERVER_HELP, UsageError, connected, existing_file, given_pixel_size_um, output_file, print_json, recorded_pixel_size_um,
+    region_argument,
 )
 from fractoscope.formats.height_npz import read_height_npz
+from fractoscope.rpc import wire
 
 
 def add_parsers(commands) -> None:
@@ -30,8 +32,8 @@ def add_parsers(commands) -> None:
 
 
 def command_export(args) -> int:
-    out = Path(args.output)
-    out.parent.mkdir(parents=True, exist_ok=True)
+    out = output_file(args.output, "-o", suffixes=(*(f".{name}" for name in wire.EXPORT_FORMATS), ".tiff"),
+                      inputs=(Path(args.source),) if args.source.lower().endswith(".npz") else ())
     options = {"solid": args.solid, "units": args.units}
     given_pixel_size_um(args.pixel_size_um)
     if args.source.lower().endswith(".npz"):

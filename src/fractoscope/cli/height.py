@@ -9,17 +9,13 @@ from pathlib import Path
 
 import numpy as np
 
-from fractoscope.cli.common import SERVER_HELP, UsageError, connected, err, existing_file, output_file, print_json, progress_bar
+from fractoscope.cli.common import PICTURE_SUFFIXES, SERVER_HELP, UsageError, connected, err, existing_file, output_file, print_json, progress_bar
 from fractoscope.client import FractoscopeClient, HeightMap
 from fractoscope.formats.calibration import Calibration
 from fractoscope.formats.height_npz import write_height_npz
 from fractoscope.sem.image import read_sem_image
 from fractoscope.stereo import geometry
 from fractoscope.surface import datum
-
-# What --png may write (matplotlib's raster and vector formats).
-_PICTURE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".pdf", ".svg")
-
 
 def add_parsers(commands) -> None:
     height = commands.add_parser("height", help="height map of a stereo pair or a tilt series")
@@ -107,7 +103,7 @@ def compute_height(client: FractoscopeClient, args, quiet: bool) -> HeightMap:
 def command_height(args) -> int:
     inputs = tuple(Path(image) for image in args.images if Path(image).is_file())
     out = output_file(args.output, "-o", suffixes=(".npz",), inputs=inputs)
-    picture = output_file(args.png, "--png", suffixes=_PICTURE_SUFFIXES, inputs=(*inputs, out)) if args.png else None
+    picture = output_file(args.png, "--png", suffixes=PICTURE_SUFFIXES, inputs=(*inputs, out)) if args.png else None
     with connected(args.server) as client:
         result = compute_height(client, args, quiet=args.json)
     for warning in result.report.get("warnings", []):

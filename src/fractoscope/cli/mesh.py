@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from fractoscope.cli.common import SERVER_HELP, UsageError, connected, err, existing_file, print_json, progress_bar
+from fractoscope.cli.common import SERVER_HELP, UsageError, connected, err, existing_file, output_folder, print_json, progress_bar
 from fractoscope.formats.height_npz import read_height_npz
 from fractoscope.sem.image import read_sem_image
 from fractoscope.v1 import meshing_pb2
@@ -30,6 +30,7 @@ def add_parsers(commands) -> None:
 
 
 def command_mesh(args) -> int:
+    out = output_folder(args.output, "-o")
     heights = read_height_npz(existing_file(args.heights), field=args.heights)
     z_um = heights.z_um
     pixel_size_um = args.pixel_size_um if args.pixel_size_um is not None else heights.pixel_size_um
@@ -48,7 +49,7 @@ def command_mesh(args) -> int:
             z_um, texture, pixel_size_um=pixel_size_um, method=method, level_count=args.levels, on_progress=advance,
             plain_glb=args.plain_glb, max_slope=max_slope, sigma_um=heights.local_sigma_um if max_slope else None,
         )
-    write_tiles(tiles, Path(args.output))
+    write_tiles(tiles, out)
     levels = sorted({tile.level for tile in tiles})
     summary = {
         "output": args.output,

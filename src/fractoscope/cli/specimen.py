@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 
 from fractoscope.cli.common import (
-    SERVER_HELP, UsageError, connected, err, existing_file, given_pixel_size_um, print_json, progress_bar, recorded_pixel_size_um,
-    region_argument,
+    PICTURE_SUFFIXES, SERVER_HELP, UsageError, connected, err, existing_file, given_pixel_size_um, output_file, output_folder,
+    print_json, progress_bar, recorded_pixel_size_um, region_argument,
 )
 from fractoscope.client.manifest import load_manifest
 from fractoscope.formats.tileset import content_uris
@@ -43,7 +43,7 @@ def add_parsers(commands) -> None:
     profile.add_argument("--s-filter-um", type=float, help="S-filter cut-off lambda_s, µm (default: ISO 21920-3 for the length; 0: none)")
     profile.add_argument("--l-filter-um", type=float, help="L-filter cut-off lambda_c, µm (default: ISO 21920-3 for the length; 0: none)")
     profile.add_argument("-o", "--output", required=True, help="CSV with distance_um,z_um,source")
-    profile.add_argument("--plot", help="also write a PNG plot of the profile")
+    profile.add_argument("--plot", help="also write a plot of the profile (.png, .pdf, .svg, ...)")
 
     rough = specimen_command(
         "roughness", "ISO 25178 roughness (form removal, S- and L-filters, parameters with uncertainties) and fracture metrics "
@@ -114,19 +114,19 @@ def _pair(text: str) -> tuple[float, float]:
 
 
 def command_profile(args) -> int:
+    out = output_file(args.output, "-o", suffixes=(".csv",))
+    picture = output_file(args.plot, "--plot", suffixes=PICTURE_SUFFIXES, inputs=(out,)) if args.plot else None
     with connected(args.server, args.data) as client:
         result = client.profile(
             args.specimen, [args.start, args.end], spacing_um=args.spacing_um, magnification=args.magnification,
             form=args.form, s_filter_um=args.s_filter_um, l_filter_um=args.l_filter_um,
         )  # fmt: skip
-    out = Path(args.output)
-    out.parent.mkdir(parents=True, exist_ok=True)
     with out.open("w") as csv:
         csv.write("distance_um,z_um,source\n")
         for d, z, source in zip(result.distance_um, result.z_um, result.source):
             csv.write(f"{d:.6g},{'' if np.isnan(z) else f'{z:.6g}'},{source}\n")
-    if args.plot:
-        plot_profile(result, Path(args.plot), title=f"{args.specimen}: {args.start} to {args.end} µm")
+    if picture:
+        plot_profile(result, picture, title=f"{args.specimen}: {args.start} to {args.end} µm")
     if args.json:
         print_json({"output": str(out), "samples": len(result.z_um), **result.parameters, "chain": result.chain})
     else:
@@ -153,7 +153,6 @@ def plot_profile(result, path: Path, *, title: str) -> None:
     axes.set_ylabel("height (µm)")
     axes.set_title(title)
     axes.legend(title="ROI")
-    path.parent.mkdir(parents=True, exist_ok=True)
     figure.savefig(path, dpi=120)
     plt.close(figure)
 
@@ -243,7 +242,7 @@ def command_zoom(args) -> int:
 
 
 def command_tiles(args) -> int:
-    out = Path(args.output)
+    out = output_folder(args.output, "-o")
     with connected(args.server, args.data) as client:
         tileset = client.get_tileset(args.specimen)
         uris = content_uris(tileset)
@@ -273,11 +272,9 @@ def command_list(args) -> int:
 
 
 def command_report(args) -> int:
-    outputs = [Path(args.output)] + ([Path(args.pdf)] if args.pdf else [])
-    for path, suffix in zip(outputs, (".html", ".pdf")):
-        if path.suffix.lower() != suffix:
-            raise UsageError(f"{'-o' if suffix == '.html' else '--pdf'}: {path} must end in {suffix}")
-        path.parent.mkdir(parents=True, exist_ok=True)
+    outputs = [output_file(args.output, "-o", suffixes=(".html",))]
+    if args.pdf:
+        outputs.append(output_file(args.pdf, "--pdf", suffixes=(".pdf",)))
     with connected(args.server, args.data) as client:
         for path in outputs:
             client.report(args.specimen, path, roi=args.roi, region_um=args.region)
