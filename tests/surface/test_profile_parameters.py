@@ -92,3 +92,20 @@ def test_a_given_lambda_c_gets_the_lambda_s_paired_with_it():
     z = np.sin(2 * np.pi * x / 1.3) + 0.1 * np.sin(2 * np.pi * x / 0.11)
     made = profile_parameters.roughness_profile(z, spacing_um=0.02, lambda_c_um=2.5)
     assert made.lambda_s_um == pytest.approx(0.08)  # 2.5 µm with 0.08 µm, as the series pairs them (not the 200 µm length's default, 25 µm with 0.8)
+
+
+def test_unknown_ends_are_not_part_of_the_evaluation_length():
+    """A line drawn past the data (256 measured samples, then 600 unknown) once took its default
+    cut-offs from the whole line: lambda_c 8 instead of 2.5 µm, and Rq 4 times as large."""
+    rng = np.random.default_rng(4)
+    spacing_um = 0.1
+    x_um = np.arange(256) * spacing_um
+    measured = 0.3 * x_um + 0.5 * np.sin(2 * np.pi * x_um / 6.0) + 0.05 * rng.normal(size=x_um.size)
+    alone = profile_parameters.roughness_profile(measured, spacing_um=spacing_um)
+    drawn = profile_parameters.roughness_profile(np.concatenate([np.full(40, np.nan), measured, np.full(600, np.nan)]), spacing_um=spacing_um)
+    assert (drawn.lambda_c_um, drawn.lambda_s_um) == (alone.lambda_c_um, alone.lambda_s_um) == (2.5, 0.0)
+    np.testing.assert_allclose(drawn.r_um[40:296], alone.r_um)
+    assert np.isnan(drawn.r_um[:40]).all() and np.isnan(drawn.r_um[296:]).all()
+    figures = profile_parameters.profile_parameters(drawn.r_um, spacing_um=spacing_um)
+    for name, value in profile_parameters.profile_parameters(alone.r_um, spacing_um=spacing_um).items():
+        assert figures[name] == pytest.approx(value, nan_ok=True), name

@@ -49,10 +49,13 @@ def roughness_profile(
 ) -> RoughnessProfile:
     """Primary profile -> roughness profile: remove the form (default the least-squares line, ISO
     21920-3's F-operator; "none" keeps it), apply the S-filter (lambda_s) and subtract the
-    L-filter's mean line (lambda_c). A cut-off of None is the ISO 21920-3 default for the profile's
-    evaluation length (its whole length; with lambda_c given, lambda_s is the one paired with it),
-    0 leaves that filter out."""
-    z = _validated(z_um, spacing_um)
+    L-filter's mean line (lambda_c). The evaluation length is the measured one, from the first
+    known height to the last (unknown ends stay NaN). A cut-off of None is the ISO 21920-3 default
+    for that length (with lambda_c given, lambda_s is the one paired with it), 0 leaves that
+    filter out."""
+    profile = _validated(z_um, spacing_um)
+    span = _measured_span(profile)
+    z = profile[span]
     defaults = iso_filters.default_profile_cutoffs(spacing_um * (z.size - 1), spacing_um=spacing_um)
     lambda_c = defaults.lambda_c_um if lambda_c_um is None else float(lambda_c_um)
     lambda_s = defaults.lambda_s_um if lambda_s_um is None else float(lambda_s_um)
@@ -67,7 +70,9 @@ def roughness_profile(
     smoothed = iso_filters.gaussian_mean_line(primary, spacing_um=spacing_um, cutoff_um=lambda_s) if lambda_s else primary
     if lambda_c:
         smoothed = smoothed - iso_filters.gaussian_mean_line(smoothed, spacing_um=spacing_um, cutoff_um=lambda_c)
-    return RoughnessProfile(r_um=smoothed, form=form, lambda_s_um=lambda_s, lambda_c_um=lambda_c, cutoffs=defaults)
+    r_um = np.full(profile.shape, np.nan)
+    r_um[span] = smoothed
+    return RoughnessProfile(r_um=r_um, form=form, lambda_s_um=lambda_s, lambda_c_um=lambda_c, cutoffs=defaults)
 
 
 def _validated(z_um: np.ndarray, spacing_um: float) -> np.ndarray:
@@ -79,6 +84,13 @@ def _validated(z_um: np.ndarray, spacing_um: float) -> np.ndarray:
     return z
 
 
+def _measured_span(z: np.ndarray) -> slice:
+    """From the first finite height of `z` to the last: a line drawn past the data ends in NaN,
+    which is not part of the evaluation length."""
+    known = np.flatnonzero(np.isfinite(z))
+    return slice(int(known[0]), int(known[-1]) + 1)
+
+
 def profile_parameters(z_um: np.ndarray, *, spacing_um: float, sections: int = SECTIONS) -> dict[str, float]:
     """ISO 21920-2 parameters of a roughness (or primary) profile, about its mean line (see ``UNITS``).
 
@@ -88,9 +100,11 @@ def profile_parameters(z_um: np.ndarray, *, spacing_um: float, sections: int = S
     (z[i+3] - 9 z[i+2] + 45 z[i+1] - 45 z[i-1] + 9 z[i-2] - z[i-3]) / (60 dx). RSm is the mean width
     of the profile elements (a peak above and a valley below the mean line, each at least 10 % of Rz
     high; narrower than 1 % of a section they join their neighbour). The Rk family comes from the
-    material ratio curve exactly as the areal Sk family (ISO 21920-2 / ISO 13565-2).
+    material ratio curve exactly as the areal Sk family (ISO 21920-2 / ISO 13565-2). Unknown
+    heights (NaN) at the ends are not part of the evaluation length.
     """
     z = _validated(z_um, spacing_um)
+    z = z[_measured_span(z)]
     if sections < 1 or sections > z.size // 2:
         raise ValueError(f"sections must be between 1 and {z.size // 2}")
     known = np.isfinite(z)
