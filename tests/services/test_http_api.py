@@ -149,6 +149,44 @@ def test_json_nested_too_deeply_is_refused_naming_it(api, input_directory):
     assert answer.status_code == 400 and answer.json()["field"] == "manifest", answer.text
 
 
+def test_analyses_have_threads_of_their_own_and_too_many_get_429(built, monkeypatch):
+    """With the one analysis thread held and no queue, another analysis gets 429 at once while
+    lookups and tiles are answered; twelve roughness queries once held a specimen lookup for 77 s."""
+    import concurrent.futures
+    import threading
+
+    from fractoscope.specimen import queries
+
+    _, _, data, _ = built
+    release, started = threading.Event(), threading.Event()
+    statistics = queries.height_statistics
+
+    def held(*args, **kwargs):
+        started.set()
+        release.wait(timeout=120)
+        return statistics(*args, **kwargs)
+
+    monkeypatch.setattr(queries, "height_statistics", held)
+    endpoint = start_http_server(SpecimenStore(data), analysis_workers=1, queued_analyses=0)
+    base = f"http://127.0.0.1:{endpoint.server_port}"
+    specimen = requests.get(f"{base}/api/specimens", timeout=30).json()[0]["id"]
+    heights = f"{base}/api/specimens/{specimen}/heights?region=0,0,10,10"
+    try:
+        with concurrent.futures.ThreadPoolExecutor(1) as caller:
+            running = caller.submit(requests.get, heights, timeout=120)
+            assert started.wait(timeout=60)
+            refused = requests.get(heights, timeout=30)
+            assert refused.status_code == 429 and refused.headers["Retry-After"] and refused.json()["field"] is None
+            assert requests.get(f"{base}/api/specimens/{specimen}", timeout=30).status_code == 200
+            assert requests.get(f"{base}/specimens/{specimen}/tileset.json", timeout=30).status_code == 200
+            assert not running.done()
+            release.set()
+            assert running.result().status_code == 200
+    finally:
+        release.set()
+        endpoint.shutdown()
+
+
 def test_a_height_map_export_over_http_is_the_file_of_the_map(api):
     base, _ = api
     z_um = np.arange(48 * 64, dtype=np.float32).reshape(48, 64) / 100

@@ -15,6 +15,7 @@ import asyncio
 import io
 import json
 import math
+import os
 import re
 import shutil
 import tempfile
@@ -55,6 +56,9 @@ _CORS = {"Access-Control-Allow-Origin": "*", "Access-Control-Expose-Headers": "E
 _FILE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,127}")
 _CHUNK_BYTES = 1 << 20
 DEFAULT_MAX_UPLOAD_BYTES = 512 * 1024 * 1024
+# Analyses at once (CPU-bound: one per CPU) and waiting before 429.
+_ANALYSIS_WORKERS = len(os.sched_getaffinity(0))
+_QUEUED_ANALYSES = 16
 
 
 class ApiError(Exception):
@@ -95,11 +99,13 @@ class JsonApi:
     to (None: builds are refused with 503); uploads are kept under `uploads_root`."""
 
     def __init__(self, store: SpecimenStore, tokens: TokenTable, *, grpc_address: str | None, uploads_root: Path,
-                 max_upload_bytes: int = DEFAULT_MAX_UPLOAD_BYTES, build_workers: int = 2, queued_builds: int = 8):
+                 max_upload_bytes: int = DEFAULT_MAX_UPLOAD_BYTES, build_workers: int = 2, queued_builds: int = 8,
+                 analysis_workers: int = _ANALYSIS_WORKERS, queued_analyses: int = _QUEUED_ANALYSES):
         self.store = store
         self.tokens = tokens
         self.uploads = Uploads(uploads_root, max_upload_bytes)
         self.jobs = BuildJobs(grpc_address, workers=build_workers, queue_limit=queued_builds)
+        self.analyses = Analyses(workers=analysis_workers, queue_limit=queued_analyses)
 
     async def handle(self, request: web.Request) -> web.StreamResponse:
         try:
@@ -147,7 +153,7 @@ class JsonApi:
             analysis = queries.roughness_of(specimen, roi=area["roi"] or None, region_um=area["region_um"], chain=chain)
             return wire.response_to_roughness(roughness_response(analysis, chain))
 
-        return _json(await _off_loop(answer))
+        return _json(await self.analyses.run(answer))
 
     async def profile(self, request, match, grant):
         query = _parameters(request, {"from", "to", "magnification", "spacing_um", *PROFILE_CHAIN_PARAMETERS})
@@ -169,11 +175,11 @@ class JsonApi:
                           "spacing_within_iso": response.spacing_within_iso} if found.roughness else None,
             }  # fmt: skip
 
-        return _json(await _off_loop(answer))
+        return _json(await self.analyses.run(answer))
 
     async def heights(self, request, match, grant):
         region = _numbers(_parameters(request, {"region"}), "region", 4)
-        return _json(await _off_loop(lambda: queries.height_statistics(self._specimen(match), region)))
+        return _json(await self.analyses.run(lambda: queries.height_statistics(self._specimen(match), region)))
 
     async def zoom(self, request, match, grant):
         query = _parameters(request, {"region", "magnification"})
@@ -197,7 +203,7 @@ class JsonApi:
             exported = exports.export_area(self._specimen(match), directory, **area, **options)
             return exported.path, MEDIA_TYPES[exported.file_format]
 
-        return await _file_response(request, write)
+        return await _file_response(request, self.analyses.run, write)
 
     async def export_height_map(self, request, match, grant):
         _parameters(request, set())
@@ -216,7 +222,7 @@ class JsonApi:
                                                  export_pixel_size_um=export_pixel_size_um, **options)
             return exported.path, MEDIA_TYPES[exported.file_format]
 
-        return await _file_response(request, write)
+        return await _file_response(request, self.analyses.run, write)
 
     async def report(self, request, match, grant):
         query = _parameters(request, {"format", "roi", "region"})
@@ -227,7 +233,7 @@ class JsonApi:
             path = report.write_report(self._specimen(match), directory, file_format=file_format, **area)
             return path, report.MEDIA_TYPES[file_format]
 
-        return await _file_response(request, write)
+        return await _file_response(request, self.analyses.run, write)
 
     async def upload(self, request, match, grant):
         _parameters(request, set())
@@ -475,12 +481,13 @@ def json_error(status: HTTPStatus, message: str, field: str | None, **headers: s
     return _json({"error": message, "field": field}, status=status, **headers)
 
 
-async def _file_response(request: web.Request, write: Callable[[Path], tuple[Path, str]]) -> web.StreamResponse:
-    """A file written by `write(directory)` (off the event loop, into a temporary folder) and
-    streamed out in chunks, so memory stays bounded; the folder goes once it is sent."""
+async def _file_response(request: web.Request, run, write: Callable[[Path], tuple[Path, str]]) -> web.StreamResponse:
+    """A file written by `write(directory)` (on threads by `await run(function, *args)`, into a
+    temporary folder) and streamed out in chunks, so memory stays bounded; the folder goes once it
+    is sent."""
     directory = Path(tempfile.mkdtemp(prefix="fractoscope-http-"))
     try:
-        path, media_type = await _off_loop(write, directory)
+        path, media_type = await run(write, directory)
         response = web.StreamResponse(headers={
             **_CORS, "Content-Type": media_type, "Content-Length": str(path.stat().st_size), "Cache-Control": "no-store",
             "Content-Disposition": f'attachment; filename="{path.name}"',
@@ -614,6 +621,33 @@ class Job:
             "created": _iso(self.created_s), "finished": _iso(self.finished_s) if self.finished_s else None,
             "specimen": self.specimen, "error": self.error,
         }
+
+
+class Analyses:
+    """The API's analyses (roughness, profiles, height statistics, exports, reports) on `workers`
+    threads of their own, so lookups, jobs and the viewer's tiles never wait behind them (twelve
+    roughness queries at once once held a specimen lookup for 77 s); more than `queue_limit`
+    waiting get 429. Used from the event loop's thread only."""
+
+    def __init__(self, *, workers: int, queue_limit: int):
+        self.limit = workers + queue_limit
+        self._pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="fractoscope-http-analysis")
+        self._under_way = 0
+
+    async def run(self, function, *args):
+        """`function(*args)` on the analysis threads, or 429 when `limit` are under way."""
+        if self._under_way >= self.limit:
+            raise ApiError(HTTPStatus.TOO_MANY_REQUESTS, f"{self._under_way} analyses are running or waiting; retry later", None,
+                           **{"Retry-After": "5"})
+        self._under_way += 1
+        try:
+            return await asyncio.get_running_loop().run_in_executor(self._pool, function, *args)
+        finally:
+            self._under_way -= 1
+
+    def close(self) -> None:
+        """Waiting analyses never start; returns once running ones end."""
+        self._pool.shutdown(wait=True, cancel_futures=True)
 
 
 class BuildJobs:

@@ -210,6 +210,7 @@ class HttpTileServer:
         """Stops serving: open connections are closed, the loop and its thread end."""
         asyncio.run_coroutine_threadsafe(self._runner.cleanup(), self._loop).result(timeout=30)
         self._api.jobs.close()
+        self._api.analyses.close()
         self._loop.call_soon_threadsafe(self._loop.stop)
         self._thread.join(timeout=30)
         self._loop.close()
@@ -217,13 +218,16 @@ class HttpTileServer:
 
 def start_http_server(
     store: SpecimenStore, host: str = "127.0.0.1", port: int = 0, *, tokens: TokenTable | None = None, grpc_address: str | None = None,
-    max_upload_bytes: int = DEFAULT_MAX_UPLOAD_BYTES,
+    max_upload_bytes: int = DEFAULT_MAX_UPLOAD_BYTES, analysis_workers: int | None = None, queued_analyses: int | None = None,
 ) -> HttpTileServer:
     """Serves the store's tilesets, the viewer and the JSON API over HTTP from a daemon thread;
     `server_port` is the bound port. With `tokens`, everything but the viewer's static files and
     the OpenAPI document needs a bearer token, and the API's builds a write token. Builds go to the
     gRPC endpoint at `grpc_address` (None: the API refuses them); uploads are kept next to the
-    specimens (DATA/uploads), at most `max_upload_bytes` each."""
+    specimens (DATA/uploads), at most `max_upload_bytes` each. Analyses run `analysis_workers` at
+    a time with `queued_analyses` waiting (default: one per CPU, 16; see api.Analyses)."""
     tokens = tokens or TokenTable({})
-    api = JsonApi(store, tokens, grpc_address=grpc_address, uploads_root=store.root.parent / "uploads", max_upload_bytes=max_upload_bytes)
+    analyses = {key: value for key, value in (("analysis_workers", analysis_workers), ("queued_analyses", queued_analyses)) if value is not None}
+    api = JsonApi(store, tokens, grpc_address=grpc_address, uploads_root=store.root.parent / "uploads", max_upload_bytes=max_upload_bytes,
+                  **analyses)
     return HttpTileServer(store, host, port, tokens, api)

@@ -95,10 +95,14 @@ def document() -> dict:
     }
 
 
-def _specimen_get(operation_id: str, summary: str, parameters: list, ok: dict) -> dict:
-    """A GET on a specimen: its id in the path, `parameters` in the query."""
+_BUSY = {"429": "Too many analyses are running or waiting; retry after Retry-After seconds."}
+
+
+def _specimen_get(operation_id: str, summary: str, parameters: list, ok: dict, *, analysis: bool = False) -> dict:
+    """A GET on a specimen: its id in the path, `parameters` in the query; an `analysis` runs on
+    the analysis threads (429 when too many wait)."""
     return {"get": {"operationId": operation_id, "summary": summary, "parameters": [_SPECIMEN_ID, *parameters],
-                    "responses": ok | _error_responses("400", "401", "404")}}
+                    "responses": ok | _error_responses("400", "401", "404", **(_BUSY if analysis else {}))}}
 
 
 def _paths() -> dict:
@@ -114,7 +118,7 @@ def _paths() -> dict:
         "/api/specimens/{specimen_id}/roughness": _specimen_get(
             "getRoughness", "The ISO 25178 chain (form removal, S- and L-filters): every ISO 25178-2 parameter with its "
             "uncertainty, Hurst exponents by h(r) and PSD along and across a direction, the areal PSD, the chain used.",
-            [_ROI, _AREA_REGION, *_CHAIN], _json_ok("The parameters by ISO name, the fits and the chain.", "Roughness")),
+            [_ROI, _AREA_REGION, *_CHAIN], _json_ok("The parameters by ISO name, the fits and the chain.", "Roughness"), analysis=True),
         "/api/specimens/{specimen_id}/profile": _specimen_get(
             "getProfile", "The fused surface along a line; its roughness profile (form removed, ISO 21920-3 S- and L-filters) "
             "and ISO 21920-2 parameters.", [
@@ -123,11 +127,11 @@ def _paths() -> dict:
                 _query("magnification", "Sample at this magnification (default: the finest data).", {"type": "number", "minimum": 0}),
                 _query("spacing_um", "Sample spacing, µm (default: the pixel size used).", {"type": "number", "minimum": 0}),
                 *_CHAIN[:3],
-            ], _json_ok("The profile.", "Profile")),
+            ], _json_ok("The profile.", "Profile"), analysis=True),
         "/api/specimens/{specimen_id}/heights": _specimen_get(
             "getHeightStatistics", "Mean, median, standard deviation and extremes of the measured heights in a region.",
             [_query("region", "Region X0,Y0,X1,Y1, µm (X0 = X1 and Y0 = Y1: a point).", {"type": "string", "pattern": _REGION}, required=True)],
-            _json_ok("The statistics.", "HeightStatistics")),
+            _json_ok("The statistics.", "HeightStatistics"), analysis=True),
         "/api/specimens/{specimen_id}/zoom": _specimen_get(
             "zoom", "The tiles that show a region at a magnification, optical or digital.", [
                 _query("region", "Region X0,Y0,X1,Y1, µm.", {"type": "string", "pattern": _REGION}, required=True),
@@ -135,16 +139,17 @@ def _paths() -> dict:
             ], _json_ok("The tiles.", "Zoom")),
         "/api/specimens/{specimen_id}/export": _specimen_get(
             "exportArea", "An ROI or a region as X3P, float32 TIFF, CSV, or an STL, PLY or OBJ mesh.",
-            [_ROI, _AREA_REGION, *_EXPORT_OPTIONS], _file_ok("The file, streamed.", _EXPORT_MEDIA)),
+            [_ROI, _AREA_REGION, *_EXPORT_OPTIONS], _file_ok("The file, streamed.", _EXPORT_MEDIA), analysis=True),
         "/api/specimens/{specimen_id}/report": _specimen_get(
             "getReport", "The measurement report of an ROI or a region, HTML or PDF.",
             [_ROI, _AREA_REGION, _query("format", "html (default) or pdf.", {"type": "string", "enum": ["html", "pdf"]})],
-            _file_ok("The report.", ["text/html; charset=utf-8", "application/pdf"])),
+            _file_ok("The report.", ["text/html; charset=utf-8", "application/pdf"]), analysis=True),
         "/api/exports": {"post": {
             "operationId": "exportHeightMap", "summary": "A height map sent as an npz (z_um, optional sigma_um and pixel_size_um) as a file.",
             "requestBody": {"required": True, "content": {"multipart/form-data": {"schema": {"$ref": "#/components/schemas/ExportForm"}}}},
             "responses": _file_ok("The file, streamed.", _EXPORT_MEDIA)
-            | _error_responses("400", "401", "404", **{"413": "The body is too large.", "415": "The body is not multipart/form-data."}),
+            | _error_responses("400", "401", "404", **{"413": "The body is too large.", "415": "The body is not multipart/form-data."},
+                              **_BUSY),
         }},
         "/api/uploads": {"post": {
             "operationId": "upload", "summary": "Stores a specimen manifest with its images for builds to refer to.",
