@@ -187,6 +187,23 @@ def test_analyses_have_threads_of_their_own_and_too_many_get_429(built, monkeypa
         endpoint.shutdown()
 
 
+@pytest.mark.parametrize("path", ["/api/uploads", "/api/exports"])
+def test_a_body_declared_too_large_is_refused_before_it_is_sent(api, path):
+    """10 GB declared, headers only: the answer comes without the server waiting for the body."""
+    base, _ = api
+    host, port = base.removeprefix("http://").split(":")
+    connection = http.client.HTTPConnection(host, int(port), timeout=30)
+    try:
+        connection.putrequest("POST", path)
+        connection.putheader("Content-Type", "multipart/form-data; boundary=x")
+        connection.putheader("Content-Length", str(10**10))
+        connection.endheaders()
+        answer = connection.getresponse()
+        assert answer.status == 413 and json.loads(answer.read())["field"] == "body"
+    finally:
+        connection.close()
+
+
 def test_a_height_map_export_over_http_is_the_file_of_the_map(api):
     base, _ = api
     z_um = np.arange(48 * 64, dtype=np.float32).reshape(48, 64) / 100

@@ -392,7 +392,7 @@ async def _json_body(request: web.Request, *, limit_bytes: int) -> dict:
 async def _small_form(request: web.Request, *, files: set[str], fields: set[str], limit_bytes: int) -> dict:
     """A multipart form held in memory: the `fields` as str, the `files` parts as bytes."""
     form, total = {}, 0
-    async for part in _parts(await _multipart(request)):
+    async for part in _parts(await _multipart(request, limit_bytes=limit_bytes)):
         name = part.name or ""
         if name not in files | fields:
             raise InvalidInputError(name or "body", f"is not a part of this form ({', '.join(sorted(files | fields))})")
@@ -437,9 +437,18 @@ def _first_line(error: Exception) -> str:
     return (str(error).strip().splitlines() or [type(error).__name__])[0][:200]
 
 
-async def _multipart(request: web.Request):
+# What a multipart body may carry besides its parts' contents: boundaries and part headers.
+_MULTIPART_FRAMING_BYTES = 1024 * 1024
+
+
+async def _multipart(request: web.Request, *, limit_bytes: int):
+    """The reader of a multipart body whose parts may hold `limit_bytes` in all: a Content-Length
+    beyond that is refused (413) before anything is read."""
     if request.content_type != "multipart/form-data":
         raise ApiError(HTTPStatus.UNSUPPORTED_MEDIA_TYPE, "send multipart/form-data", "content-type")
+    if (request.content_length or 0) > limit_bytes + _MULTIPART_FRAMING_BYTES:
+        raise ApiError(HTTPStatus.REQUEST_ENTITY_TOO_LARGE, f"a body of {request.content_length} bytes exceeds the {limit_bytes} allowed", "body",
+                       Connection="close")  # the body is not read
     try:
         return await request.multipart()
     except (ValueError, AssertionError, KeyError) as error:
@@ -530,7 +539,7 @@ class Uploads:
         """Stores a multipart upload (a `manifest` part, `images` parts with the file names the
         manifest gives, optionally `request_id`); returns its id and the manifest's specimen id
         and ROIs."""
-        reader = await _multipart(request)
+        reader = await _multipart(request, limit_bytes=self.max_bytes)
         upload_id = uuid.uuid4().hex
         staging = self.root / f".staging-{upload_id}"
         staging.mkdir()
