@@ -160,6 +160,7 @@ def test_a_bad_sigma_map_names_the_file(capsys, tmp_path):
         ("area.region", ["roughness", "synthetic", "--region", "0,0,1,1"], "--region"),
         ("region", ["roughness", "synthetic", "--roi", "zoom"], "synthetic"),
         ("spacing_um", ["profile", "synthetic", "--from", "0,0", "--to", "1,1", "-o", "p.csv"], "--spacing-um"),
+        ("request_id", ["reconstruct", "manifest.json", "--request-id", "x" * 300], "--request-id"),
     ],
 )
 def test_request_fields_of_server_errors_are_named_as_flags(field, argv, named):

@@ -140,7 +140,7 @@ _FIELD_FLAGS = [
 # Request fields whose flag is their name with dashes (s_filter_um: --s-filter-um), the chain's
 # also as members of `chain`.
 _DASHED_FIELD = re.compile(r"^(chain\.)?(form|s_filter_um|l_filter_um|direction_deg|levelling_region|window_px|min_windows|robust_form)$"
-                           r"|^(spacing_um|magnification)$")
+                           r"|^(spacing_um|magnification|request_id)$")
 _IMAGE_FIELD = re.compile(r"^images\[(\d+)\](\.image)?$")
 # Request fields about the analysed data: the region, or the file or specimen analysed.
 _AREA_FIELD = re.compile(r"^((area|specimen)\.)?region$")
