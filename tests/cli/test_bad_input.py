@@ -228,20 +228,26 @@ def test_outputs_of_every_command_are_checked_before_any_work(capsys, tmp_path, 
     assert {path.name: path.read_bytes() for path in tmp_path.iterdir()} == before
 
 
-@pytest.mark.parametrize("second", ["constant", "noise"])
-def test_a_pair_that_shares_nothing_is_refused_naming_the_second_image(capsys, tmp_path, second):
+@pytest.mark.parametrize("constant, noise, named, message", [
+    (1, False, "second.tif", "is one grey level (128) throughout"), (0, False, "first.tif", "is one grey level (128) throughout"),
+    (None, True, "second.tif", "almost nothing of it could be matched"),
+])
+def test_a_pair_that_shares_nothing_is_refused_naming_the_image_at_fault(capsys, tmp_path, constant, noise, named, message):
     """No pixel of a constant or a noise image matches a textured one: an empty map is not a
-    measurement, so there is no output and the error names the image."""
+    measurement, so there is no output and the error names the image (a constant first image
+    was once blamed on the second)."""
     from fractoscope.synthetic import self_affine_surface
 
     rng = np.random.default_rng(3)
     texture = self_affine_surface((128, 128), hurst=0.3, rms_um=1.0, seed=1, min_wavelength_px=3.0)
-    first = (texture - texture.min()) / np.ptp(texture) * 200 + 20
-    _grey_tiff(tmp_path / "first.tif", first)
-    _grey_tiff(tmp_path / "second.tif", np.full(first.shape, 128) if second == "constant" else rng.integers(0, 256, first.shape))
+    images = [(texture - texture.min()) / np.ptp(texture) * 200 + 20, rng.integers(0, 256, texture.shape) if noise else texture]
+    if constant is not None:
+        images[constant] = np.full(texture.shape, 128)
+    for name, values in zip(("first.tif", "second.tif"), images):
+        _grey_tiff(tmp_path / name, values)
     code, _, err = _fracto(capsys, "height", tmp_path / "first.tif", tmp_path / "second.tif", "--tilt", "-5", "5",
                            "--pixel-size-um", "0.1", "-o", tmp_path / "heights.npz")
-    assert code == 2 and _one_error_line(err).startswith(f"error: {tmp_path / 'second.tif'}: almost nothing of it could be matched")
+    assert code == 2 and _one_error_line(err).startswith(f"error: {tmp_path / named}: {message}")
     assert not (tmp_path / "heights.npz").exists()
 
 

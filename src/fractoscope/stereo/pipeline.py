@@ -441,6 +441,10 @@ def _validate(first: SemImage, second: SemImage, tilt_axis_deg: float, options: 
         raise InvalidInputError(
             f"images[{index}]", f"size {second.pixels.shape[::-1]} differs from the first image's {first.pixels.shape[::-1]}"
         )
+    for view, image in ((0, first), (index, second)):
+        data = image.image
+        if data.min() == data.max():
+            raise InvalidInputError(f"images[{view}]", f"is one grey level ({data.flat[0]}) throughout: it has no texture to match")
     validate_tilt_axis_deg(tilt_axis_deg)
     validate_options(options, image_cols=first.pixels.shape[1])
 
