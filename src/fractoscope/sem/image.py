@@ -149,9 +149,9 @@ def _read_tiff(content: bytes, field: str):
 
 
 def _check_size(shape, field: str) -> None:
-    """InvalidInputError unless (rows, cols, ...) `shape` is at least _MIN_SIDE_PX a side and
-    within the pixel limit."""
-    rows, cols = (int(v) for v in (*shape, 1)[:2])
+    """InvalidInputError unless a (rows, cols) `shape` is at least _MIN_SIDE_PX a side and within
+    the pixel limit."""
+    rows, cols = (int(v) for v in shape)
     if min(rows, cols) < _MIN_SIDE_PX:
         raise InvalidInputError(field, f"expected an image of at least {_MIN_SIDE_PX}x{_MIN_SIDE_PX} pixels, got {cols}x{rows}")
     if rows * cols > MAX_IMAGE_PIXELS:
