@@ -124,3 +124,12 @@ def test_images_too_small_to_match_are_refused_by_their_header_and_when_decoded(
         with pytest.raises(InvalidInputError, match="at least 32x32 pixels") as error:
             read(content, field="images[0].image")
         assert error.value.field == "images[0].image"
+
+
+@pytest.mark.parametrize("planar", ["contig", "separate"])
+def test_rgb_tiffs_are_read_as_grey_whichever_way_their_planes_are_stored(planar):
+    grey = _textured(64, 80)
+    buffer = io.BytesIO()
+    tifffile.imwrite(buffer, np.stack([grey] * 3, axis=-1 if planar == "contig" else 0), photometric="rgb", planarconfig=planar)
+    pixels = read_sem_image(buffer.getvalue()).pixels
+    assert pixels.shape == (64, 80) and np.corrcoef(pixels.ravel(), grey.ravel())[0, 1] > 0.999

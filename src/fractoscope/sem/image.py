@@ -129,6 +129,8 @@ def _read_tiff(content: bytes, field: str):
             page = tiff.pages.first
             _check_size((page.imagelength, page.imagewidth), field)
             pixels = page.asarray()
+            if page.planarconfig == tifffile.PLANARCONFIG.SEPARATE and pixels.ndim == 3:
+                pixels = np.moveaxis(pixels, 0, -1)  # colour planes first: samples last, as contiguous files
             if page.photometric == tifffile.PHOTOMETRIC.PALETTE and page.colormap is not None:
                 pixels = _palette_to_grey(pixels, page.colormap)
             zeiss = tiff.sem_metadata if tiff.is_sem else None
