@@ -171,6 +171,17 @@ def test_request_fields_of_server_errors_are_named_as_flags(field, argv, named):
     assert in_command_line_terms(field, f"{field}: is wrong", args) == f"{named}: is wrong"
 
 
+def test_a_bad_image_of_a_manifest_is_named_by_its_file(capsys, tmp_path):
+    """The server names rois[0].images[1].image; the command line names the manifest's file."""
+    texture = np.random.default_rng(2).integers(0, 256, (64, 64))
+    _grey_tiff(tmp_path / "l.tif", texture)
+    (tmp_path / "r.tif").write_bytes(b"not an image")
+    (tmp_path / "manifest.json").write_text(json.dumps(
+        {"specimen": "s", "rois": [{"id": "overview", "left": "l.tif", "right": "r.tif", "tilt_deg": [-5, 5], "pixel_size_um": 0.1}]}))
+    code, _, err = _fracto(capsys, "reconstruct", tmp_path / "manifest.json", "--data", tmp_path / "data")
+    assert code == 2 and _one_error_line(err).startswith(f"error: {tmp_path / 'r.tif'}: not a TIFF or PNG file")
+
+
 def test_export_of_an_npz_to_x3p_carries_its_calibration(capsys, tmp_path):
     from fractoscope.formats.x3p import read_x3p
 

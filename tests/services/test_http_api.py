@@ -113,6 +113,10 @@ def test_a_bad_upload_names_the_field_and_stores_nothing(api, input_directory):
     assert answer.status_code == 400 and answer.json()["field"] == "manifest.rois[1].right"
     answer = requests.post(f"{base}/api/jobs", json={"upload_id": "0" * 32}, timeout=30)
     assert answer.status_code == 404 and answer.json()["field"] == "upload_id"
+    parts = [(name, (file, b"not an image" if file == "zoom_right.png" else content, kind))
+             for name, (file, content, kind) in _upload_parts(input_directory, "unreadable-image")]
+    answer = requests.post(f"{base}/api/uploads", files=parts, timeout=60)  # once named rois[1].images[1].image
+    assert answer.status_code == 400 and answer.json()["field"] == "manifest.rois[1].right", answer.text
     assert sorted(path.name for path in (data / "uploads").iterdir()) == before
 
 

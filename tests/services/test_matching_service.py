@@ -53,6 +53,7 @@ def test_height_map_of_images_larger_than_four_mib_with_progress(client):
         ("missing tilt", "images[0].tilt_deg"),
         ("unreadable image", "images[0].image"),
         ("empty image", "images[0].image"),  # its declared 0 x 0 once divided the memory estimate by zero
+        ("unreadable second image", "images[1].image"),
         ("one image", "images"),
         ("bad pixel size", "pixel_size_um"),
     ],
@@ -70,6 +71,8 @@ def test_bad_requests_get_invalid_argument_naming_the_field(client, case, field)
         arguments.pop("tilt_deg")
     elif case == "unreadable image":
         images = [b"garbage", second]
+    elif case == "unreadable second image":
+        images = [first, b"garbage"]
     elif case == "empty image":
         images = [tiff_bytes(np.zeros((0, 0), np.uint8)), second]
     elif case == "one image":

@@ -15,6 +15,7 @@ overview may name a "level" ("plane" or "substrate"): where height zero is (RoiS
 from __future__ import annotations
 
 import json
+import re
 from collections.abc import Callable
 
 from google.protobuf import json_format
@@ -55,6 +56,19 @@ def image_names(text: str | bytes) -> list[str]:
         return []
     entries = manifest.get("rois") if isinstance(manifest, dict) else None
     return [entry[side] for entry in entries or [] if isinstance(entry, dict) for side in ("left", "right") if isinstance(entry.get(side), str)]
+
+
+_ROI_IMAGE_FIELD = re.compile(r"rois\[(\d+)\]\.images\[([01])\](\.image|\.tilt_deg)?")
+
+
+def manifest_field(field: str) -> str:
+    """The manifest entry that a ReconstructSpecimen request's `field` comes from:
+    rois[i].images[0].image is manifest.rois[i].left, rois[i].images[1].tilt_deg is
+    manifest.rois[i].tilt_deg, rois[i].parameters.x is manifest.rois[i].matching.x."""
+    image = _ROI_IMAGE_FIELD.fullmatch(field)
+    if image:
+        return f"manifest.rois[{image[1]}].{'tilt_deg' if image[3] == '.tilt_deg' else ('left', 'right')[int(image[2])]}"
+    return "manifest." + field.replace("].parameters.", "].matching.", 1)
 
 
 def _roi(entry, index: int, read_image: Callable[[str, str], bytes]) -> tiles_pb2.RoiSpec:

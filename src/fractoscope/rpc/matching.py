@@ -51,11 +51,15 @@ def options_from_message(parameters: matching_pb2.MatchingParameters) -> Matchin
 
 def checked_height_map_request(request: matching_pb2.ComputeHeightMapRequest) -> tuple[tuple[int, int], MatchingOptions]:
     """The first image's (rows, cols) and the options of `request`, checked before any work: at
-    least two images, a readable first image, the parameters and the tilt axis (InvalidInputError
-    names the field)."""
+    least two images, each readable and of the first one's size by its header, the parameters and
+    the tilt axis (InvalidInputError names the field)."""
     if len(request.images) < 2:
         raise InvalidInputError("images", f"at least two images are needed, got {len(request.images)}")
     shape = sem_image.image_shape(request.images[0].image.content, field="images[0].image")
+    for index, item in enumerate(request.images[1:], start=1):
+        other = sem_image.image_shape(item.image.content, field=f"images[{index}].image")
+        if other != shape:
+            raise InvalidInputError(f"images[{index}]", f"size {other[::-1]} differs from the first image's {shape[::-1]}")
     options = options_from_message(request.parameters)
     validate_options(options, image_cols=shape[1])
     validate_tilt_axis_deg(tilt_axis_deg(request))

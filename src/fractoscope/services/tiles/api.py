@@ -41,7 +41,7 @@ from fractoscope.formats.exports import MEDIA_TYPES
 from fractoscope.rpc import wire
 from fractoscope.rpc.channel import open_channel
 from fractoscope.rpc.limits import MAX_REQUEST_ID_CHARS
-from fractoscope.rpc.manifest import parse_manifest
+from fractoscope.rpc.manifest import manifest_field, parse_manifest
 from fractoscope.rpc.status import ClientError, raised_as_client_errors
 from fractoscope.rpc.tiles import checked_rois, profile_response, roughness_response, specimen_message, tile_message
 from fractoscope.services.auth import READ, WRITE, Grant, TokenTable
@@ -587,8 +587,8 @@ class Uploads:
         validate_id(specimen_id, field="manifest.specimen")
         try:  # what the build would refuse, refused before a job is accepted
             checked_rois(rois)
-        except InvalidInputError as error:  # named as the manifest names it: its "matching" holds the parameters
-            raise InvalidInputError("manifest." + error.field.replace("].parameters.", "].matching.", 1), error.message) from None
+        except InvalidInputError as error:  # named as the manifest names it
+            raise InvalidInputError(manifest_field(error.field), error.message) from None
         return specimen_id, rois
 
     def load(self, upload_id: str) -> tuple[str, list[tiles_pb2.RoiSpec]]:
