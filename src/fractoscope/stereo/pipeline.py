@@ -120,6 +120,7 @@ def compute_series_height_map(
     z_px, _ = tilt_series.heights_px(rectified.x1_px, matched.disparities, tilts, offsets_px=offsets)
     warnings += _disagreeing_views(rectified.x1_px, matched, tilts, offsets, z_px)
     z_um = (z_px * pixel_size).astype(np.float32)
+    z_um[rectified.outside] = np.nan  # the canvas's corners, not the image: not in sigma's reference level either
     tilt_uncertainty = _tilt_uncertainty_deg(options, calibration, warnings)
     sigma_um = geometry.height_sigma_um(
         z_um, matched.sigmas, tilt_deg=tilts, pixel_size_um=pixel_size, tilt_uncertainty_deg=tilt_uncertainty
@@ -367,7 +368,6 @@ def _tilt_uncertainty_deg(options: MatchingOptions, calibration: dict, warnings:
 def _on_stored_grid(rectified: _Rectified, first: SemImage, z_um, sigma_um, confidence):
     """The maps turned back onto the first image's grid as stored, NaN rows where its data bar was."""
     if rectified.rotated:
-        z_um[rectified.outside] = np.nan
         back = (first.pixels.shape[0] - rectified.bar_rows, first.pixels.shape[1])
         z_um, sigma_um, confidence = (
             alignment.apply_affine(values.astype(np.float32), rectified.to_rectified, back, inverse=True, fill=np.nan)
