@@ -9,7 +9,9 @@ from fractoscope.errors import InvalidInputError
 from fractoscope.rpc import wire
 from fractoscope.sem import image as sem_image
 from fractoscope.stereo.disparity import DisparityResult, MatchingMethod, StripTask
-from fractoscope.stereo.pipeline import DEFAULT_TILT_AXIS_DEG, HeightMapResult, MatchingOptions, validate_options, validate_tilt_axis_deg
+from fractoscope.stereo.pipeline import (
+    DEFAULT_TILT_AXIS_DEG, HeightMapResult, MatchingOptions, validate_options, validate_same_size, validate_tilt_axis_deg,
+)
 from fractoscope.v1 import matching_pb2
 
 
@@ -57,9 +59,7 @@ def checked_height_map_request(request: matching_pb2.ComputeHeightMapRequest) ->
         raise InvalidInputError("images", f"at least two images are needed, got {len(request.images)}")
     shape = sem_image.image_shape(request.images[0].image.content, field="images[0].image")
     for index, item in enumerate(request.images[1:], start=1):
-        other = sem_image.image_shape(item.image.content, field=f"images[{index}].image")
-        if other != shape:
-            raise InvalidInputError(f"images[{index}]", f"size {other[::-1]} differs from the first image's {shape[::-1]}")
+        validate_same_size(shape, sem_image.image_shape(item.image.content, field=f"images[{index}].image"), index=index)
     options = options_from_message(request.parameters)
     validate_options(options, image_cols=shape[1])
     validate_tilt_axis_deg(tilt_axis_deg(request))

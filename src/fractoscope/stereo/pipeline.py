@@ -436,11 +436,14 @@ def _resolve_pixel_size(first: SemImage, pixel_size_um: float | None) -> float:
         raise InvalidInputError("images[0]", f"the pixel size in its metadata {error.message}; give the pixel size") from None
 
 
+def validate_same_size(first: tuple[int, int], other: tuple[int, int], *, index: int) -> None:
+    """InvalidInputError naming images[index] unless its (rows, cols) `other` is the first image's."""
+    if tuple(other) != tuple(first):
+        raise InvalidInputError(f"images[{index}]", f"size {tuple(other)[::-1]} differs from the first image's {tuple(first)[::-1]}")
+
+
 def _validate(first: SemImage, second: SemImage, tilt_axis_deg: float, options: MatchingOptions, *, index: int = 1) -> None:
-    if first.pixels.shape != second.pixels.shape:
-        raise InvalidInputError(
-            f"images[{index}]", f"size {second.pixels.shape[::-1]} differs from the first image's {first.pixels.shape[::-1]}"
-        )
+    validate_same_size(first.pixels.shape, second.pixels.shape, index=index)
     for view, image in ((0, first), (index, second)):
         data = image.image
         if data.min() == data.max():
