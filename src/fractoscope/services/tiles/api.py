@@ -57,8 +57,8 @@ _FILE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,127}")
 _CHUNK_BYTES = 1 << 20
 DEFAULT_MAX_UPLOAD_BYTES = 512 * 1024 * 1024
 # Analyses at once (CPU-bound: one per CPU) and waiting before 429.
-_ANALYSIS_WORKERS = len(os.sched_getaffinity(0))
-_QUEUED_ANALYSES = 16
+DEFAULT_ANALYSIS_WORKERS = len(os.sched_getaffinity(0))
+DEFAULT_QUEUED_ANALYSES = 16
 
 
 class ApiError(Exception):
@@ -100,7 +100,7 @@ class JsonApi:
 
     def __init__(self, store: SpecimenStore, tokens: TokenTable, *, grpc_address: str | None, uploads_root: Path,
                  max_upload_bytes: int = DEFAULT_MAX_UPLOAD_BYTES, build_workers: int = 2, queued_builds: int = 8,
-                 analysis_workers: int = _ANALYSIS_WORKERS, queued_analyses: int = _QUEUED_ANALYSES):
+                 analysis_workers: int = DEFAULT_ANALYSIS_WORKERS, queued_analyses: int = DEFAULT_QUEUED_ANALYSES):
         self.store = store
         self.tokens = tokens
         self.uploads = Uploads(uploads_root, max_upload_bytes)

@@ -26,7 +26,9 @@ from aiohttp import web
 from fractoscope.errors import FractoscopeError, NotFoundError
 from fractoscope.services.auth import TokenTable
 from fractoscope.services.caches import BoundedCache
-from fractoscope.services.tiles.api import DEFAULT_MAX_UPLOAD_BYTES, JsonApi, json_error
+from fractoscope.services.tiles.api import (
+    DEFAULT_ANALYSIS_WORKERS, DEFAULT_MAX_UPLOAD_BYTES, DEFAULT_QUEUED_ANALYSES, JsonApi, json_error,
+)
 from fractoscope.specimen.quadtree import TILE_URI
 from fractoscope.specimen.store import SpecimenStore
 
@@ -218,16 +220,16 @@ class HttpTileServer:
 
 def start_http_server(
     store: SpecimenStore, host: str = "127.0.0.1", port: int = 0, *, tokens: TokenTable | None = None, grpc_address: str | None = None,
-    max_upload_bytes: int = DEFAULT_MAX_UPLOAD_BYTES, analysis_workers: int | None = None, queued_analyses: int | None = None,
+    max_upload_bytes: int = DEFAULT_MAX_UPLOAD_BYTES, analysis_workers: int = DEFAULT_ANALYSIS_WORKERS,
+    queued_analyses: int = DEFAULT_QUEUED_ANALYSES,
 ) -> HttpTileServer:
     """Serves the store's tilesets, the viewer and the JSON API over HTTP from a daemon thread;
     `server_port` is the bound port. With `tokens`, everything but the viewer's static files and
     the OpenAPI document needs a bearer token, and the API's builds a write token. Builds go to the
     gRPC endpoint at `grpc_address` (None: the API refuses them); uploads are kept next to the
     specimens (DATA/uploads), at most `max_upload_bytes` each. Analyses run `analysis_workers` at
-    a time with `queued_analyses` waiting (default: one per CPU, 16; see api.Analyses)."""
+    a time with `queued_analyses` waiting (by default one per CPU and 16; see api.Analyses)."""
     tokens = tokens or TokenTable({})
-    analyses = {key: value for key, value in (("analysis_workers", analysis_workers), ("queued_analyses", queued_analyses)) if value is not None}
     api = JsonApi(store, tokens, grpc_address=grpc_address, uploads_root=store.root.parent / "uploads", max_upload_bytes=max_upload_bytes,
-                  **analyses)
+                  analysis_workers=analysis_workers, queued_analyses=queued_analyses)
     return HttpTileServer(store, host, port, tokens, api)
