@@ -19,7 +19,7 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from fractoscope.client import FractoscopeClient
 from fractoscope.errors import InvalidInputError
 from fractoscope.formats import strict_json
-from fractoscope.rpc.manifest import manifest_field
+from fractoscope.rpc.manifest import image_entry, manifest_field
 from fractoscope.stereo.geometry import validate_pixel_size_um
 
 EXIT_FAILURE, EXIT_BAD_INPUT, EXIT_UNAVAILABLE, EXIT_NOT_FOUND = 1, 2, 3, 4
@@ -176,19 +176,21 @@ def _flag_or_file(field: str, args) -> str | None:
     if image and int(image[1]) < len(images):
         return images[int(image[1])]
     if field.startswith("rois[") and getattr(args, "manifest", None):
-        return _manifest_entry(Path(args.manifest), manifest_field(field))
+        return _manifest_entry(Path(args.manifest), field)
     return None
 
 
 def _manifest_entry(path: Path, field: str) -> str:
-    """The image file a manifest's `field` (manifest.rois[i].left or .right) names, next to the
-    manifest; else the manifest and the field."""
-    side = re.fullmatch(r"manifest\.rois\[(\d+)\]\.(left|right)", field)
-    try:
-        name = json.loads(path.read_bytes())["rois"][int(side[1])][side[2]] if side else None
-    except (OSError, ValueError, LookupError, TypeError, RecursionError):
-        name = None
-    return str(path.parent / name) if isinstance(name, str) else f"{path}: {field.removeprefix('manifest.')}"
+    """The image file (next to the manifest at `path`) that request `field` is about, else the
+    manifest and its entry (manifest_field)."""
+    entry = image_entry(field)
+    name = None
+    if entry:
+        try:
+            name = json.loads(path.read_bytes())["rois"][entry[0]][entry[1]]
+        except (OSError, ValueError, LookupError, TypeError, RecursionError):
+            pass
+    return str(path.parent / name) if isinstance(name, str) else f"{path}: {manifest_field(field).removeprefix('manifest.')}"
 
 
 def is_connection_failure(message: str) -> bool:

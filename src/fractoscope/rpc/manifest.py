@@ -71,6 +71,13 @@ def manifest_field(field: str) -> str:
     return "manifest." + field.replace("].parameters.", "].matching.", 1)
 
 
+def image_entry(field: str) -> tuple[int, str] | None:
+    """(ROI index, "left" or "right"): the manifest's image file that a ReconstructSpecimen
+    request's `field` (rois[i].images[j] or its .image) is about; None for any other field."""
+    image = _ROI_IMAGE_FIELD.fullmatch(field)
+    return (int(image[1]), ("left", "right")[int(image[2])]) if image and image[3] != ".tilt_deg" else None
+
+
 def _roi(entry, index: int, read_image: Callable[[str, str], bytes]) -> tiles_pb2.RoiSpec:
     where = f"manifest.rois[{index}]"
     if not isinstance(entry, dict):
