@@ -3,8 +3,6 @@ or OBJ (the format follows the output's extension)."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
 from fractoscope.cli.common import (
     SERVER_HELP, UsageError, connected, existing_file, given_pixel_size_um, output_file, print_json, recorded_pixel_size_um,
     region_argument,
@@ -32,8 +30,7 @@ def add_parsers(commands) -> None:
 
 
 def command_export(args) -> int:
-    out = output_file(args.output, "-o", suffixes=(*(f".{name}" for name in wire.EXPORT_FORMATS), ".tiff"),
-                      inputs=(Path(args.source),) if args.source.lower().endswith(".npz") else ())
+    out = output_file(args.output, "-o", suffixes=(*(f".{name}" for name in wire.EXPORT_FORMATS), ".tiff"))  # never the .npz source
     options = {"solid": args.solid, "units": args.units}
     given_pixel_size_um(args.pixel_size_um)
     if args.source.lower().endswith(".npz"):

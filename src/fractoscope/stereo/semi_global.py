@@ -45,8 +45,9 @@ def sgbm_disparity(
     mode: int = cv2.STEREO_SGBM_MODE_SGBM, uniqueness_percent: int = 10, speckle_pixels: int = 0, speckle_range_px: int = 0,
 ) -> np.ndarray:
     """StereoSGBM's disparities of a rectified uint8 pair (rows, cols each) searched over at least
-    [min_px, max_px] (less the shifts that leave no block inside the image), with P1 = 8 w² and P2 = 32 w² for blocks of w = `block_px` and its
-    left-right check within 1 px; (rows, cols) float32 px, NaN where it gives none."""
+    [min_px, max_px] (less the shifts that leave no block inside the image), with P1 = 8 w² and
+    P2 = 32 w² for blocks of w = `block_px` and its left-right check within 1 px; (rows, cols)
+    float32 px, NaN where it gives none."""
     lowest = int(np.floor(-max_px))  # OpenCV's disparity is x_left - x_right, our -d
     count = 16 * int(np.ceil((int(np.ceil(-min_px)) - lowest + 1) / 16))
     # OpenCV needs width - (lowest + count) > block_px // 2.
