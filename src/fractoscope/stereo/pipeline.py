@@ -17,7 +17,7 @@ import numpy as np
 from fractoscope.errors import InvalidInputError
 from fractoscope.progress import ProgressCallback, silent
 from fractoscope.sem.image import SemImage
-from fractoscope.stereo import alignment, geometry, matching, tilt_series
+from fractoscope.stereo import alignment, geometry, matching, photometric, tilt_series
 from fractoscope.stereo.disparity import MatchingMethod, StripMatcher
 
 # The axis the features' parallax points to scatters by up to 2.3° on synthetic pairs whose axis
@@ -207,8 +207,9 @@ def _rectify(images: Sequence[SemImage], tilt_axis_deg: float) -> _Rectified:
 @dataclass(frozen=True)
 class _MatchedViews:
     """Every view matched to the reference: disparities (views, rows, cols) with the reference's
-    row zero, and per view but the reference its disparity sigma, confidence and placement; the
-    relative magnification uncertainty of every view (0 for the reference)."""
+    row zero, and per view but the reference its disparity sigma, confidence, placement and
+    photometric fusion's agreement and use (`photometric.Fusion`); the relative magnification
+    uncertainty of every view (0 for the reference)."""
 
     disparities: np.ndarray
     sigmas: list[np.ndarray]
@@ -216,29 +217,38 @@ class _MatchedViews:
     placements: list[alignment.Alignment]
     magnification_sigma: list[float]
     strip_count: int
+    photometric_agreement: list[float]
+    photometric_slopes_used: list[bool]
 
 
 def _match_views(views, options: MatchingOptions, strip_matcher, report_progress) -> _MatchedViews:
     disparities = [np.zeros(views[0].shape, np.float32)]
-    sigmas, confidences, placements, magnification_sigma = [], [], [], [0.0]
+    sigmas, confidences, placements, magnification_sigma, fusions = [], [], [], [0.0], []
     for index in range(1, len(views)):
         def matching_progress(fraction: float, message: str, index=index) -> None:
             report_progress(0.05 + 0.8 * (index - 1 + fraction) / (len(views) - 1), f"view {index}: {message}")
 
         report_progress(0.05 + 0.8 * (index - 1) / (len(views) - 1), f"view {index}: aligning")
-        disparity, matched, placement, epsilon_sigma, strip_count = _match_view(views[0], views[index], options, strip_matcher, matching_progress)
+        disparity, matched, placement, epsilon_sigma, strip_count, fusion = _match_view(
+            views[0], views[index], options, strip_matcher, matching_progress
+        )
+        fusions.append(fusion)
         disparities.append(disparity)
         magnification_sigma.append(epsilon_sigma)
         sigmas.append(matched.sigma_px)
         confidences.append(matched.confidence)
         placements.append(placement)
-    return _MatchedViews(np.stack(disparities), sigmas, confidences, placements, magnification_sigma, strip_count)
+    return _MatchedViews(
+        np.stack(disparities), sigmas, confidences, placements, magnification_sigma, strip_count,
+        [fusion.agreement for fusion in fusions], [fusion.used for fusion in fusions],
+    )
 
 
 def _match_view(reference: np.ndarray, view: np.ndarray, options: MatchingOptions, strip_matcher, progress):
     """One view aligned to and matched with the reference: its disparity to the reference (the
-    global shift and the magnification error the alignment left taken out), the matcher's result,
-    the placement, the magnification's uncertainty and the number of strips."""
+    global shift and the magnification error the alignment left taken out), the matcher's result
+    (with the default method, the shading's slopes fused in where they agree, `photometric`), the
+    placement, the magnification's uncertainty, the number of strips and the photometric fusion."""
     placement = alignment.estimate_alignment(reference, view)
     on_first = alignment.apply_affine(view, alignment.second_to_first_matrix(placement, reference.shape), reference.shape, inverse=True)
     spread = placement.parallax_spread_px if np.isfinite(placement.parallax_spread_px) else reference.shape[1] / 8
@@ -252,6 +262,11 @@ def _match_view(reference: np.ndarray, view: np.ndarray, options: MatchingOption
     strip_count = len(matching.strip_bounds(
         reference.shape, window_px=options.window_px, max_disparity_px=max_disparity_px, strip_pixels=options.strip_pixels
     ))
+    fusion = photometric.Fusion(matched.disparity_px, float("nan"), False)
+    if options.method is MatchingMethod.TGV_ZNCC:  # window correlation stays the paper's method
+        noise_grey = float(np.hypot(photometric.noise_sigma(reference), photometric.noise_sigma(view)))
+        fusion = photometric.fused_disparity(reference, on_first, matched.disparity_px, matched.sigma_px, noise_grey=noise_grey)
+        matched = dataclasses.replace(matched, disparity_px=fusion.disparity_px)
     # A magnification error ε the alignment left makes disparities err by ε·x: measured on the
     # matched images, it is taken out here rather than by matching again.
     columns_px = np.arange(reference.shape[1], dtype=np.float64) - (reference.shape[1] - 1) / 2.0
@@ -259,7 +274,7 @@ def _match_view(reference: np.ndarray, view: np.ndarray, options: MatchingOption
     epsilon, epsilon_sigma = measured if measured else (0.0, placement.scale_sigma)
     disparity = matched.disparity_px + placement.shift_parallel_px - (epsilon * columns_px).astype(np.float32)
     placement = dataclasses.replace(placement, scale=placement.scale * (1.0 + epsilon))
-    return disparity, matched, placement, epsilon_sigma, strip_count
+    return disparity, matched, placement, epsilon_sigma, strip_count, fusion
 
 
 # Views of which less than the first share is matched with the first view are refused (what
@@ -410,6 +425,8 @@ def _report(*, tilts, tilt_axis_deg, pixel_size, matched: _MatchedViews, z_um, b
         "tilt_axis_deg_estimated": axis_estimated,
         "warnings": warnings,
         "strip_count": matched.strip_count,
+        "photometric_agreement": matched.photometric_agreement,
+        "photometric_slopes_used": matched.photometric_slopes_used,
         "tilt_uncertainty_deg": float(tilt_uncertainty),
         **calibration,
     }
