@@ -187,7 +187,7 @@ def _parameters(document: Document, content: ReportContent) -> None:
         rows = [[Cell(key), Cell(str(value))] for key, value in sorted((roi.matching.get("parameters") or {}).items())]
         rows += [[Cell(key), Cell(_shown(roi.matching.get(key)))] for key in (
             "method", "valid_fraction", "residual_vertical_parallax_px", "data_bar_rows", "magnification_ratio", "tilt_axis_deg_estimated",
-            "strip_count", "tilt_residual_px", "warnings") if key in roi.matching]
+            "strip_count", "tilt_residual_px", "photometric_slopes_used", "photometric_agreement", "warnings") if key in roi.matching]
         rows += [[Cell("magnification"), Cell(f"{roi.magnification:g}")], [Cell("parent"), Cell(roi.parent or "(overview)")],
                  [Cell("alignment residual (µm)"), Cell(f"{roi.alignment_residual_um:.4g}")],
                  [Cell("registration score"), Cell(f"{roi.registration_score:.4g}")],
