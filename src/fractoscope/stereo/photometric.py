@@ -132,14 +132,14 @@ def _filled_along_rows(disparity_px: np.ndarray, valid: np.ndarray) -> np.ndarra
     """Unknown disparities interpolated linearly along their row between the nearest known ones
     (held constant beyond them; 0 in rows without any)."""
     rows, cols = disparity_px.shape
-    columns = np.broadcast_to(np.arange(cols), (rows, cols))
-    before = np.maximum.accumulate(np.where(valid, columns, -1), axis=1)
-    after = np.minimum.accumulate(np.where(valid, columns, cols)[:, ::-1], axis=1)[:, ::-1]
+    columns = np.broadcast_to(np.arange(cols, dtype=np.int32), (rows, cols))
+    before = np.maximum.accumulate(np.where(valid, columns, np.int32(-1)), axis=1)
+    after = np.minimum.accumulate(np.where(valid, columns, np.int32(cols))[:, ::-1], axis=1)[:, ::-1]
     known = np.where(valid, disparity_px, 0.0)
     at_before = np.take_along_axis(known, np.clip(before, 0, cols - 1), axis=1)
     at_after = np.take_along_axis(known, np.clip(after, 0, cols - 1), axis=1)
     span = np.maximum(after - before, 1)
-    between = at_before + (at_after - at_before) * (columns - before) / span
+    between = at_before + (at_after - at_before) * ((columns - before) / span).astype(np.float32)
     filled = np.where(before < 0, at_after, np.where(after >= cols, at_before, between))
     return np.where(valid, disparity_px, np.where((before < 0) & (after >= cols), 0.0, filled)).astype(np.float32)
 
