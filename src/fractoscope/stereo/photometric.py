@@ -92,24 +92,17 @@ def fused_disparity(
     if valid.sum() < 1000:
         return unchanged
     filled = _filled_along_rows(disparity_px.astype(np.float32), valid)
-    left = left.astype(np.float32)
-    warped = _warped(right.astype(np.float32), filled)
+    left = left.astype(np.float32, copy=False)
+    warped = _warped(right.astype(np.float32, copy=False), filled)
     stereo_slope = np.gradient(cv2.GaussianBlur(filled, (0, 0), _STEREO_SLOPE_SIGMA_PX), axis=1)
     coefficients = _fitted_model(left, warped, stereo_slope, valid)
     if coefficients is None:
         return unchanged
-    a0, a1, a2, b0, b1, b2 = coefficients.tolist()  # Python floats keep the arrays float32
-    predicted = left * (a0 + stereo_slope * (a1 + a2 * stereo_slope)) + b0 + stereo_slope * (b1 + b2 * stereo_slope)
-    derivative = left * (a1 + 2 * a2 * stereo_slope) + b1 + 2 * b2 * stereo_slope
-    usable = valid & (np.abs(derivative) > 1e-3)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        slope = np.where(usable, stereo_slope + (warped - predicted) / derivative, 0.0).astype(np.float32)
-        sampling_variance = np.gradient(warped, axis=1) ** 2 * np.nan_to_num(sigma_px, nan=1.0) ** 2
-        precision = np.where(usable, derivative**2 / (noise_grey**2 + sampling_variance), 0.0).astype(np.float32)
-    agreement = _agreement(_told_slope(left, warped, coefficients), np.gradient(filled, axis=1), usable)
-    del warped, predicted, derivative
+    agreement = _agreement(_told_slope(left, warped, coefficients), np.gradient(filled, axis=1), valid)
     if not agreement >= MIN_AGREEMENT:
         return Fusion(disparity_px, agreement, False)
+    slope, precision = _slopes(left, warped, stereo_slope, coefficients, valid, sigma_px, noise_grey)
+    del warped, stereo_slope
     slope, precision = _averaged(slope, precision, _SLOPE_SIGMA_PX)
     stereo_precision = np.where(valid, _STEREO_WEIGHT / np.maximum(np.nan_to_num(sigma_px, nan=1.0), 1e-3) ** 2, 0.0)
     fused = np.empty_like(filled)
@@ -117,6 +110,21 @@ def fused_disparity(
         rows = slice(top, top + _ROWS_PER_SOLVE)
         fused[rows] = _solved_rows(filled[rows], stereo_precision[rows], slope[rows], precision[rows])
     return Fusion(np.where(valid, fused, np.float32(np.nan)), agreement, True)
+
+
+def _slopes(left, warped, stereo_slope, coefficients, valid, sigma_px, noise_grey):
+    """Each pixel's photometric slope, the model inverted about the stereo's slope, and its
+    precision (1 / variance, 0 where unknown): (rows, cols) float32 each."""
+    a0, a1, a2, b0, b1, b2 = coefficients.tolist()  # Python floats keep the arrays float32
+    residual = warped - (left * (a0 + stereo_slope * (a1 + a2 * stereo_slope)) + b0 + stereo_slope * (b1 + b2 * stereo_slope))
+    derivative = left * (a1 + 2 * a2 * stereo_slope) + b1 + 2 * b2 * stereo_slope
+    usable = valid & (np.abs(derivative) > 1e-3)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        slope = np.where(usable, stereo_slope + residual / derivative, np.float32(0.0))
+        del residual
+        variance = np.gradient(warped, axis=1) ** 2 * np.nan_to_num(sigma_px, nan=1.0) ** 2 + np.float32(noise_grey**2)
+        precision = np.where(usable, derivative**2 / variance, np.float32(0.0))
+    return slope.astype(np.float32, copy=False), precision.astype(np.float32, copy=False)
 
 
 def noise_sigma(image: np.ndarray) -> float:
