@@ -42,7 +42,7 @@ def test_slopes_from_the_shading_restore_relief_finer_than_the_stereo_resolves()
     # A window matcher's view of it: the hills right, the ripples averaged away to a fifth.
     stereo = _wavy_disparity_px(ripple_px=0.08).astype(np.float32)
     stereo[10:14, 50:60] = np.nan  # a masked patch stays masked
-    sigma = np.full(truth.shape, 0.3, np.float32)
+    sigma = np.where(np.isfinite(stereo), np.float32(0.3), np.float32(np.nan))  # as a matcher gives it
     fusion = photometric.fused_disparity(left, right, stereo, sigma, noise_grey=np.sqrt(2.0))
     assert fusion.used and fusion.agreement >= photometric.MIN_AGREEMENT
     inner = (slice(4, -4), slice(20, -20))
@@ -52,6 +52,9 @@ def test_slopes_from_the_shading_restore_relief_finer_than_the_stereo_resolves()
     after = np.sqrt(np.nanmean((fusion.disparity_px - truth)[inner] ** 2))
     assert before > 0.2  # four fifths of the ripples' RMS, 0.28 px
     assert after < 0.5 * before  # measured 0.08 px
+    # The sigma shrinks where the slopes add information, never beyond the stereo's.
+    assert np.nanmax(fusion.sigma_px) <= 0.3 + 1e-6 and np.nanmedian(fusion.sigma_px) < 0.25
+    assert np.array_equal(np.isfinite(fusion.sigma_px), known)
 
 
 def test_shading_that_tells_nothing_of_the_slopes_leaves_the_disparities_alone():
@@ -63,7 +66,7 @@ def test_shading_that_tells_nothing_of_the_slopes_leaves_the_disparities_alone()
     stereo = truth.astype(np.float32)
     fusion = photometric.fused_disparity(left, unrelated, stereo, np.full(truth.shape, 0.3, np.float32), noise_grey=1.4)
     assert not fusion.used and fusion.agreement < photometric.MIN_AGREEMENT
-    assert fusion.disparity_px is stereo
+    assert fusion.disparity_px is stereo and fusion.sigma_px is not None
 
 
 def test_too_little_matched_is_left_alone():

@@ -262,11 +262,11 @@ def _match_view(reference: np.ndarray, view: np.ndarray, options: MatchingOption
     strip_count = len(matching.strip_bounds(
         reference.shape, window_px=options.window_px, max_disparity_px=max_disparity_px, strip_pixels=options.strip_pixels
     ))
-    fusion = photometric.Fusion(matched.disparity_px, float("nan"), False)
+    fusion = photometric.Fusion(matched.disparity_px, matched.sigma_px, float("nan"), False)
     if options.method is MatchingMethod.TGV_ZNCC:  # window correlation stays the paper's method
         noise_grey = float(np.hypot(photometric.noise_sigma(reference), photometric.noise_sigma(view)))
         fusion = photometric.fused_disparity(reference, on_first, matched.disparity_px, matched.sigma_px, noise_grey=noise_grey)
-        matched = dataclasses.replace(matched, disparity_px=fusion.disparity_px)
+        matched = dataclasses.replace(matched, disparity_px=fusion.disparity_px, sigma_px=fusion.sigma_px)
     # A magnification error ε the alignment left makes disparities err by ε·x: measured on the
     # matched images, it is taken out here rather than by matching again.
     columns_px = np.arange(reference.shape[1], dtype=np.float64) - (reference.shape[1] - 1) / 2.0
