@@ -120,7 +120,10 @@ def fused_disparity(
     for top in range(0, filled.shape[0], _ROWS_PER_SOLVE):
         rows = slice(top, top + _ROWS_PER_SOLVE)
         fused[rows], variance_ratio[rows] = _solved_rows(filled[rows], stereo_precision[rows], slope[rows], precision[rows])
-    return Fusion(np.where(valid, fused, np.float32(np.nan)), sigma_px * np.minimum(_POSTERIOR_SCALE * np.sqrt(variance_ratio), 1.0), agreement, True)
+    # Rounding can leave a ratio out of (0, 1] where a row's pixels are barely tied (canvas corners).
+    variance_ratio = np.where((variance_ratio > 0) & (variance_ratio <= 1), variance_ratio, np.float32(1.0))
+    sigma_ratio = np.minimum(_POSTERIOR_SCALE * np.sqrt(variance_ratio), np.float32(1.0))
+    return Fusion(np.where(valid, fused, np.float32(np.nan)), sigma_px * sigma_ratio, agreement, True)
 
 
 def _slopes(left, warped, stereo_slope, coefficients, valid, sigma_px, noise_grey):
