@@ -44,6 +44,8 @@ import numba
 import numpy as np
 from scipy.linalg import solve_banded
 
+from fractoscope.stereo import correlation
+
 # The photometric slopes must correlate with the stereo's this well, both averaged over
 # `_AGREEMENT_SIGMA_PX`, to be used (see the module docstring for what surfaces measure).
 MIN_AGREEMENT = 0.7
@@ -104,7 +106,7 @@ def fused_disparity(
         return unchanged
     filled = _filled_along_rows(disparity_px.astype(np.float32), valid)
     left = left.astype(np.float32, copy=False)
-    warped = _warped(right.astype(np.float32, copy=False), filled)
+    warped = correlation.warp_along_rows(right.astype(np.float32, copy=False), filled)
     stereo_slope = np.gradient(cv2.GaussianBlur(filled, (0, 0), _STEREO_SLOPE_SIGMA_PX), axis=1)
     coefficients = _fitted_model(left, warped, stereo_slope, valid)
     if coefficients is None:
@@ -112,10 +114,11 @@ def fused_disparity(
     agreement = _agreement(_told_slope(left, warped, coefficients), np.gradient(filled, axis=1), valid)
     if not agreement >= MIN_AGREEMENT:
         return Fusion(disparity_px, sigma_px, agreement, False)
-    slope, precision = _slopes(left, warped, stereo_slope, coefficients, valid, sigma_px, noise_grey)
+    stereo_sigma_px = np.nan_to_num(sigma_px, nan=1.0)
+    slope, precision = _slopes(left, warped, stereo_slope, coefficients, valid, stereo_sigma_px, noise_grey)
     del warped, stereo_slope
     slope, precision = _averaged(slope, precision, _SLOPE_SIGMA_PX)
-    stereo_precision = np.where(valid, _STEREO_WEIGHT / np.maximum(np.nan_to_num(sigma_px, nan=1.0), 1e-3) ** 2, 0.0)
+    stereo_precision = np.where(valid, _STEREO_WEIGHT / np.maximum(stereo_sigma_px, 1e-3) ** 2, 0.0)
     fused, variance_ratio = np.empty_like(filled), np.empty_like(filled)
     for top in range(0, filled.shape[0], _ROWS_PER_SOLVE):
         rows = slice(top, top + _ROWS_PER_SOLVE)
@@ -126,9 +129,10 @@ def fused_disparity(
     return Fusion(np.where(valid, fused, np.float32(np.nan)), sigma_px * sigma_ratio, agreement, True)
 
 
-def _slopes(left, warped, stereo_slope, coefficients, valid, sigma_px, noise_grey):
+def _slopes(left, warped, stereo_slope, coefficients, valid, stereo_sigma_px, noise_grey):
     """Each pixel's photometric slope, the model inverted about the stereo's slope, and its
-    precision (1 / variance, 0 where unknown): (rows, cols) float32 each."""
+    precision (1 / variance, 0 where unknown): (rows, cols) float32 each. `stereo_sigma_px` has
+    no NaN (1 px where the stereo has none)."""
     a0, a1, a2, b0, b1, b2 = coefficients.tolist()  # Python floats keep the arrays float32
     residual = warped - (left * (a0 + stereo_slope * (a1 + a2 * stereo_slope)) + b0 + stereo_slope * (b1 + b2 * stereo_slope))
     derivative = left * (a1 + 2 * a2 * stereo_slope) + b1 + 2 * b2 * stereo_slope
@@ -136,7 +140,7 @@ def _slopes(left, warped, stereo_slope, coefficients, valid, sigma_px, noise_gre
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         slope = np.where(usable, stereo_slope + residual / derivative, np.float32(0.0))
         del residual
-        variance = np.gradient(warped, axis=1) ** 2 * np.nan_to_num(sigma_px, nan=1.0) ** 2 + np.float32(noise_grey**2)
+        variance = np.gradient(warped, axis=1) ** 2 * stereo_sigma_px**2 + np.float32(noise_grey**2)
         precision = np.where(usable, derivative**2 / variance, np.float32(0.0))
     return slope.astype(np.float32, copy=False), precision.astype(np.float32, copy=False)
 
@@ -166,14 +170,6 @@ def _filled_along_rows(disparity_px: np.ndarray, valid: np.ndarray) -> np.ndarra
     return np.where(valid, disparity_px, np.where((before < 0) & (after >= cols), 0.0, filled)).astype(np.float32)
 
 
-def _warped(right: np.ndarray, disparity_px: np.ndarray) -> np.ndarray:
-    """`right` sampled at (row, col + disparity), bilinear, float32."""
-    rows, cols = right.shape
-    map_cols = np.arange(cols, dtype=np.float32)[None, :] + disparity_px
-    map_rows = np.broadcast_to(np.arange(rows, dtype=np.float32)[:, None], (rows, cols))
-    return cv2.remap(right, map_cols, np.ascontiguousarray(map_rows), cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-
-
 def _fitted_model(left, warped, stereo_slope, valid) -> np.ndarray | None:
     """The six coefficients (a0, a1, a2, b0, b1, b2) of R = L a(s) + b(s), least squares over
     one in `_FIT_STRIDE` matched pixels, refitted without those more than three robust sigmas
@@ -181,12 +177,10 @@ def _fitted_model(left, warped, stereo_slope, valid) -> np.ndarray | None:
     the stereo's slopes lack the fine relief that the brightness has, and a fit at full
     resolution would take that lack for a weaker shading (on a surface of 12 px ripples, slopes
     told 13 % too small)."""
-    kernel = cv2.getGaussianKernel(int(6 * _FIT_SIGMA_PX) | 1, _FIT_SIGMA_PX)
-    weights = valid.astype(np.float32)
-    total = np.maximum(cv2.sepFilter2D(weights, -1, kernel, kernel), 1e-6)
+    total = np.maximum(_gaussian(valid.astype(np.float32), _FIT_SIGMA_PX), 1e-6)
 
     def averaged(values):
-        return (cv2.sepFilter2D(np.where(valid, values, 0.0).astype(np.float32), -1, kernel, kernel) / total).ravel()
+        return (_gaussian(np.where(valid, values, 0.0).astype(np.float32), _FIT_SIGMA_PX) / total).ravel()
 
     inner = valid & (total > 0.9)
     inner[:_FIT_BORDER_PX] = inner[-_FIT_BORDER_PX:] = False
@@ -217,13 +211,21 @@ def _told_slope(left, warped, coefficients) -> np.ndarray:
     return np.where(np.isfinite(told), told, 0.0).astype(np.float32)
 
 
-def _averaged(values, weights, sigma_px):
-    """Weighted Gaussian average of `values` and the variance of that average (independent
-    values of variance 1 / weight); infinite variance where no weight is near."""
+def _gaussian(values, sigma_px, *, squared=False):
+    """(rows, cols) float32 `values` convolved with a Gaussian of `sigma_px` (its square with
+    `squared`, for the variance of a weighted average), 3 sigma each side."""
     kernel = cv2.getGaussianKernel(int(6 * sigma_px) | 1, sigma_px)
-    total = cv2.sepFilter2D(weights, -1, kernel, kernel)
-    mean = cv2.sepFilter2D(values * weights, -1, kernel, kernel) / np.maximum(total, 1e-12)
-    square_total = cv2.sepFilter2D(weights, -1, kernel**2, kernel**2)
+    if squared:
+        kernel = kernel**2
+    return cv2.sepFilter2D(values, -1, kernel, kernel)
+
+
+def _averaged(values, weights, sigma_px):
+    """Weighted Gaussian average of `values` and its precision (independent values of variance
+    1 / weight), 0 where no weight is near."""
+    total = _gaussian(weights, sigma_px)
+    mean = _gaussian(values * weights, sigma_px) / np.maximum(total, 1e-12)
+    square_total = _gaussian(weights, sigma_px, squared=True)
     with np.errstate(divide="ignore"):
         precision = np.where(total > 1e-9, total**2 / np.maximum(square_total, 1e-30), 0.0)
     return mean.astype(np.float32), precision.astype(np.float32)
@@ -233,16 +235,18 @@ def _agreement(photometric, stereo, usable) -> float:
     """Correlation of the two slope fields averaged over `_AGREEMENT_SIGMA_PX`, where most of
     the average is usable."""
     weights = usable.astype(np.float32)
-    photometric_mean, _ = _averaged(photometric, weights, _AGREEMENT_SIGMA_PX)
-    stereo_mean, _ = _averaged(np.where(usable, stereo, 0.0).astype(np.float32), weights, _AGREEMENT_SIGMA_PX)
-    kernel = cv2.getGaussianKernel(int(6 * _AGREEMENT_SIGMA_PX) | 1, _AGREEMENT_SIGMA_PX)
-    covered = usable & (cv2.sepFilter2D(weights, -1, kernel, kernel) > 0.5)
+    total = _gaussian(weights, _AGREEMENT_SIGMA_PX)
+    covered = usable & (total > 0.5)
     if covered.sum() < 100:
         return float("nan")
-    return float(np.corrcoef(photometric_mean[covered], stereo_mean[covered])[0, 1])
+    photometric_mean, stereo_mean = (
+        _gaussian(np.where(usable, field, 0.0).astype(np.float32), _AGREEMENT_SIGMA_PX)[covered] / total[covered]
+        for field in (photometric, stereo)
+    )
+    return float(np.corrcoef(photometric_mean, stereo_mean)[0, 1])
 
 
-def _solved_rows(stereo_px, stereo_precision, slope, slope_precision) -> np.ndarray:
+def _solved_rows(stereo_px, stereo_precision, slope, slope_precision) -> tuple[np.ndarray, np.ndarray]:
     """Each row's minimiser of Σ λ (d - ď)² + Σ w (d_{j+1} - d_j - s)², λ = `stereo_precision`
     (a millionth of its mean where 0), s and w the slopes and precisions averaged over
     neighbouring pixels, and each pixel's posterior variance over the stereo term's alone
@@ -259,14 +263,14 @@ def _solved_rows(stereo_px, stereo_precision, slope, slope_precision) -> np.ndar
     slope_right = np.zeros((rows, cols)); slope_right[:, :-1] = pair_slope * pair_weight
     weight_left = np.zeros((rows, cols)); weight_left[:, 1:] = pair_weight
     slope_left = np.zeros((rows, cols)); slope_left[:, 1:] = pair_slope * pair_weight
+    diagonal = data + weight_left + weight_right
     banded = np.zeros((3, rows * cols))
-    banded[1] = (data + weight_left + weight_right).ravel()
+    banded[1] = diagonal.ravel()
     coupling = -weight_right.ravel()  # pixel i with i + 1: 0 across the end of a row
     banded[0, 1:] = coupling[:-1]
     banded[2, :-1] = coupling[:-1]
     rhs = data * stereo_px - slope_right + slope_left
     fused = solve_banded((1, 1), banded, rhs.ravel(), check_finite=False).reshape(rows, cols).astype(np.float32)
-    diagonal = data + weight_left + weight_right
     return fused, (data * _inverse_diagonal(diagonal, pair_weight)).astype(np.float32)
 
 
