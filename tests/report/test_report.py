@@ -159,3 +159,12 @@ def test_a_region_report_has_the_apis_numbers_for_that_region(built, tmp_path):
     if roughness["hurst_exponent"] is None:  # 240 x 160 px: too small a field for a Hurst fit, and the report says why
         assert roughness["hurst_note"] and roughness["hurst_note"][1:] in text
     assert f"region x {box[0]:.6g} to {box[2]:.6g} µm, y {box[1]:.6g} to {box[3]:.6g} µm" in text
+
+
+def test_lists_in_the_parameters_table_are_shown_as_their_items_are():
+    """A per-view figure such as photometric_agreement reads as the single numbers do (six
+    significant digits), not as Python's full repr."""
+    from fractoscope.report import _shown
+
+    assert _shown([0.9541111286385613, True]) == "0.954111; True"
+    assert _shown(0.9541111286385613) == "0.954111" and _shown([]) == "none"

@@ -204,5 +204,5 @@ def _shown(value) -> str:
     if isinstance(value, float):
         return f"{value:.6g}"
     if isinstance(value, list):
-        return "; ".join(map(str, value)) or "none"
+        return "; ".join(map(_shown, value)) or "none"
     return str(value)
