@@ -49,6 +49,17 @@ def sample_along_rows(field: np.ndarray, disparity: np.ndarray) -> np.ndarray:
     return warp_along_rows(field, np.nan_to_num(disparity))
 
 
+def nearest_known_along_rows(known: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(before, after): for each pixel the column of the nearest `known` pixel of its row at or
+    left of it (-1 where there is none) and at or right of it (cols where there is none), (rows,
+    cols) int32 each; `known` (rows, cols) bool."""
+    rows, cols = known.shape
+    columns = np.broadcast_to(np.arange(cols, dtype=np.int32), (rows, cols))
+    before = np.maximum.accumulate(np.where(known, columns, np.int32(-1)), axis=1)
+    after = np.minimum.accumulate(np.where(known, columns, np.int32(cols))[:, ::-1], axis=1)[:, ::-1]
+    return before, after
+
+
 @dataclass(frozen=True)
 class WindowStats:
     """Mean and inverse standard deviation of every window of one image, (rows, cols) float32."""

@@ -159,8 +159,7 @@ def _filled_along_rows(disparity_px: np.ndarray, valid: np.ndarray) -> np.ndarra
     (held constant beyond them; 0 in rows without any)."""
     rows, cols = disparity_px.shape
     columns = np.broadcast_to(np.arange(cols, dtype=np.int32), (rows, cols))
-    before = np.maximum.accumulate(np.where(valid, columns, np.int32(-1)), axis=1)
-    after = np.minimum.accumulate(np.where(valid, columns, np.int32(cols))[:, ::-1], axis=1)[:, ::-1]
+    before, after = correlation.nearest_known_along_rows(valid)
     known = np.where(valid, disparity_px, 0.0)
     at_before = np.take_along_axis(known, np.clip(before, 0, cols - 1), axis=1)
     at_after = np.take_along_axis(known, np.clip(after, 0, cols - 1), axis=1)

@@ -72,14 +72,14 @@ def refine_disparity(
     left_stats = correlation.window_stats(left, window_px)
     state = _State.starting_at(initial_px)
     for _ in range(warps):
-        target, precision = _data_term(left, left_stats, right, state.disparity, window_px)
+        target, precision = data_term(left, left_stats, right, state.disparity, window_px)
         state.iterate(target, precision, step_weight=step_weight, kink_weight=kink_weight, iterations=iterations_per_warp)
     return state.disparity
 
 
-def _data_term(left, left_stats, right, disparity, window_px):
+def data_term(left, left_stats, right, disparity, window_px):
     """The ZNCC parabola's peak (target disparity) and its precision 1/σ² (0 where the scores have
-    no peak), from the right image warped by `disparity`."""
+    no peak), (rows, cols) float32 each, from the right image warped by `disparity` (finite)."""
     warped = correlation.warp_along_rows(right, disparity)
     before, centre, after = correlation.zncc_scores_within_one_px(left, left_stats, warped, window_px)
     curvature = before - 2.0 * centre + after

@@ -34,3 +34,18 @@ def height_errors(z_um: np.ndarray, truth_um: np.ndarray, *, border_px: int = 16
     sa_measured = roughness.height_parameters_after_plane(np.where(valid, z_um, np.nan))["Sa"]
     sa_true = roughness.height_parameters_after_plane(np.where(valid, truth_um, np.nan))["Sa"]
     return HeightErrors(float(valid[inner].mean()), float(np.sqrt(np.mean(error**2)) / span), float(sa_measured / sa_true - 1.0))
+
+
+def hidden_in_second_view(z_seen_um: np.ndarray, *, pixel_size_um: float, tilt_deg: tuple[float, float]) -> np.ndarray:
+    """Which pixels of a rendered pair's first image show points that its second view cannot see
+    (a wall in front of them), (rows, cols) bool: `z_seen_um` is the pair's truth (rows, cols,
+    µm) for a tilt axis along the columns (`render_stereo_pair`'s default) and a second view not
+    misplaced. In both views a point at x along the rows and height z projects to
+    x cos t + z sin t; the second view sees a point only if no point left of it projects further."""
+    first_rad, second_rad = np.radians(tilt_deg)
+    cols = z_seen_um.shape[1]
+    first_px = np.arange(cols) - (cols - 1) / 2.0
+    z_px = z_seen_um / pixel_size_um
+    x_px = (first_px[None, :] - z_px * np.sin(first_rad)) / np.cos(first_rad)
+    second_px = x_px * np.cos(second_rad) + z_px * np.sin(second_rad)
+    return second_px < np.maximum.accumulate(second_px, axis=1) - 0.25  # a quarter pixel of resampling
