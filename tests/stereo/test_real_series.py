@@ -44,7 +44,8 @@ def test_grain_stands_above_the_substrate_and_pairs_agree_within_five_percent(pa
 
 def test_most_of_the_narrow_pair_is_measured(pairs):
     """Matching II's target: at least 65 % of the ±3° pair gets a height (window correlation
-    measured 40 %; the default 70 %, the ±6° pair 58 %)."""
+    measured 40 %; the default 69 %, the ±6° pair 56 %: 71 % and 58 % before the pixels beside
+    the grain's hidden limb were dropped, see test_visibility)."""
     assert pairs[(2, 4)][2]["valid_fraction"] >= 0.65
 
 
