@@ -187,35 +187,81 @@ def _to_uint8(image: np.ndarray) -> np.ndarray:
 
 
 def residual_magnification(
-    first: np.ndarray, second_on_first: np.ndarray, disparity_px: np.ndarray, *, strips: int = 8
+    first: np.ndarray, second_on_first: np.ndarray, disparity_px: np.ndarray, *, block_px: int = 64
 ) -> tuple[float, float] | None:
     """Magnification error ε left after alignment (the second image is (1 + ε) times larger about
     the centre), from the second image resampled onto the first and moved back by the matched
-    disparity, so only misalignment remains: the vertical shift of each of `strips` horizontal
-    strips (phase correlation, sub-pixel) grows down the image as ε·y. SIFT on a reduced copy
-    leaves ~1e-4 of it, which tilt calibration cannot tolerate. Returns ε and its one-sigma
-    uncertainty (the line fit's), or None when it cannot be measured (under half of the pixels
-    matched, or fewer than 4 strips correlating)."""
+    disparity, so only misplacement remains: rows then shift by ε·y + θ·x + c (θ a rotation left),
+    fitted densely by Gauss-Newton (Lucas-Kanade) over every matched pixel, with a gain and an
+    offset between the images, trimmed at three robust sigmas. SIFT on a reduced copy leaves
+    ~1e-4 of it, which tilt calibration cannot tolerate, and a 288² overview's heights (2 px of
+    parallax) took a tilt of 2.4 % of their range from an ε of 6e-4 that strip-wise phase
+    correlation left (it read 1.5e-3 for 1e-3). Returns ε and its one-sigma
+    uncertainty (cluster-robust, `block_px` square blocks taken as independent: with 16 px
+    blocks the real pollen series' ±3° and ±6° tilt steps disagreed by three of their sigmas,
+    its residuals being correlated beyond a matching window), or None when it
+    cannot be measured (under half of the pixels matched, or the image under four blocks a side).
+
+    B. D. Lucas, T. Kanade, "An iterative image registration technique with an application to
+    stereo vision", Proc. IJCAI (1981) 674-679."""
     rows, cols = first.shape
-    height = rows // strips
     known = np.isfinite(disparity_px)
-    if height < 32 or known.mean() < 0.5:
+    if min(rows, cols) < 4 * block_px or known.mean() < 0.5:
         return None
     fill = np.where(known, disparity_px, float(np.median(disparity_px[known]))).astype(np.float32)
     map_cols = np.arange(cols, dtype=np.float32)[None, :] + fill
-    map_rows = np.ascontiguousarray(np.broadcast_to(np.arange(rows, dtype=np.float32)[:, None], fill.shape))
-    matched = cv2.remap(second_on_first.astype(np.float32), map_cols, map_rows, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    window = cv2.createHanningWindow((cols, height), cv2.CV_32F)
-    positions, shifts = [], []
-    for index in range(strips):
-        band = slice(index * height, (index + 1) * height)
-        (_, shift_rows), response = cv2.phaseCorrelate(first[band].astype(np.float32), matched[band], window)
-        if response > 0.05:
-            positions.append(index * height + (height - 1) / 2 - (rows - 1) / 2)
-            shifts.append(shift_rows)
-    if len(positions) < 4:
-        return None
-    (slope, intercept), unscaled = np.polyfit(positions, shifts, 1, cov="unscaled")
-    residuals = np.asarray(shifts) - (slope * np.asarray(positions) + intercept)
-    variance = float(residuals @ residuals) / (len(positions) - 2)
-    return float(slope), float(np.sqrt(unscaled[0, 0] * variance))
+    y_px = np.broadcast_to(np.arange(rows, dtype=np.float32)[:, None] - np.float32((rows - 1) / 2), (rows, cols))
+    x_px = np.broadcast_to(np.arange(cols, dtype=np.float32)[None, :] - np.float32((cols - 1) / 2), (rows, cols))
+    first = first.astype(np.float32)
+    second = second_on_first.astype(np.float32)
+    # Unmatched pixels, their neighbours (the gradient reaches them) and an 8 px border are left out.
+    used = cv2.erode(known.astype(np.uint8), np.ones((5, 5), np.uint8), borderValue=0).astype(bool)
+    used[:8], used[-8:], used[:, :8], used[:, -8:] = False, False, False, False
+    shift = np.zeros(3)  # ε, θ, c: the second image's rows lie at y + ε·y + θ·x + c
+    for _ in range(_MISPLACEMENT_ITERATIONS):
+        map_rows = y_px + np.float32((rows - 1) / 2) + (shift[0] * y_px + shift[1] * x_px + shift[2]).astype(np.float32)
+        matched = cv2.remap(second, map_cols, map_rows, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
+        gradient = cv2.Sobel(0.5 * (matched + first), cv2.CV_32F, 0, 1, ksize=3) / np.float32(8.0)
+        # Rows lying at t where v = shift is assumed: matched ≈ gain·first + offset + gradient·(v - t),
+        # linear in the five unknowns.
+        design = [first, np.ones_like(first), gradient * y_px, gradient * x_px, gradient]
+        weights = used
+        for _ in range(2):
+            coefficients, residual = _weighted_fit(design, matched, weights)
+            scale = 1.4826 * float(np.median(np.abs(residual[used])))
+            weights = used & (np.abs(residual) < 3.0 * scale)
+        shift -= coefficients[2:]
+    sigma = _cluster_sigma(design, residual, weights, block_px)
+    return float(shift[0]), float(sigma[2])
+
+
+# Gauss-Newton steps of `residual_magnification`: the shifts are a small fraction of a pixel, so
+# the second step changes ε by ~1e-6 and the third by nothing measurable.
+_MISPLACEMENT_ITERATIONS = 3
+
+
+def _weighted_fit(design: list[np.ndarray], target: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares coefficients of `target` on the `design` images over the `weights` pixels
+    (bool), and the residual image, float64 normal equations of (rows, cols) float32 images."""
+    columns = [np.where(weights, column, np.float32(0.0)) for column in design]
+    normal = np.array([[float(np.sum(a * b, dtype=np.float64)) for b in columns] for a in columns])
+    right = np.array([float(np.sum(a * target, dtype=np.float64)) for a in columns])
+    coefficients = np.linalg.solve(normal, right)
+    residual = target - sum(np.float32(c) * column for c, column in zip(coefficients, design))
+    return coefficients, residual
+
+
+def _cluster_sigma(design: list[np.ndarray], residual: np.ndarray, weights: np.ndarray, block_px: int) -> np.ndarray:
+    """One-sigma uncertainties of `_weighted_fit`'s coefficients, cluster-robust: residuals are
+    correlated within a matching window, so sums over `block_px` blocks are taken as the
+    independent samples (the sandwich estimate)."""
+    rows, cols = residual.shape
+    blocks_rows, blocks_cols = rows // block_px, cols // block_px
+    columns = [np.where(weights, column, np.float32(0.0))[: blocks_rows * block_px, : blocks_cols * block_px] for column in design]
+    scores = np.stack([
+        (column * residual[: blocks_rows * block_px, : blocks_cols * block_px])
+        .reshape(blocks_rows, block_px, blocks_cols, block_px).sum(axis=(1, 3), dtype=np.float64).ravel()
+        for column in columns
+    ], axis=1)
+    bread = np.linalg.inv(np.array([[float(np.sum(a * b, dtype=np.float64)) for b in columns] for a in columns]))
+    return np.sqrt(np.diag(bread @ (scores.T @ scores) @ bread))
