@@ -48,8 +48,8 @@ def test_fracture_surface_heights_meet_the_accuracy_targets(tilt_deg):
 def test_the_default_method_measures_better_than_window_correlation(make_pair, tilt_deg):
     """TGV² refinement lowers the RMS error on every surface and measures at least as much
     (measured, ±5° and 0/10°: self-affine 0.53 and 0.54 % against 1.12 and 1.11 %; dimples 1.6
-    and 1.6 % against 4.2 and 4.1 %, 99.7-99.9 % valid against 98.8-98.9 %; cleavage 1.27 and
-    2.55 % against 2.8 and 6.5 %, 84-87 % valid against 78-80 %)."""
+    and 1.6 % against 4.2 and 4.1 %, 99.7-99.9 % valid against 98.8-98.9 %; cleavage 1.23 and
+    2.60 % against 2.8 and 6.5 %, 88-90 % valid against 78-80 %)."""
     pair = make_pair(tilt_deg=tilt_deg)
     default_valid, default_rms, _ = _errors(_reconstruct(pair, tilt_deg), pair)
     window_valid, window_rms, _ = _errors(_reconstruct(pair, tilt_deg, options=WINDOW), pair)
@@ -77,14 +77,15 @@ def _within(result, pair):
 # met (noise and the dimples' shading texture changing with the tilt, see the ideal-image test;
 # 4.6 % of cleavage is hidden in the second view and more lies next to its walls); these bounds
 # pin what each method achieves so it cannot silently get worse. Measured, default: dimples
-# 1.61-1.64 % RMS (2.95-3.03 % before the shading's slopes were fused in), 99.7-99.9 % valid,
-# Sa within 0.7 %; cleavage 1.27 % (±5°, within the target) and 2.55 % (0/10°; 4.4 % before
-# the hidden bands behind walls were handled, see test_visibility) RMS, 84-87 % valid (86-89 %
-# before), Sa within 0.7 %. Window correlation: dimples 4.1-4.2 %,
+# 1.59-1.65 % RMS (2.95-3.03 % before the shading's slopes were fused in), 99.7-99.9 % valid,
+# Sa within 0.9 %; cleavage 1.23 % (±5°, within the target) and 2.60 % (0/10°; 4.4 % before
+# the hidden bands behind walls were handled, see test_visibility) RMS, 88-90 % valid (84-87 %
+# while pixels with a semi-global seed were propagated too, see tgv_zncc), Sa within 0.4 %,
+# 96.5-96.7 % within a pixel, 98.6-99.3 % within three sigmas. Window correlation: dimples 4.1-4.2 %,
 # 98.8-98.9 %, 0.5 %; cleavage 2.8-6.5 %, 78-80 %, 2.0 %. See "Accuracy" in the README.
 BEYOND_TARGETS = {
     ("dimples", "tgv_zncc"): (dimple_pair, {"valid": 0.99, "rms": 0.019, "sa": 0.015, "one_pixel": 0.99, "three_sigma": 0.99}),
-    ("cleavage", "tgv_zncc"): (cleavage_pair, {"valid": 0.83, "rms": 0.03, "sa": 0.02, "one_pixel": 0.93, "three_sigma": 0.96}),
+    ("cleavage", "tgv_zncc"): (cleavage_pair, {"valid": 0.86, "rms": 0.03, "sa": 0.02, "one_pixel": 0.95, "three_sigma": 0.98}),
     ("dimples", "window_zncc"): (dimple_pair, {"valid": 0.98, "rms": 0.045, "sa": 0.01, "one_pixel": 0.98, "three_sigma": 0.99}),
     ("cleavage", "window_zncc"): (cleavage_pair, {"valid": 0.75, "rms": 0.07, "sa": 0.025, "one_pixel": 0.88, "three_sigma": 0.95}),
 }

@@ -45,6 +45,28 @@ def test_a_magnification_error_moves_the_tilts_by_its_sigma_term(true):
     assert shift_deg[1] == pytest.approx(clean.sigma_deg[1], rel=0.05, abs=1e-6)
 
 
+def test_errors_shared_within_blocks_are_covered_by_the_cluster_robust_sigma():
+    """Matching errors correlate over a window and more: points of one block share theirs. Taken
+    for independent the points claim a sigma that the tilts miss by far (both within two sigmas
+    in 2 of 40 trials); with the blocks as the independent samples they mostly fall within it
+    (measured 33 of 40: the sigma is still about 1.6 times small on these 64 blocks, see
+    `tilt_series._jackknife_sigma`)."""
+    true = np.array([-5.0, 0.0, 5.0])
+    within = {"independent": 0, "blocks": 0}
+    trials = 40
+    for seed in range(trials):
+        rng = np.random.default_rng(seed)
+        x, _, seen_first, disparities = _views(true, noise_px=0.02, points=4000, seed=seed)
+        y = rng.uniform(-320, 320, x.size)
+        block = (np.floor((x + 320) / 80) * 8 + np.floor((y + 320) / 80)).astype(int)  # 8 x 8 blocks
+        disparities = disparities + rng.normal(0, 0.3, (len(true), 64))[:, block]
+        for name, cluster in (("independent", None), ("blocks", block)):
+            estimate = tilt_series.estimate_tilts(seen_first, disparities, true, cluster=cluster)
+            within[name] += bool(np.all(np.abs(estimate.tilt_deg - true) <= 2 * estimate.sigma_deg))
+    assert within["independent"] < 0.25 * trials
+    assert within["blocks"] >= 0.75 * trials
+
+
 def test_two_views_reduce_to_the_pair_formula():
     tilts = (-4.0, 6.0)
     _, _, seen_first, disparities = _views(np.array(tilts), noise_px=0.0)

@@ -326,6 +326,11 @@ def _disagreeing_views(x1_px, matched: _MatchedViews, tilts, offsets, z_px) -> l
             "give --calibrate-tilt"]
 
 
+# The tilt fit's sigma takes the matched points in blocks of this side as independent (the
+# magnification's sigma does too, `alignment.residual_magnification`).
+_CALIBRATION_BLOCK_PX = 64
+
+
 def _tilts(x1_px, matched: _MatchedViews, nominal, options: MatchingOptions, report_progress):
     """The tilts heights are computed with: the nominal ones, or with `options.calibrate_tilt`
     those estimated from the disparities, with the views' offsets and the calibration report."""
@@ -338,7 +343,11 @@ def _tilts(x1_px, matched: _MatchedViews, nominal, options: MatchingOptions, rep
         if np.isfinite(disparities[view]).sum() < tilt_series.MIN_CALIBRATION_POINTS:
             raise InvalidInputError(f"images[{view}]", "too little of this view could be matched with the first to calibrate the tilts")
     try:
-        estimate = tilt_series.estimate_tilts(x1_px[sample].ravel(), disparities, nominal, magnification_sigma=matched.magnification_sigma)
+        rows_px, cols_px = np.indices(x1_px.shape) // _CALIBRATION_BLOCK_PX
+        cluster = (rows_px[sample] * (cols_px.max() + 1) + cols_px[sample]).ravel()
+        estimate = tilt_series.estimate_tilts(
+            x1_px[sample].ravel(), disparities, nominal, magnification_sigma=matched.magnification_sigma, cluster=cluster
+        )
     except tilt_series.TooFewPointsError as error:
         raise InvalidInputError("images", f"{error}: the views share too little texture to calibrate the tilts") from None
     _check_calibrated(estimate, nominal)

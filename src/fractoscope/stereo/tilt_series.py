@@ -95,7 +95,8 @@ def view_residuals_px(x_px, disparities_px, tilt_deg, z_px, *, reference: int = 
 
 
 def estimate_tilts(
-    x_px: np.ndarray, disparities_px: np.ndarray, nominal_tilt_deg, *, reference: int = 0, magnification_sigma=None
+    x_px: np.ndarray, disparities_px: np.ndarray, nominal_tilt_deg, *, reference: int = 0, magnification_sigma=None,
+    cluster=None,
 ) -> TiltEstimate:
     """Tilts of every view but the reference that minimize the reprojection residual of points
     matched in all views: x_px (M,) where they appear in the reference, disparities_px (N, M) with
@@ -106,8 +107,14 @@ def estimate_tilts(
     `magnification_sigma` (N,): each view's relative magnification uncertainty against the
     reference. A magnification error ε adds ε·x to that view's disparities, which is exactly what
     a change of cos t does, so it moves the tilts: for ±3° views an ε of 1e-4 moves them by
-    about 4 %. Its effect enters the sigma next to the fit's own (which assumes independent
-    errors)."""
+    about 4 %. Its effect enters the sigma next to the fit's own.
+
+    `cluster` (M,) int: a label per point, its block of the reference image. Given, the fit's own
+    sigma takes the blocks for the independent samples (`_jackknife_sigma`): matching errors
+    correlate over more than a window, and on 256² self-affine series (seeds 1-11) the
+    calibrated tilts erred by up to 3.9 of the sigmas that took the points for independent, by
+    0.2-2.0 of these (at 512², seeds 1-4 and 9: 0.03-0.9, and 3.9 once). Without it the points
+    are taken for independent."""
     nominal = np.asarray(nominal_tilt_deg, np.float64)
     views = len(nominal)
     if views < 3:
@@ -139,7 +146,11 @@ def estimate_tilts(
     variance = float(fit.fun @ fit.fun) / dof
     sigma_deg = np.zeros(views)
     try:
-        sigma_deg[others] = np.sqrt(np.clip(np.diag(np.linalg.inv(fit.jac.T @ fit.jac)) * variance, 0, None))
+        if cluster is None:
+            sigma_deg[others] = np.sqrt(np.clip(np.diag(np.linalg.inv(fit.jac.T @ fit.jac)) * variance, 0, None))
+        else:
+            labels = np.unique(np.asarray(cluster)[known], return_inverse=True)[1]
+            sigma_deg[others] = _jackknife_sigma(fit.jac, fit.fun, np.tile(labels, len(others)))
     except np.linalg.LinAlgError:
         sigma_deg[others] = np.inf
     if magnification_sigma is not None:
@@ -154,3 +165,23 @@ def estimate_tilts(
     offsets = d_mean - x_mean * coefficients(tilts, reference=reference)[0]
     offsets[reference] = 0.0
     return TiltEstimate(tilts, sigma_deg, offsets, float(np.sqrt(np.mean(fit.fun**2))))
+
+
+def _jackknife_sigma(jacobian: np.ndarray, residuals: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """One-sigma uncertainties of a least-squares fit's parameters by the delete-one-cluster
+    jackknife, each deletion one Gauss-Newton step from the fit: δ_g = (JᵀJ - J_gᵀJ_g)⁻¹ J_gᵀ r_g
+    over the residuals (R,) labelled g by `labels` (R,) int 0..G-1, covariance (G - 1) / G Σ δ_g δ_gᵀ;
+    `jacobian` (R, P). Its leave-one-out weighting keeps the clusters at the edges of the image,
+    which carry most of a tilt's information, from shrinking the sigma as the plain cluster
+    sandwich does (measured on blocks sharing their errors: 1.65 times too small there, 1.76 for
+    the sandwich; taken for independent, 28 times).
+
+    R. M. Bell, D. F. McCaffrey, "Bias reduction in standard errors for linear regression with
+    multi-stage samples", Survey Methodology 28 (2002) 169-181."""
+    groups, parameters = int(labels.max()) + 1, jacobian.shape[1]
+    scores = np.stack([np.bincount(labels, weights=jacobian[:, k] * residuals, minlength=groups) for k in range(parameters)], axis=1)
+    curvature = np.stack([
+        np.bincount(labels, weights=jacobian[:, k] * jacobian[:, m], minlength=groups) for k in range(parameters) for m in range(parameters)
+    ], axis=1).reshape(groups, parameters, parameters)
+    left_out = np.linalg.solve((jacobian.T @ jacobian)[None] - curvature, scores[:, :, None])[:, :, 0]
+    return np.sqrt(np.diag(left_out.T @ left_out) * (groups - 1) / groups)
