@@ -327,7 +327,8 @@ def _disagreeing_views(x1_px, matched: _MatchedViews, tilts, offsets, z_px) -> l
 
 
 # The tilt fit's sigma takes the matched points in blocks of this side as independent (the
-# magnification's sigma does too, `alignment.residual_magnification`).
+# magnification's sigma does too, `alignment.residual_magnification`), in smaller ones on views
+# under 128 px.
 _CALIBRATION_BLOCK_PX = 64
 
 
@@ -343,7 +344,8 @@ def _tilts(x1_px, matched: _MatchedViews, nominal, options: MatchingOptions, rep
         if np.isfinite(disparities[view]).sum() < tilt_series.MIN_CALIBRATION_POINTS:
             raise InvalidInputError(f"images[{view}]", "too little of this view could be matched with the first to calibrate the tilts")
     try:
-        rows_px, cols_px = np.indices(x1_px.shape) // _CALIBRATION_BLOCK_PX
+        block_px = max(min(_CALIBRATION_BLOCK_PX, min(x1_px.shape) // 2), 1)  # at least 2 × 2 blocks
+        rows_px, cols_px = np.indices(x1_px.shape) // block_px
         cluster = (rows_px[sample] * (cols_px.max() + 1) + cols_px[sample]).ravel()
         estimate = tilt_series.estimate_tilts(
             x1_px[sample].ravel(), disparities, nominal, magnification_sigma=matched.magnification_sigma, cluster=cluster
