@@ -113,7 +113,7 @@ def estimate_tilts(
     sigma takes the blocks for the independent samples (`_jackknife_sigma`): matching errors
     correlate over more than a window, and on 256² self-affine series (seeds 1-11) the
     calibrated tilts erred by up to 3.9 of the sigmas that took the points for independent, by
-    0.2-2.0 of these (at 512², seeds 1-4 and 9: 0.03-0.9, and 3.9 once). Without it the points
+    0.2-2.0 of these (at 512², seeds 1-12: up to 1.6, but 3.9 and 3.4 on two). Without it the points
     are taken for independent."""
     nominal = np.asarray(nominal_tilt_deg, np.float64)
     views = len(nominal)
