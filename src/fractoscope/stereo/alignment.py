@@ -186,8 +186,13 @@ def _to_uint8(image: np.ndarray) -> np.ndarray:
     return np.clip(scaled, 0, 255).astype(np.uint8)
 
 
+# Matched images' residuals correlate beyond a matching window: squares of this side are taken as
+# the independent samples of the fits on them (here and in the tilt calibration's).
+INDEPENDENT_BLOCK_PX = 64
+
+
 def residual_magnification(
-    first: np.ndarray, second_on_first: np.ndarray, disparity_px: np.ndarray, *, block_px: int = 64
+    first: np.ndarray, second_on_first: np.ndarray, disparity_px: np.ndarray, *, block_px: int = INDEPENDENT_BLOCK_PX
 ) -> tuple[float, float] | None:
     """Magnification error ε left after alignment (the second image is (1 + ε) times larger about
     the centre), from the second image resampled onto the first and moved back by the matched

@@ -326,12 +326,6 @@ def _disagreeing_views(x1_px, matched: _MatchedViews, tilts, offsets, z_px) -> l
             "give --calibrate-tilt"]
 
 
-# The tilt fit's sigma takes the matched points in blocks of this side as independent (the
-# magnification's sigma does too, `alignment.residual_magnification`), in smaller ones on views
-# under 128 px.
-_CALIBRATION_BLOCK_PX = 64
-
-
 def _tilts(x1_px, matched: _MatchedViews, nominal, options: MatchingOptions, report_progress):
     """The tilts heights are computed with: the nominal ones, or with `options.calibrate_tilt`
     those estimated from the disparities, with the views' offsets and the calibration report."""
@@ -344,9 +338,10 @@ def _tilts(x1_px, matched: _MatchedViews, nominal, options: MatchingOptions, rep
         if np.isfinite(disparities[view]).sum() < tilt_series.MIN_CALIBRATION_POINTS:
             raise InvalidInputError(f"images[{view}]", "too little of this view could be matched with the first to calibrate the tilts")
     try:
-        block_px = max(min(_CALIBRATION_BLOCK_PX, min(x1_px.shape) // 2), 1)  # at least 2 × 2 blocks
-        rows_px, cols_px = np.indices(x1_px.shape) // block_px
-        cluster = (rows_px[sample] * (cols_px.max() + 1) + cols_px[sample]).ravel()
+        # The fit's sigma takes blocks of the sampled points as independent, at least 2 × 2 of them.
+        block_px = max(min(alignment.INDEPENDENT_BLOCK_PX, min(x1_px.shape) // 2), 1)
+        block_rows, block_cols = (np.arange(size)[step] // block_px for size, step in zip(x1_px.shape, sample))
+        cluster = (block_rows[:, None] * (x1_px.shape[1] // block_px + 1) + block_cols[None, :]).ravel()
         estimate = tilt_series.estimate_tilts(
             x1_px[sample].ravel(), disparities, nominal, magnification_sigma=matched.magnification_sigma, cluster=cluster
         )
