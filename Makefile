@@ -7,10 +7,15 @@ PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 PROTOS := $(wildcard proto/fractoscope/v1/*.proto)
-GEN_DIR := src/fractoscope/v1
-GEN := $(patsubst proto/fractoscope/v1/%.proto,$(GEN_DIR)/%_pb2.py,$(PROTOS))
+# The three distributions, installed editable: the client (whose build generates the stubs from
+# proto/ into clients/python/fractoscope/v1), the services, and the CLI with its 'local' extra.
+DISTRIBUTIONS := clients/python/pyproject.toml clients/python/setup.py services/pyproject.toml clients/cli/pyproject.toml
 STAMP := $(VENV)/.installed
 NODE_STAMP := node_modules/.installed
+WEB := clients/web
+WEB_STAMP := $(WEB)/node_modules/.installed
+# Where an installed server finds the web viewer: sys.prefix/share/fractoscope/web (tiles.http).
+WEB_LINK := $(VENV)/share/fractoscope/web
 DATA ?= ./data
 PORT ?= 8080
 GRPC_PORT ?= 50051
@@ -27,32 +32,33 @@ KUBE_SCHEMAS := $(TOOLS)/kubernetes-schemas/.written
 
 .PHONY: install proto run test bench load lint clean
 
-## install: create .venv with every dependency, generate the gRPC stubs, install the JS tools
-install: $(STAMP) $(NODE_STAMP)
+## install: create .venv with the three distributions and the development tools, the stubs, the JS packages
+install: $(STAMP) $(NODE_STAMP) $(WEB_STAMP) $(WEB_LINK)
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
 
-# Stubs are generated, never committed; grpcio-tools is pinned with grpcio in pyproject.toml.
-$(GEN): $(PROTOS) | $(BIN)/python
-	$(BIN)/pip install --quiet 'grpcio-tools==1.85.*'
-	mkdir -p $(GEN_DIR)
-	$(BIN)/python -m grpc_tools.protoc -Iproto --python_out=src --pyi_out=src \
-	  --grpc_python_out=src $(PROTOS)
-	touch $(GEN_DIR)/__init__.py $(GEN)
+$(STAMP): pyproject.toml $(DISTRIBUTIONS) $(PROTOS) | $(BIN)/python
+	$(BIN)/pip install --quiet -e clients/python -e services -e 'clients/cli[local]' --group dev
+	touch $@
 
-proto: $(GEN)
+## proto: regenerate the gRPC stubs (the client's build does it from proto/)
+proto: $(STAMP)
 
-# The Khronos glTF validator, which the tests run on every GLB they write; three.js,
-# 3DTilesRendererJS and playwright-core for the browser test of our tilesets.
+# The Khronos glTF validator and playwright-core, with which the tests check our GLBs and drive
+# Chromium; the web viewer's own package (three.js, 3DTilesRendererJS) in clients/web.
 $(NODE_STAMP): package.json package-lock.json
 	npm ci --no-audit --no-fund --loglevel=error
 	touch $@
 
-$(STAMP): pyproject.toml $(GEN) | $(BIN)/python
-	$(BIN)/pip install --quiet -e '.[dev]'
+$(WEB_STAMP): $(WEB)/package.json $(WEB)/package-lock.json
+	npm ci --prefix $(WEB) --no-audit --no-fund --loglevel=error
 	touch $@
+
+$(WEB_LINK): | $(BIN)/python
+	mkdir -p $(dir $@)
+	ln -sfn $(abspath $(WEB)) $@
 
 ## run: the main job on embedded defaults: services and viewer on loopback until Ctrl-C
 run: install
@@ -84,7 +90,7 @@ $(KUBE_SCHEMAS): deploy/kubernetes_schemas.py
 
 ## test: the whole test suite
 test: install $(CHROMIUM) $(PDFTOPPM) $(KUBECONFORM) $(KUSTOMIZE) $(KUBE_SCHEMAS)
-	$(BIN)/lint-imports
+	$(MAKE) --no-print-directory lint
 	$(BIN)/python -m pytest -q
 
 ## bench: speed, memory and accuracy figures, written to bench-results/
@@ -102,9 +108,12 @@ bench: install $(WRK) $(GHZ)
 load: install $(WRK) $(GHZ)
 	$(BIN)/python -m benchmarks.serving --out bench-results --name load --concurrency 50 --duration-s 60
 
+## lint: formatting, lint rules and the import layering
 lint: install
-	$(BIN)/python -m compileall -q src tests benchmarks
+	$(BIN)/ruff format --check
+	$(BIN)/ruff check
 	$(BIN)/lint-imports
 
 clean:
-	rm -rf $(VENV) $(GEN_DIR) build *.egg-info node_modules $(TOOLS)
+	rm -rf $(VENV) clients/python/fractoscope/v1 build node_modules $(WEB)/node_modules $(TOOLS)
+	find . -name '*.egg-info' -prune -exec rm -rf {} +

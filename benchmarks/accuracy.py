@@ -47,12 +47,16 @@ SERIES_TILTS_DEG, SERIES_NOMINAL_DEG = (-5.0, 0.0, 5.0), (-5.0, 0.5, 5.5)
 
 
 def _render(surface_um, tilt_deg, *, pixel_size_um=synthetic.REFERENCE_PIXEL_SIZE_UM, size_px=SIZE_PX, **render):
-    return synthetic.render_stereo_pair(surface_um, pixel_size_um=pixel_size_um, tilt_deg=tilt_deg, output_shape=(size_px, size_px), seed=1, **render)
+    return synthetic.render_stereo_pair(
+        surface_um, pixel_size_um=pixel_size_um, tilt_deg=tilt_deg, output_shape=(size_px, size_px), seed=1, **render
+    )
 
 
 def _ours(pair, tilt_deg, method, *, pixel_size_um=synthetic.REFERENCE_PIXEL_SIZE_UM) -> synthetic.HeightErrors:
     first, second = (SemImage(image, None, None, 0) for image in (pair.first, pair.second))
-    result = compute_height_map(first, second, tilt_deg=tilt_deg, pixel_size_um=pixel_size_um, options=MatchingOptions(method=method))
+    result = compute_height_map(
+        first, second, tilt_deg=tilt_deg, pixel_size_um=pixel_size_um, options=MatchingOptions(method=method)
+    )
     return synthetic.height_errors(result.z_um, pair.z_seen_um, border_px=BORDER_PX)
 
 
@@ -60,7 +64,9 @@ def _peer(pair, tilt_deg, match) -> synthetic.HeightErrors:
     """A peer's disparities of the (rectified) synthetic pair to heights by the pipeline's formula."""
     columns_px = np.arange(SIZE_PX, dtype=np.float64) - (SIZE_PX - 1) / 2.0
     x_px = np.broadcast_to(columns_px[None, :], pair.first.shape)
-    truth_range_px = np.ptp(pair.z_seen_um) / synthetic.REFERENCE_PIXEL_SIZE_UM * np.sin(np.radians(abs(tilt_deg[1] - tilt_deg[0])))
+    truth_range_px = (
+        np.ptp(pair.z_seen_um) / synthetic.REFERENCE_PIXEL_SIZE_UM * np.sin(np.radians(abs(tilt_deg[1] - tilt_deg[0])))
+    )
     disparity = match(pair.first, pair.second, int(np.ceil(truth_range_px + 0.02 * SIZE_PX)) + 8)
     z_px, _ = tilt_series.heights_px(x_px, np.stack([np.zeros_like(disparity), disparity]), tilt_deg)
     return synthetic.height_errors(z_px * synthetic.REFERENCE_PIXEL_SIZE_UM, pair.z_seen_um, border_px=BORDER_PX)
@@ -75,8 +81,11 @@ def _window_floor_of_range(truth_um: np.ndarray) -> float:
 
 
 def _figures(errors: synthetic.HeightErrors) -> dict:
-    return {"valid_percent": 100 * errors.valid_fraction, "rms_percent_of_range": 100 * errors.rms_of_range,
-            "sa_error_percent": 100 * errors.sa_relative}
+    return {
+        "valid_percent": 100 * errors.valid_fraction,
+        "rms_percent_of_range": 100 * errors.rms_of_range,
+        "sa_error_percent": 100 * errors.sa_relative,
+    }
 
 
 def _surface_rows() -> list[dict]:
@@ -87,17 +96,23 @@ def _surface_rows() -> list[dict]:
             pair = _render(surface, tilt_deg)
             no_noise, fixed = {"noise_fraction": 0.0}, {"shading_tilt_deg": float(np.mean(tilt_deg))}
             default = MatchingMethod.TGV_ZNCC
-            rows.append({
-                "surface": kind, "tilt_deg": list(tilt_deg),
-                "tgv_zncc": _figures(_ours(pair, tilt_deg, default)),
-                "window_zncc": _figures(_ours(pair, tilt_deg, MatchingMethod.WINDOW_ZNCC)),
-                "sgbm_3d_sem": _figures(_peer(pair, tilt_deg, peers.sgbm_3d_sem)),
-                "sgbm_pollen3d": _figures(_peer(pair, tilt_deg, peers.sgbm_pollen3d)),
-                "rms_percent_without_noise": 100 * _ours(_render(surface, tilt_deg, **no_noise), tilt_deg, default).rms_of_range,
-                "rms_percent_with_fixed_shading": 100 * _ours(_render(surface, tilt_deg, **fixed), tilt_deg, default).rms_of_range,
-                "rms_percent_ideal_images": 100 * _ours(_render(surface, tilt_deg, **no_noise, **fixed), tilt_deg, default).rms_of_range,
-                "window_floor_rms_percent": 100 * _window_floor_of_range(pair.z_seen_um),
-            })
+            rows.append(
+                {
+                    "surface": kind,
+                    "tilt_deg": list(tilt_deg),
+                    "tgv_zncc": _figures(_ours(pair, tilt_deg, default)),
+                    "window_zncc": _figures(_ours(pair, tilt_deg, MatchingMethod.WINDOW_ZNCC)),
+                    "sgbm_3d_sem": _figures(_peer(pair, tilt_deg, peers.sgbm_3d_sem)),
+                    "sgbm_pollen3d": _figures(_peer(pair, tilt_deg, peers.sgbm_pollen3d)),
+                    "rms_percent_without_noise": 100
+                    * _ours(_render(surface, tilt_deg, **no_noise), tilt_deg, default).rms_of_range,
+                    "rms_percent_with_fixed_shading": 100
+                    * _ours(_render(surface, tilt_deg, **fixed), tilt_deg, default).rms_of_range,
+                    "rms_percent_ideal_images": 100
+                    * _ours(_render(surface, tilt_deg, **no_noise, **fixed), tilt_deg, default).rms_of_range,
+                    "window_floor_rms_percent": 100 * _window_floor_of_range(pair.z_seen_um),
+                }
+            )
     return rows
 
 
@@ -106,9 +121,18 @@ def _overview_rows() -> list[dict]:
     for size_px in OVERVIEW_SIZES_PX:
         surface = synthetic.overview_dimple_surface(size_px + MARGIN_PX, seed=1)
         pair = _render(surface, (-5.0, 5.0), pixel_size_um=synthetic.OVERVIEW_PIXEL_SIZE_UM, size_px=size_px)
-        rows.append({"size_px": size_px, "window_floor_rms_percent": 100 * _window_floor_of_range(pair.z_seen_um), **{
-            method.value: _figures(_ours(pair, (-5.0, 5.0), method, pixel_size_um=synthetic.OVERVIEW_PIXEL_SIZE_UM))
-            for method in MatchingMethod}})
+        rows.append(
+            {
+                "size_px": size_px,
+                "window_floor_rms_percent": 100 * _window_floor_of_range(pair.z_seen_um),
+                **{
+                    method.value: _figures(
+                        _ours(pair, (-5.0, 5.0), method, pixel_size_um=synthetic.OVERVIEW_PIXEL_SIZE_UM)
+                    )
+                    for method in MatchingMethod
+                },
+            }
+        )
     return rows
 
 
@@ -116,19 +140,29 @@ def _series_rows() -> list[dict]:
     """A -5/0/+5° dimple series whose nominal tilts read both steps 10 % large, calibrated: RMS
     error after the frame's tilt (unobservable) is taken out, % of the height range."""
     surface = synthetic.reference_surface("dimples", SIZE_PX + MARGIN_PX, seed=5)
-    images, truth = synthetic.render_tilt_series(surface, pixel_size_um=0.1, tilt_deg=SERIES_TILTS_DEG, output_shape=(SIZE_PX, SIZE_PX), seed=5)
+    images, truth = synthetic.render_tilt_series(
+        surface, pixel_size_um=0.1, tilt_deg=SERIES_TILTS_DEG, output_shape=(SIZE_PX, SIZE_PX), seed=5
+    )
     views = [SemImage(image, None, 0.1, 0) for image in images]
     rows = []
     for method in MatchingMethod:
-        result = compute_series_height_map(views, tilt_deg=SERIES_NOMINAL_DEG, options=MatchingOptions(calibrate_tilt=True, method=method))
+        result = compute_series_height_map(
+            views, tilt_deg=SERIES_NOMINAL_DEG, options=MatchingOptions(calibrate_tilt=True, method=method)
+        )
         known = np.isfinite(result.z_um)
         known[:BORDER_PX] = known[-BORDER_PX:] = known[:, :BORDER_PX] = known[:, -BORDER_PX:] = False
         rows_px, cols_px = np.nonzero(known)
         plane = np.column_stack([rows_px, cols_px, np.ones(known.sum())])
         error = result.z_um[known] - truth[known]
         error -= plane @ np.linalg.lstsq(plane, error, rcond=None)[0]
-        rows.append({"method": method.value, "tilt_deg": result.report["tilt_deg"], "tilt_sigma_deg": result.report["tilt_sigma_deg"],
-                     "rms_percent_of_range": float(100 * np.sqrt(np.mean(error**2)) / np.ptp(truth))})
+        rows.append(
+            {
+                "method": method.value,
+                "tilt_deg": result.report["tilt_deg"],
+                "tilt_sigma_deg": result.report["tilt_sigma_deg"],
+                "rms_percent_of_range": float(100 * np.sqrt(np.mean(error**2)) / np.ptp(truth)),
+            }
+        )
     return rows
 
 
@@ -136,18 +170,41 @@ PEERS = ("tgv_zncc", "window_zncc", "sgbm_3d_sem", "sgbm_pollen3d")
 
 
 def _print(rows, overview, series, out) -> None:
-    print(f"{'surface':<12}{'tilts':>7}" + "".join(f"{name:>26}" for name in PEERS) + f"{'no noise':>10}{'fixed shading':>15}{'ideal':>7}{'floor':>7}")
+    print(
+        f"{'surface':<12}{'tilts':>7}"
+        + "".join(f"{name:>26}" for name in PEERS)
+        + f"{'no noise':>10}{'fixed shading':>15}{'ideal':>7}{'floor':>7}"
+    )
     for row in rows:
-        cells = "".join(f"{row[n]['rms_percent_of_range']:>8.2f} % {row[n]['valid_percent']:>5.1f} % {row[n]['sa_error_percent']:>+5.1f} %" for n in PEERS)
-        print(f"{row['surface']:<12}{'/'.join(f'{t:g}' for t in row['tilt_deg']):>7}{cells}{row['rms_percent_without_noise']:>10.2f}"
-              f"{row['rms_percent_with_fixed_shading']:>15.2f}{row['rms_percent_ideal_images']:>7.2f}{row['window_floor_rms_percent']:>7.2f}")
-    print("Each peer: RMS error (% of range), valid share, Sa error; the last four columns are the default method's; floor: "
-          f"the truth minus its {WINDOW_PX}² window average.")
+        cells = "".join(
+            f"{row[n]['rms_percent_of_range']:>8.2f} % {row[n]['valid_percent']:>5.1f} % "
+            f"{row[n]['sa_error_percent']:>+5.1f} %"
+            for n in PEERS
+        )
+        print(
+            f"{row['surface']:<12}{'/'.join(f'{t:g}' for t in row['tilt_deg']):>7}{cells}"
+            f"{row['rms_percent_without_noise']:>10.2f}{row['rms_percent_with_fixed_shading']:>15.2f}"
+            f"{row['rms_percent_ideal_images']:>7.2f}{row['window_floor_rms_percent']:>7.2f}"
+        )
+    print(
+        "Each peer: RMS error (% of range), valid share, Sa error; the last four columns are the default method's; "
+        f"floor: the truth minus its {WINDOW_PX}² window average."
+    )
     for row in overview:
-        print(f"overview {row['size_px']}² at {synthetic.OVERVIEW_PIXEL_SIZE_UM} µm/px (floor {row['window_floor_rms_percent']:.2f} %): "
-              + ", ".join(f"{m.value} {row[m.value]['rms_percent_of_range']:.2f} % RMS, Sa {row[m.value]['sa_error_percent']:+.1f} %" for m in MatchingMethod))
+        print(
+            f"overview {row['size_px']}² at {synthetic.OVERVIEW_PIXEL_SIZE_UM} µm/px (floor "
+            f"{row['window_floor_rms_percent']:.2f} %): "
+            + ", ".join(
+                f"{m.value} {row[m.value]['rms_percent_of_range']:.2f} % RMS, Sa "
+                f"{row[m.value]['sa_error_percent']:+.1f} %"
+                for m in MatchingMethod
+            )
+        )
     for row in series:
-        print(f"calibrated dimple series {row['method']}: tilts {np.round(row['tilt_deg'], 3).tolist()}, RMS {row['rms_percent_of_range']:.2f} %")
+        print(
+            f"calibrated dimple series {row['method']}: tilts {np.round(row['tilt_deg'], 3).tolist()}, RMS "
+            f"{row['rms_percent_of_range']:.2f} %"
+        )
     print(f"Written to {out / 'accuracy.json'}")
 
 
@@ -158,7 +215,9 @@ def main() -> None:
     rows, overview, series = _surface_rows(), _overview_rows(), _series_rows()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "accuracy.json").write_text(json.dumps({"window_px": WINDOW_PX, "rows": rows, "overview": overview, "series": series}, indent=1))
+    (out / "accuracy.json").write_text(
+        json.dumps({"window_px": WINDOW_PX, "rows": rows, "overview": overview, "series": series}, indent=1)
+    )
     _print(rows, overview, series, out)
 
 

@@ -14,7 +14,7 @@ from concurrent import futures
 
 import grpc
 
-from fractoscope.services.runtime import settle_garbage_collector
+from fractoscope.runtime.process import settle_garbage_collector
 from fractoscope.v1 import tiles_pb2
 
 
@@ -23,7 +23,9 @@ def main() -> None:
     parser.add_argument("--address", required=True)
     parser.add_argument("--tile-bytes", type=int, required=True, help="size of the GLB in the cached response")
     args = parser.parse_args()
-    response = tiles_pb2.GetTileResponse(tile=tiles_pb2.Tile(uri="tile.glb", glb=os.urandom(args.tile_bytes))).SerializeToString()
+    response = tiles_pb2.GetTileResponse(
+        tile=tiles_pb2.Tile(uri="tile.glb", glb=os.urandom(args.tile_bytes))
+    ).SerializeToString()
     handler = grpc.method_handlers_generic_handler(
         "fractoscope.v1.TileService",
         {"GetTile": grpc.unary_unary_rpc_method_handler(lambda request, context: response)},  # bytes in, bytes out

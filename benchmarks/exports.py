@@ -27,15 +27,25 @@ import numpy as np
 from fractoscope.client import FractoscopeClient
 from fractoscope.formats.mesh_export import height_map_mesh, write_mesh
 from fractoscope.formats.x3p import write_x3p
-from fractoscope.services.server import embedded_server
+from fractoscope.server.main import embedded_server
 from fractoscope.specimen.fusion import PlacedRoi
 from fractoscope.specimen.quadtree import QuadtreeLayout
 from fractoscope.specimen.store import RoiEntry, SpecimenStore, write_description, write_roi_arrays
 
 PIXEL_SIZE_UM = 0.1
 TIMING_REPEATS = 2
-CASES = ("x3p", "x3p_deflated", "stl", "stl_bytes_only", "ply", "obj_4x_coarser", "stl_solid_4x_coarser", "stl_by_trimesh",
-         "region_x3p_streamed", "region_stl_streamed")
+CASES = (
+    "x3p",
+    "x3p_deflated",
+    "stl",
+    "stl_bytes_only",
+    "ply",
+    "obj_4x_coarser",
+    "stl_solid_4x_coarser",
+    "stl_by_trimesh",
+    "region_x3p_streamed",
+    "region_stl_streamed",
+)
 
 
 def height_map(size_px: int) -> np.ndarray:
@@ -91,13 +101,27 @@ def _export(case: str, z_um: np.ndarray, out: Path) -> Path:
 def _stored_specimen(z_um: np.ndarray, data: Path) -> SpecimenStore:
     """A store holding the map as the one ROI of specimen "bench" (no tiles: exports need none)."""
     store = SpecimenStore(data)
-    roi = PlacedRoi("map", 100.0, PIXEL_SIZE_UM, (0.0, 0.0), z_um, np.zeros(z_um.shape, np.uint8), np.full(z_um.shape, 0.05, np.float32))
+    roi = PlacedRoi(
+        "map",
+        100.0,
+        PIXEL_SIZE_UM,
+        (0.0, 0.0),
+        z_um,
+        np.zeros(z_um.shape, np.uint8),
+        np.full(z_um.shape, 0.05, np.float32),
+    )
     entry = RoiEntry(roi.id, "", roi.magnification, PIXEL_SIZE_UM, roi.origin_um, z_um.shape)
     with store.writing("bench") as staging:
         write_roi_arrays(staging, roi)
         (staging / "tileset.json").write_text("{}")
-        write_description(staging, specimen_id="bench", request_id="", rois=[entry],
-                          layout=QuadtreeLayout((0.0, 0.0), z_um.shape[0] * PIXEL_SIZE_UM), tiles={})
+        write_description(
+            staging,
+            specimen_id="bench",
+            request_id="",
+            rois=[entry],
+            layout=QuadtreeLayout((0.0, 0.0), z_um.shape[0] * PIXEL_SIZE_UM),
+            tiles={},
+        )
     return store
 
 
@@ -119,8 +143,15 @@ def run_streamed(case: str, z_um: np.ndarray, scratch: Path | None) -> dict:
             size_mb = path.stat().st_size / 1e6
     peak_mb = _peak_rss_mb()
     seconds, cpu_seconds = min(runs)
-    return {"case": case, "size_px": grid["rows"], "seconds": seconds, "cpu_seconds": cpu_seconds, "file_mb": size_mb,
-            "peak_rss_mb": peak_mb, "peak_rss_above_input_mb": peak_mb - baseline_mb}
+    return {
+        "case": case,
+        "size_px": grid["rows"],
+        "seconds": seconds,
+        "cpu_seconds": cpu_seconds,
+        "file_mb": size_mb,
+        "peak_rss_mb": peak_mb,
+        "peak_rss_above_input_mb": peak_mb - baseline_mb,
+    }
 
 
 def run_one(case: str, map_path: Path, scratch: Path | None) -> dict:
@@ -139,8 +170,15 @@ def run_one(case: str, map_path: Path, scratch: Path | None) -> dict:
         size_mb = path.stat().st_size / 1e6
     peak_mb = _peak_rss_mb()
     seconds, cpu_seconds = min(runs)
-    return {"case": case, "size_px": z_um.shape[0], "seconds": seconds, "cpu_seconds": cpu_seconds, "file_mb": size_mb,
-            "peak_rss_mb": peak_mb, "peak_rss_above_input_mb": peak_mb - baseline_mb}
+    return {
+        "case": case,
+        "size_px": z_um.shape[0],
+        "seconds": seconds,
+        "cpu_seconds": cpu_seconds,
+        "file_mb": size_mb,
+        "peak_rss_mb": peak_mb,
+        "peak_rss_above_input_mb": peak_mb - baseline_mb,
+    }
 
 
 def _cpu_seconds() -> float:
@@ -169,14 +207,19 @@ def main() -> None:
         results = []
         for case in CASES:
             command = [sys.executable, "-m", "benchmarks.exports", "--one", case, "--map", str(map_path)]
-            output = subprocess.run(command + (["--scratch", args.scratch] if args.scratch else []),
-                                    check=True, capture_output=True, text=True).stdout
+            output = subprocess.run(
+                command + (["--scratch", args.scratch] if args.scratch else []),
+                check=True,
+                capture_output=True,
+                text=True,
+            ).stdout
             results.append(json.loads(output.strip().splitlines()[-1]))
     (out / "exports.json").write_text(json.dumps(results, indent=2))
     print(f"{'export':<24}{'seconds':>9}{'CPU s':>8}{'file MB':>10}{'peak MB':>10}{'above input MB':>16}")
     for row in results:
-        print(f"{row['case']:<24}{row['seconds']:>9.2f}{row['cpu_seconds']:>8.2f}{row['file_mb']:>10.0f}"
-              f"{row['peak_rss_mb']:>10.0f}{row['peak_rss_above_input_mb']:>16.0f}")
+        print(
+            f"{row['case']:<24}{row['seconds']:>9.2f}{row['cpu_seconds']:>8.2f}{row['file_mb']:>10.0f}{row['peak_rss_mb']:>10.0f}{row['peak_rss_above_input_mb']:>16.0f}"
+        )
     print(f"written to {out / 'exports.json'}")
 
 

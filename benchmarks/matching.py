@@ -24,14 +24,14 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from fractoscope import synthetic
-from fractoscope.sem.image import SemImage
 from benchmarks import peers
-from fractoscope.stereo.semi_global import sgbm_disparity
-from fractoscope.services.runtime import keep_freed_memory
+from fractoscope import synthetic
+from fractoscope.runtime.process import keep_freed_memory
+from fractoscope.sem.image import SemImage
 from fractoscope.stereo.disparity import MatchingMethod
 from fractoscope.stereo.matching import match_disparity
 from fractoscope.stereo.pipeline import compute_height_map
+from fractoscope.stereo.semi_global import sgbm_disparity
 
 PIXEL_SIZE_UM = 0.1
 TILTS_DEG = (-5.0, 5.0)
@@ -47,19 +47,27 @@ def make_pair(size_px: int, path: Path) -> None:
     surface = synthetic.self_affine_surface((size_px + 64,) * 2, hurst=0.8, rms_um=1.0, seed=42)
     per_px_um = PIXEL_SIZE_UM / (2 * np.sin(np.radians(5.0)))
     surface *= 2 * DISPARITY_RANGE_PX * per_px_um / np.ptp(surface)
-    pair = synthetic.render_stereo_pair(surface, pixel_size_um=PIXEL_SIZE_UM, tilt_deg=TILTS_DEG, output_shape=(size_px, size_px), seed=1)
+    pair = synthetic.render_stereo_pair(
+        surface, pixel_size_um=PIXEL_SIZE_UM, tilt_deg=TILTS_DEG, output_shape=(size_px, size_px), seed=1
+    )
     np.savez(path, first=pair.first, second=pair.second, truth_um=pair.z_seen_um.astype(np.float32))
 
 
 def _heights_from_our_matcher(first, second):
-    result = compute_height_map(SemImage(first, None, None, 0), SemImage(second, None, None, 0), tilt_deg=TILTS_DEG, pixel_size_um=PIXEL_SIZE_UM)
+    result = compute_height_map(
+        SemImage(first, None, None, 0), SemImage(second, None, None, 0), tilt_deg=TILTS_DEG, pixel_size_um=PIXEL_SIZE_UM
+    )
     return result.z_um
 
 
 def _heights_from_matcher_only(first, second, *, method=MatchingMethod.TGV_ZNCC, propagate_at_full_resolution=False):
     """A matching method alone on the (already rectified) pair, as StereoSGBM gets it."""
     disparity = match_disparity(
-        first, second, max_disparity_px=DISPARITY_RANGE_PX + 8, method=method, propagate_at_full_resolution=propagate_at_full_resolution
+        first,
+        second,
+        max_disparity_px=DISPARITY_RANGE_PX + 8,
+        method=method,
+        propagate_at_full_resolution=propagate_at_full_resolution,
     ).disparity_px
     return disparity * PIXEL_SIZE_UM / (2 * np.sin(np.radians(5.0)))
 
@@ -88,7 +96,10 @@ def _per_pixel_template_seconds(first, second, *, vertical_reach_px, samples=400
     started = time.perf_counter()
     for row, col in zip(rows, cols):
         pattern = first_f[row - half : row + half + 1, col - half : col + half + 1]
-        search = second_f[row - half - vertical_reach_px : row + half + vertical_reach_px + 1, col - half - reach : col + half + reach + 1]
+        search = second_f[
+            row - half - vertical_reach_px : row + half + vertical_reach_px + 1,
+            col - half - reach : col + half + reach + 1,
+        ]
         scores = cv2.matchTemplate(search, pattern, cv2.TM_CCOEFF_NORMED)
         best_row, best_col = np.unravel_index(int(np.argmax(scores)), scores.shape)
         if 0 < best_col < scores.shape[1] - 1:
@@ -131,11 +142,20 @@ def run_one(method: str, pair_path: Path) -> dict:
         seconds = _per_pixel_template_seconds(first, second, vertical_reach_px=DISPARITY_RANGE_PX + 8)
         return {"method": method, "seconds": seconds, "extrapolated": True}
     if method == "template_row":
-        return {"method": method, "seconds": _per_pixel_template_seconds(first, second, vertical_reach_px=0), "extrapolated": True}
+        return {
+            "method": method,
+            "seconds": _per_pixel_template_seconds(first, second, vertical_reach_px=0),
+            "extrapolated": True,
+        }
     window = functools.partial(_heights_from_matcher_only, method=MatchingMethod.WINDOW_ZNCC)
-    heights = {"fractoscope": _heights_from_our_matcher, "tgv_zncc": _heights_from_matcher_only, "window_zncc": window,
-               "window_zncc_propagating": functools.partial(window, propagate_at_full_resolution=True),
-               "sgbm": _heights_from_sgbm, "sgbm_3d_sem": _heights_from_3d_sem}
+    heights = {
+        "fractoscope": _heights_from_our_matcher,
+        "tgv_zncc": _heights_from_matcher_only,
+        "window_zncc": window,
+        "window_zncc_propagating": functools.partial(window, propagate_at_full_resolution=True),
+        "sgbm": _heights_from_sgbm,
+        "sgbm_3d_sem": _heights_from_3d_sem,
+    }
     seconds = []
     for _ in range(TIMING_REPEATS):  # the fastest of a few runs: shared machines add noise, never speed
         started = time.perf_counter()
@@ -143,13 +163,23 @@ def run_one(method: str, pair_path: Path) -> dict:
         seconds.append(time.perf_counter() - started)
     seconds = min(seconds)
     peak_mb = _peak_rss_mb()
-    return {"method": method, "size_px": first.shape[0], "seconds": seconds, "peak_rss_mb": peak_mb,
-            "peak_rss_above_inputs_mb": peak_mb - baseline_mb, **_accuracy(z_um, truth)}
+    return {
+        "method": method,
+        "size_px": first.shape[0],
+        "seconds": seconds,
+        "peak_rss_mb": peak_mb,
+        "peak_rss_above_inputs_mb": peak_mb - baseline_mb,
+        **_accuracy(z_um, truth),
+    }
 
 
 def _in_subprocess(method: str, pair_path: Path) -> dict:
-    output = subprocess.run([sys.executable, "-m", "benchmarks.matching", "--one", method, "--pair", str(pair_path)],
-                            check=True, capture_output=True, text=True).stdout
+    output = subprocess.run(
+        [sys.executable, "-m", "benchmarks.matching", "--one", method, "--pair", str(pair_path)],
+        check=True,
+        capture_output=True,
+        text=True,
+    ).stdout
     return json.loads(output.strip().splitlines()[-1])
 
 
@@ -181,7 +211,9 @@ def main() -> None:
         pair_large = Path(scratch) / "pair_large.npz"
         make_pair(args.large_px, pair_large)
         results["fractoscope_large"] = _in_subprocess("fractoscope", pair_large)
-    ours, default, window, sgbm, sgbm_3d_sem = (results[name] for name in ("fractoscope", "tgv_zncc", "window_zncc", "sgbm", "sgbm_3d_sem"))
+    ours, default, window, sgbm, sgbm_3d_sem = (
+        results[name] for name in ("fractoscope", "tgv_zncc", "window_zncc", "sgbm", "sgbm_3d_sem")
+    )
     results["summary"] = {
         "default_time_vs_sgbm": default["seconds"] / sgbm["seconds"],
         "default_rms_error_vs_sgbm": default["rms_error_um"] / sgbm["rms_error_um"],
@@ -200,9 +232,11 @@ def main() -> None:
     for name, row in results.items():
         if name == "summary":
             continue
-        print(f"{name:<32}{row['seconds']:>10.2f}{row.get('rms_error_um', float('nan')):>10.3f}"
-              f"{row.get('rms_error_percent_of_range', float('nan')):>13.2f}{100 * row.get('valid_fraction', float('nan')):>9.1f}"
-              f"{row.get('peak_rss_mb', float('nan')):>9.0f}")
+        print(
+            f"{name:<32}{row['seconds']:>10.2f}{row.get('rms_error_um', float('nan')):>10.3f}"
+            f"{row.get('rms_error_percent_of_range', float('nan')):>13.2f}"
+            f"{100 * row.get('valid_fraction', float('nan')):>9.1f}{row.get('peak_rss_mb', float('nan')):>9.0f}"
+        )
     print(json.dumps(results["summary"], indent=2))
     print(f"written to {out / 'matching.json'}")
 

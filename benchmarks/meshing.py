@@ -27,7 +27,9 @@ def height_map(size_px: int) -> tuple[np.ndarray, np.ndarray]:
     rng = np.random.default_rng(7)
     for row, col in rng.integers(0, size_px - 12, size=(size_px * size_px // 10_000, 2)):
         z_um[row : row + 10, col : col + 10] = np.nan
-    texture = np.clip((np.nan_to_num(z_um) - np.nanmin(z_um)) / np.nanmax(z_um - np.nanmin(z_um)) * 255, 0, 255).astype(np.uint8)
+    texture = np.clip((np.nan_to_num(z_um) - np.nanmin(z_um)) / np.nanmax(z_um - np.nanmin(z_um)) * 255, 0, 255).astype(
+        np.uint8
+    )
     return z_um, texture
 
 
@@ -36,7 +38,9 @@ def run(size_px: int, method: Simplification) -> dict:
     seconds = []
     for _ in range(TIMING_REPEATS):  # the fastest run: shared machines add noise, never speed
         started = time.perf_counter()
-        tiles, report = mesh_height_map(z_um, texture, pixel_size_um=PIXEL_SIZE_UM, options=MeshingOptions(method=method))
+        tiles, report = mesh_height_map(
+            z_um, texture, pixel_size_um=PIXEL_SIZE_UM, options=MeshingOptions(method=method)
+        )
         seconds.append(time.perf_counter() - started)
     levels = sorted({tile.level for tile in tiles})
     per_level = [
@@ -71,11 +75,15 @@ def main() -> None:
     out.mkdir(parents=True, exist_ok=True)
     (out / "meshing.json").write_text(json.dumps(results, indent=2))
     for result in results:
-        print(f"{result['size_px']}² {result['method']}: {result['seconds']:.2f} s, coarsest level "
-              f"{result['coarsest_level_bytes'] / 1024:.0f} KB, errors monotone: {result['errors_monotone']}")
+        print(
+            f"{result['size_px']}² {result['method']}: {result['seconds']:.2f} s, coarsest level "
+            f"{result['coarsest_level_bytes'] / 1024:.0f} KB, errors monotone: {result['errors_monotone']}"
+        )
         for row in result["levels"]:
-            print(f"  level {row['level']}: {row['tiles']:4d} tiles {row['triangles']:10d} triangles "
-                  f"{row['bytes'] / 1e6:9.2f} MB  max error {row['geometric_error_um']:.4f} µm")
+            print(
+                f"  level {row['level']}: {row['tiles']:4d} tiles {row['triangles']:10d} triangles "
+                f"{row['bytes'] / 1e6:9.2f} MB  max error {row['geometric_error_um']:.4f} µm"
+            )
     print(f"written to {out / 'meshing.json'}")
 
 

@@ -16,13 +16,12 @@ import sys
 from pathlib import Path
 
 _PROBE = (
-    "import json, resource, numpy as np, cv2; from fractoscope.stereo.matching import match_disparity;"
-    "from fractoscope.services.runtime import keep_freed_memory;"
-    "{setting}"
-    "image = cv2.GaussianBlur((np.random.default_rng(0).random((512, 512)) * 255).astype(np.uint8), (0, 0), 1.5);"
-    "pair = (image, np.roll(image, 3, axis=1)); match_disparity(*pair, max_disparity_px=16);"
-    "before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt; match_disparity(*pair, max_disparity_px=16);"
-    "print(json.dumps(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before))"
+    "import json, resource, numpy as np, cv2; from fractoscope.stereo.matching import match_disparity;from "
+    "fractoscope.runtime.process import keep_freed_memory;{setting}image = "
+    "cv2.GaussianBlur((np.random.default_rng(0).random((512, 512)) * 255).astype(np.uint8), (0, 0), 1.5);pair = "
+    "(image, np.roll(image, 3, axis=1)); match_disparity(*pair, max_disparity_px=16);before = "
+    "resource.getrusage(resource.RUSAGE_SELF).ru_minflt; match_disparity(*pair, "
+    "max_disparity_px=16);print(json.dumps(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before))"
 )
 
 
@@ -36,12 +35,18 @@ def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--out", default="bench-results")
     args = parser.parse_args()
-    result = {"pair_px": 512, "page_faults_with_keep_freed_memory": page_faults(keep=True), "page_faults_with_defaults": page_faults(keep=False)}
+    result = {
+        "pair_px": 512,
+        "page_faults_with_keep_freed_memory": page_faults(keep=True),
+        "page_faults_with_defaults": page_faults(keep=False),
+    }
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "page_faults.json").write_text(json.dumps(result, indent=2))
-    print(f"512² match: {result['page_faults_with_keep_freed_memory']} page faults with keep_freed_memory, "
-          f"{result['page_faults_with_defaults']} with the C library's defaults")
+    print(
+        f"512² match: {result['page_faults_with_keep_freed_memory']} page faults with keep_freed_memory, "
+        f"{result['page_faults_with_defaults']} with the C library's defaults"
+    )
     print(f"written to {out / 'page_faults.json'}")
 
 

@@ -19,20 +19,35 @@ from fractoscope.stereo.semi_global import sgbm_disparity
 
 def sgbm_3d_sem(left: np.ndarray, right: np.ndarray, max_disparity_px: int) -> np.ndarray:
     """3D-SEM's StereoSGBM on uint8 images."""
-    return sgbm_disparity(left, right, min_px=-max_disparity_px, max_px=max_disparity_px, block_px=1, mode=cv2.STEREO_SGBM_MODE_HH,
-                          uniqueness_percent=15)
+    return sgbm_disparity(
+        left,
+        right,
+        min_px=-max_disparity_px,
+        max_px=max_disparity_px,
+        block_px=1,
+        mode=cv2.STEREO_SGBM_MODE_HH,
+        uniqueness_percent=15,
+    )
 
 
 def sgbm_pollen3d(left: np.ndarray, right: np.ndarray, max_disparity_px: int) -> np.ndarray:
     """pollen3d's StereoSGBM in both directions (block 5, five paths), consistent within 1 px, averaged."""
     forward, backward = (
-        sgbm_disparity(first, second, min_px=-max_disparity_px, max_px=max_disparity_px, block_px=5, uniqueness_percent=10)
+        sgbm_disparity(
+            first, second, min_px=-max_disparity_px, max_px=max_disparity_px, block_px=5, uniqueness_percent=10
+        )
         for first, second in ((left, right), (right, left))
     )
     cols = np.arange(left.shape[1], dtype=np.float32)[None, :]
     map_cols = np.nan_to_num(cols + forward, nan=-1.0).astype(np.float32)
     map_rows = np.broadcast_to(np.arange(left.shape[0], dtype=np.float32)[:, None], left.shape)
-    back = cv2.remap(np.nan_to_num(backward, nan=1e6).astype(np.float32), map_cols, np.ascontiguousarray(map_rows),
-                     cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=1e6)
+    back = cv2.remap(
+        np.nan_to_num(backward, nan=1e6).astype(np.float32),
+        map_cols,
+        np.ascontiguousarray(map_rows),
+        cv2.INTER_NEAREST,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=1e6,
+    )
     consistent = np.abs(forward + back) <= 1.0
     return np.where(consistent, 0.5 * (forward - back), np.nan).astype(np.float32)

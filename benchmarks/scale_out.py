@@ -34,9 +34,21 @@ REPEATS = 2
 
 def _server(port: int, *args: str, cpu: int | None = None) -> subprocess.Popen:
     return subprocess.Popen(
-        [sys.executable, "-m", "fractoscope.services.server", "--address", f"127.0.0.1:{port}",
-         "--services", "matching", "--http-address", "", *args],
-        env={**os.environ, "GRPC_VERBOSITY": "ERROR"}, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+        [
+            sys.executable,
+            "-m",
+            "fractoscope.server.main",
+            "--address",
+            f"127.0.0.1:{port}",
+            "--services",
+            "matching",
+            "--http-address",
+            "",
+            *args,
+        ],
+        env={**os.environ, "GRPC_VERBOSITY": "ERROR"},
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
         preexec_fn=None if cpu is None else (lambda: os.sched_setaffinity(0, {cpu})),
     )
 
@@ -44,8 +56,12 @@ def _server(port: int, *args: str, cpu: int | None = None) -> subprocess.Popen:
 def _wait_healthy(ports: list[int]) -> None:
     deadline = time.monotonic() + 60
     for port in ports:
-        while subprocess.run([sys.executable, "-m", "fractoscope.services.healthcheck", f"127.0.0.1:{port}"],
-                             capture_output=True).returncode != 0:
+        while (
+            subprocess.run(
+                [sys.executable, "-m", "fractoscope.server.healthcheck", f"127.0.0.1:{port}"], capture_output=True
+            ).returncode
+            != 0
+        ):
             if time.monotonic() > deadline:
                 raise RuntimeError(f"matching on port {port} did not start")
             time.sleep(0.3)
@@ -59,9 +75,20 @@ def time_configuration(files: list[Path], peer_count: int, strip_pixels: int, pi
     peer_ports = [free_port() for _ in range(peer_count)]
     coordinator_port = free_port()
     peer_args = ["--strip-peers", "ipv4:" + ",".join(f"127.0.0.1:{p}" for p in peer_ports)] if peer_ports else []
-    processes = [_server(port, cpu=cpus[(index + 1) % len(cpus)] if pinned else None) for index, port in enumerate(peer_ports)]
-    processes.append(_server(coordinator_port, "--strip-pixels", str(strip_pixels), "--strip-in-flight", str(max(peer_count, 1)),
-                             *peer_args, cpu=cpus[0] if pinned else None))
+    processes = [
+        _server(port, cpu=cpus[(index + 1) % len(cpus)] if pinned else None) for index, port in enumerate(peer_ports)
+    ]
+    processes.append(
+        _server(
+            coordinator_port,
+            "--strip-pixels",
+            str(strip_pixels),
+            "--strip-in-flight",
+            str(max(peer_count, 1)),
+            *peer_args,
+            cpu=cpus[0] if pinned else None,
+        )
+    )
     try:
         _wait_healthy([*peer_ports, coordinator_port])
         with FractoscopeClient(f"127.0.0.1:{coordinator_port}", timeout_s=1800) as client:
@@ -76,8 +103,12 @@ def time_configuration(files: list[Path], peer_count: int, strip_pixels: int, pi
         for process in processes:
             process.terminate()
             process.wait(timeout=60)
-    figures = {"peers": peer_count, "seconds": min(seconds), "strip_count": result.report["strip_count"],
-               "strip_workers": len(result.report["strip_workers"])}
+    figures = {
+        "peers": peer_count,
+        "seconds": min(seconds),
+        "strip_count": result.report["strip_count"],
+        "strip_workers": len(result.report["strip_workers"]),
+    }
     return figures, result.z_um
 
 
@@ -106,15 +137,22 @@ def main() -> None:
             figures["speed_up"] = single["seconds"] / figures["seconds"]
             figures["identical_to_single_process"] = bool(np.array_equal(z_um, reference, equal_nan=True))
             rows.append(figures)
-    results = {"size_px": args.size_px, "cpu_count": os.cpu_count(), "one_cpu_per_replica": args.one_cpu_per_replica,
-               "strip_pixels": args.strip_pixels, "runs": rows}
+    results = {
+        "size_px": args.size_px,
+        "cpu_count": os.cpu_count(),
+        "one_cpu_per_replica": args.one_cpu_per_replica,
+        "strip_pixels": args.strip_pixels,
+        "runs": rows,
+    }
     (out / f"{args.name}.json").write_text(json.dumps(results, indent=2))
     placement = "one CPU per replica" if args.one_cpu_per_replica else "all processes share every CPU"
     print(f"{args.size_px}² pair, {os.cpu_count()} CPUs ({placement}), strips of {args.strip_pixels} px")
     print(f"{'peers':>6}{'seconds':>10}{'speed-up':>10}{'strips':>8}{'workers':>9}{'identical':>11}")
     for row in rows:
-        print(f"{row['peers']:>6}{row['seconds']:>10.2f}{row.get('speed_up', 1.0):>10.2f}{row['strip_count']:>8}"
-              f"{row['strip_workers']:>9}{str(row.get('identical_to_single_process', '-')):>11}")
+        print(
+            f"{row['peers']:>6}{row['seconds']:>10.2f}{row.get('speed_up', 1.0):>10.2f}{row['strip_count']:>8}"
+            f"{row['strip_workers']:>9}{str(row.get('identical_to_single_process', '-')):>11}"
+        )
     print(f"written to {out / (args.name + '.json')}")
 
 

@@ -19,6 +19,7 @@ With two or more CPUs the server runs on the first half and the load generator o
 that neither takes the other's CPU time; the figures are then the server's on its share.
 Writes bench-results/NAME.json and prints a table.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -38,7 +39,7 @@ import numpy as np
 
 from fractoscope.client import ClientError, FractoscopeClient
 from fractoscope.client.manifest import load_manifest
-from fractoscope.formats.tileset import content_uris
+from fractoscope.specimen.tileset import content_uris
 from fractoscope.synthetic.examples import write_multiscale_specimen
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -52,7 +53,10 @@ HEALTH_CHECKS_PER_S = 20
 HEALTH_PROTO = """syntax = "proto3";
 package grpc.health.v1;
 message HealthCheckRequest { string service = 1; }
-message HealthCheckResponse { enum ServingStatus { UNKNOWN = 0; SERVING = 1; NOT_SERVING = 2; } ServingStatus status = 1; }
+message HealthCheckResponse {
+  enum ServingStatus { UNKNOWN = 0; SERVING = 1; NOT_SERVING = 2; }
+  ServingStatus status = 1;
+}
 service Health { rpc Check(HealthCheckRequest) returns (HealthCheckResponse); }
 """
 # wrk's script: every connection walks the tile list; at the end one JSON line with the figures.
@@ -123,45 +127,105 @@ def http_tiles(base_url: str, paths: list[str], *, concurrency: int, duration_s:
     script = scratch / "tiles.lua"
     script.write_text(WRK_SCRIPT % {"paths": scratch / "paths.txt"})
     threads = max(1, min(len(cpus or [0]), concurrency))
-    command = ["wrk", f"-t{threads}", f"-c{concurrency}", f"-d{duration_s:g}s", "--timeout", "10s", "-s", str(script), base_url]
+    command = [
+        "wrk",
+        f"-t{threads}",
+        f"-c{concurrency}",
+        f"-d{duration_s:g}s",
+        "--timeout",
+        "10s",
+        "-s",
+        str(script),
+        base_url,
+    ]
     output = subprocess.run(command, capture_output=True, text=True, check=True, preexec_fn=_pinned(cpus)).stdout
     figures = json.loads(output.strip().splitlines()[-1])
     return {
         "requests_per_s": figures["requests"] / (figures["duration_us"] / 1e6),
-        "p50_ms": figures["p50_us"] / 1000, "p99_ms": figures["p99_us"] / 1000,
-        "requests": figures["requests"], "errors": figures["errors"], "tool": "wrk",
+        "p50_ms": figures["p50_us"] / 1000,
+        "p99_ms": figures["p99_us"] / 1000,
+        "requests": figures["requests"],
+        "errors": figures["errors"],
+        "tool": "wrk",
     }
 
 
-def grpc_calls(address: str, method: str, messages: list[dict], *, concurrency: int, duration_s: float, cpus, scratch: Path) -> dict:
+def grpc_calls(
+    address: str, method: str, messages: list[dict], *, concurrency: int, duration_s: float, cpus, scratch: Path
+) -> dict:
     data = scratch / f"{method}.json"
     data.write_text(json.dumps(messages))
-    return _ghz([
-        "--import-paths", str(ROOT / "proto"), "--proto", TILES_PROTO, "--call", f"fractoscope.v1.TileService.{method}",
-        "-D", str(data), "-c", str(concurrency), "-z", f"{duration_s:g}s", "--duration-stop", "wait", "--timeout", "10s", address,
-    ], cpus)
+    return _ghz(
+        [
+            "--import-paths",
+            str(ROOT / "proto"),
+            "--proto",
+            TILES_PROTO,
+            "--call",
+            f"fractoscope.v1.TileService.{method}",
+            "-D",
+            str(data),
+            "-c",
+            str(concurrency),
+            "-z",
+            f"{duration_s:g}s",
+            "--duration-stop",
+            "wait",
+            "--timeout",
+            "10s",
+            address,
+        ],
+        cpus,
+    )
 
 
 def health_checks(address: str, *, duration_s: float, cpus, scratch: Path) -> dict:
     """grpc.health.v1 Check at HEALTH_CHECKS_PER_S for `duration_s`, each with a deadline of
     10 s; ghz's figures, and its slowest check."""
     (scratch / "health.proto").write_text(HEALTH_PROTO)
-    return _ghz([
-        "--import-paths", str(scratch), "--proto", "health.proto", "--call", "grpc.health.v1.Health.Check", "-d", "{}",
-        "--rps", str(HEALTH_CHECKS_PER_S), "-c", "2", "-z", f"{duration_s:g}s", "--duration-stop", "wait", "--timeout", "10s", address,
-    ], cpus)
+    return _ghz(
+        [
+            "--import-paths",
+            str(scratch),
+            "--proto",
+            "health.proto",
+            "--call",
+            "grpc.health.v1.Health.Check",
+            "-d",
+            "{}",
+            "--rps",
+            str(HEALTH_CHECKS_PER_S),
+            "-c",
+            "2",
+            "-z",
+            f"{duration_s:g}s",
+            "--duration-stop",
+            "wait",
+            "--timeout",
+            "10s",
+            address,
+        ],
+        cpus,
+    )
 
 
 def _ghz(arguments: list[str], cpus) -> dict:
     command = [str(GHZ), "--insecure", "--format", "json", *arguments]
     if cpus is not None:
         command[1:1] = ["--cpus", str(len(cpus))]
-    report = json.loads(subprocess.run(command, capture_output=True, text=True, check=True, preexec_fn=_pinned(cpus)).stdout)
+    report = json.loads(
+        subprocess.run(command, capture_output=True, text=True, check=True, preexec_fn=_pinned(cpus)).stdout
+    )
     latency = {entry["percentage"]: entry["latency"] / 1e6 for entry in report["latencyDistribution"] or []}
     ok = report.get("statusCodeDistribution", {}).get("OK", 0)
     return {
-        "requests_per_s": report["rps"], "p50_ms": latency.get(50, float("nan")), "p99_ms": latency.get(99, float("nan")),
-        "max_ms": report.get("slowest", float("nan")) / 1e6, "requests": report["count"], "errors": report["count"] - ok, "tool": "ghz",
+        "requests_per_s": report["rps"],
+        "p50_ms": latency.get(50, float("nan")),
+        "p99_ms": latency.get(99, float("nan")),
+        "max_ms": report.get("slowest", float("nan")) / 1e6,
+        "requests": report["count"],
+        "errors": report["count"] - ok,
+        "tool": "ghz",
     }
 
 
@@ -195,8 +259,11 @@ def mixed(address: str, base_url: str, tile_paths: list[str], rois: list, *, ser
     figures = {}
     readers = [
         threading.Thread(target=lambda: figures.__setitem__("http_get_tile", http_tiles(base_url, tile_paths, **load))),
-        threading.Thread(target=lambda: figures.__setitem__("health", health_checks(
-            address, duration_s=duration_s, cpus=load["cpus"], scratch=load["scratch"]))),
+        threading.Thread(
+            target=lambda: figures.__setitem__(
+                "health", health_checks(address, duration_s=duration_s, cpus=load["cpus"], scratch=load["scratch"])
+            )
+        ),
     ]
     started = time.perf_counter()
     with MemorySampler(server_pid) as memory:
@@ -205,9 +272,14 @@ def mixed(address: str, base_url: str, tile_paths: list[str], rois: list, *, ser
         for thread in builders + readers:
             thread.join()
     return {
-        **figures, "builders": BUILDERS, "builds": outcomes["built"], "builds_refused": outcomes["refused"],
-        "build_errors": outcomes["errors"], "wall_s": time.perf_counter() - started,
-        "server_rss_mb": memory.summary(), "server_peak_mb": _status_mb(server_pid, "VmHWM"),
+        **figures,
+        "builders": BUILDERS,
+        "builds": outcomes["built"],
+        "builds_refused": outcomes["refused"],
+        "build_errors": outcomes["errors"],
+        "wall_s": time.perf_counter() - started,
+        "server_rss_mb": memory.summary(),
+        "server_peak_mb": _status_mb(server_pid, "VmHWM"),
     }
 
 
@@ -226,9 +298,21 @@ def main() -> None:
     write_multiscale_specimen(scratch / "input")
     grpc_port, http_port = free_port(), free_port()
     server = subprocess.Popen(
-        [sys.executable, "-m", "fractoscope.services.server", "--address", f"127.0.0.1:{grpc_port}",
-         "--http-address", f"127.0.0.1:{http_port}", "--data", str(scratch / "data"), "--log-level", "WARNING"],
-        env={**os.environ, "GRPC_VERBOSITY": "ERROR"}, preexec_fn=_pinned(server_cpus),
+        [
+            sys.executable,
+            "-m",
+            "fractoscope.server.main",
+            "--address",
+            f"127.0.0.1:{grpc_port}",
+            "--http-address",
+            f"127.0.0.1:{http_port}",
+            "--data",
+            str(scratch / "data"),
+            "--log-level",
+            "WARNING",
+        ],
+        env={**os.environ, "GRPC_VERBOSITY": "ERROR"},
+        preexec_fn=_pinned(server_cpus),
     )
     address = f"127.0.0.1:{grpc_port}"
     try:
@@ -241,11 +325,20 @@ def main() -> None:
             uris = content_uris(client.get_tileset(specimen_id))
         rng = np.random.default_rng(0)
         corners = rng.uniform(0, 511, size=(64, 2))
-        zooms = [{"specimen_id": specimen_id, "magnification": float(m),
-                  "region": {"min": {"x_um": x, "y_um": y}, "max": {"x_um": x + size, "y_um": y + size}}}
-                 for (x, y), size, m in zip(corners.tolist(), rng.uniform(16, 256, 64).tolist(), rng.choice([1.0, 2.0, 4.0, 8.0], 64))]
-        profiles = [{"specimen_id": specimen_id, "points": [{"x_um": x0, "y_um": y0}, {"x_um": x1, "y_um": y1}]}
-                    for x0, y0, x1, y1 in rng.uniform(0, 511, size=(256, 4)).tolist()]
+        zooms = [
+            {
+                "specimen_id": specimen_id,
+                "magnification": float(m),
+                "region": {"min": {"x_um": x, "y_um": y}, "max": {"x_um": x + size, "y_um": y + size}},
+            }
+            for (x, y), size, m in zip(
+                corners.tolist(), rng.uniform(16, 256, 64).tolist(), rng.choice([1.0, 2.0, 4.0, 8.0], 64)
+            )
+        ]
+        profiles = [
+            {"specimen_id": specimen_id, "points": [{"x_um": x0, "y_um": y0}, {"x_um": x1, "y_um": y1}]}
+            for x0, y0, x1, y1 in rng.uniform(0, 511, size=(256, 4)).tolist()
+        ]
         tiles = [{"specimen_id": specimen_id, "uri": uri} for uri in uris]
         load = {"concurrency": args.concurrency, "duration_s": args.duration_s, "cpus": load_cpus, "scratch": scratch}
         tile_paths = [f"/specimens/{specimen_id}/{uri}" for uri in uris]
@@ -257,8 +350,11 @@ def main() -> None:
             "grpc_profile": lambda: grpc_calls(address, "GetProfile", profiles, **load),
         }
         results = {
-            "reconstruct_s": reconstruct_s, "tiles": len(uris), "cpu_count": os.cpu_count(),
-            "server_cpus": sorted(server_cpus or []), "load_generator_cpus": sorted(load_cpus or []),
+            "reconstruct_s": reconstruct_s,
+            "tiles": len(uris),
+            "cpu_count": os.cpu_count(),
+            "server_cpus": sorted(server_cpus or []),
+            "load_generator_cpus": sorted(load_cpus or []),
         }
         http_tiles(base_url, tile_paths, **{**load, "duration_s": 3})  # warms the endpoint's cache (gzip of every tile)
         for name, phase in phases.items():
@@ -279,21 +375,31 @@ def main() -> None:
     out.mkdir(parents=True, exist_ok=True)
     (out / f"{args.name}.json").write_text(json.dumps(results, indent=1))
     print(f"specimen: {results['tiles']} tiles, reconstructed in {reconstruct_s:.1f} s")
-    print(f"concurrency {args.concurrency}, {args.duration_s:g} s per query; server on CPUs {results['server_cpus'] or 'all'}, "
-          f"load generator on {results['load_generator_cpus'] or 'all'}")
-    print(f"{'query':14} {'tool':>5} {'req/s':>8} {'p50 ms':>8} {'p99 ms':>8} {'errors':>7} {'server MB first/max/last':>26}")
+    print(
+        f"concurrency {args.concurrency}, {args.duration_s:g} s per query; server on CPUs "
+        f"{results['server_cpus'] or 'all'}, load generator on {results['load_generator_cpus'] or 'all'}"
+    )
+    print(
+        f"{'query':14} {'tool':>5} {'req/s':>8} {'p50 ms':>8} {'p99 ms':>8} {'errors':>7} "
+        f"{'server MB first/max/last':>26}"
+    )
     for name in [*phases, "grpc_get_tile_bare_server"]:
         row = results[name]
         memory = row["server_rss_mb"]
-        print(f"{name:14} {row['tool']:>5} {row['requests_per_s']:8.0f} {row['p50_ms']:8.2f} {row['p99_ms']:8.2f} {row['errors']:7d} "
-              f"{memory['first']:>10.0f} / {memory['max']:.0f} / {memory['last']:.0f}")
+        print(
+            f"{name:14} {row['tool']:>5} {row['requests_per_s']:8.0f} {row['p50_ms']:8.2f} {row['p99_ms']:8.2f} "
+            f"{row['errors']:7d} {memory['first']:>10.0f} / {memory['max']:.0f} / {memory['last']:.0f}"
+        )
     mixed_row = results["mixed"]
     tiles, health = mixed_row["http_get_tile"], mixed_row["health"]
-    print(f"mixed, {args.duration_s:g} s: {mixed_row['builds']} builds by {BUILDERS} clients, {mixed_row['builds_refused']} refused "
-          f"(RESOURCE_EXHAUSTED), {len(mixed_row['build_errors'])} failed; tiles {tiles['requests_per_s']:.0f}/s at p99 "
-          f"{tiles['p99_ms']:.1f} ms, {tiles['errors']} errors; health p99 {health['p99_ms']:.1f} ms, slowest {health['max_ms']:.1f} ms, "
-          f"{health['errors']} errors; server memory max {mixed_row['server_rss_mb']['max']:.0f} MB sampled, "
-          f"{mixed_row['server_peak_mb']:.0f} MB peak of the whole run")
+    print(
+        f"mixed, {args.duration_s:g} s: {mixed_row['builds']} builds by {BUILDERS} clients, "
+        f"{mixed_row['builds_refused']} refused (RESOURCE_EXHAUSTED), {len(mixed_row['build_errors'])} failed; tiles "
+        f"{tiles['requests_per_s']:.0f}/s at p99 {tiles['p99_ms']:.1f} ms, {tiles['errors']} errors; health p99 "
+        f"{health['p99_ms']:.1f} ms, slowest {health['max_ms']:.1f} ms, {health['errors']} errors; server memory max "
+        f"{mixed_row['server_rss_mb']['max']:.0f} MB sampled, {mixed_row['server_peak_mb']:.0f} MB peak of the whole "
+        "run"
+    )
     print(f"written to {out / (args.name + '.json')}")
 
 
@@ -303,7 +409,8 @@ def _bare_server_floor(tile_bytes: int, load: dict, server_cpus) -> dict:
     address = f"127.0.0.1:{free_port()}"
     bare = subprocess.Popen(
         [sys.executable, "-m", "benchmarks.bare_grpc_server", "--address", address, "--tile-bytes", str(tile_bytes)],
-        env={**os.environ, "GRPC_VERBOSITY": "ERROR"}, preexec_fn=_pinned(server_cpus),
+        env={**os.environ, "GRPC_VERBOSITY": "ERROR"},
+        preexec_fn=_pinned(server_cpus),
     )
     try:
         with grpc.insecure_channel(address) as channel:

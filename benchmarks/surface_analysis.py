@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from fractoscope import synthetic
-from fractoscope.services.server import keep_freed_memory
+from fractoscope.server.main import keep_freed_memory
 from fractoscope.surface import roughness
 
 PIXEL_SIZE_UM = 0.1
@@ -58,9 +58,13 @@ def chain(z_um: np.ndarray, sigma_um: np.ndarray) -> tuple[dict, float, float, d
     )
     started, cpu_started = time.perf_counter(), time.process_time()
     analysis = roughness.analyse(
-        z_um, pixel_size_um=PIXEL_SIZE_UM, chain=settings, sigma_um=sigma_um, tilt_rel_uncertainty=TILT_REL_UNCERTAINTY,
+        z_um,
+        pixel_size_um=PIXEL_SIZE_UM,
+        chain=settings,
+        sigma_um=sigma_um,
+        tilt_rel_uncertainty=TILT_REL_UNCERTAINTY,
         timings=seconds,
-    )  # fmt: skip
+    )
     wall, cpu = time.perf_counter() - started, time.process_time() - cpu_started
     results = {
         "parameters": analysis.parameters,
@@ -88,8 +92,10 @@ def main(argv: list[str] | None = None) -> None:
     fastest = min(runs, key=lambda run: run[1])
     for step, value in seconds.items():
         print(f"{step:36s} {value:6.2f} s")
-    print(f"{'whole chain':36s} {fastest[1]:6.2f} s wall, {fastest[2]:.2f} s CPU (target {TARGET_S:.0f} s; "
-          f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f})")
+    print(
+        f"{'whole chain':36s} {fastest[1]:6.2f} s wall, {fastest[2]:.2f} s CPU (target {TARGET_S:.0f} s; "
+        f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f})"
+    )
     args.out.mkdir(parents=True, exist_ok=True)
     report = {
         "size_px": args.size,

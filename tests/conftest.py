@@ -15,7 +15,7 @@ import tifffile
 from fractoscope import synthetic
 from fractoscope.client import FractoscopeClient
 from fractoscope.client.manifest import load_manifest
-from fractoscope.services.server import create_server
+from fractoscope.server.main import create_server
 from fractoscope.specimen.fusion import PlacedRoi
 from fractoscope.specimen.quadtree import OPTICAL, QuadtreeLayout, TileKey, TileRecord
 from fractoscope.specimen.store import RoiEntry, SpecimenStore, write_description, write_roi_arrays
@@ -58,7 +58,11 @@ def cleavage_pair(*, tilt_deg=(-5.0, 5.0), size_px=640, seed=1) -> synthetic.Ste
 def _reference_pair(kind, tilt_deg, size_px, seed, **render) -> synthetic.StereoPair:
     surface = synthetic.reference_surface(kind, size_px + 64, seed=seed)
     return synthetic.render_stereo_pair(
-        surface, pixel_size_um=synthetic.REFERENCE_PIXEL_SIZE_UM, tilt_deg=tilt_deg, output_shape=(size_px, size_px), seed=seed,
+        surface,
+        pixel_size_um=synthetic.REFERENCE_PIXEL_SIZE_UM,
+        tilt_deg=tilt_deg,
+        output_shape=(size_px, size_px),
+        seed=seed,
         **render,
     )
 
@@ -76,20 +80,38 @@ def inner_mask(shape, border_px=16) -> np.ndarray:
     return mask
 
 
-def write_small_specimen(store: SpecimenStore, specimen_id: str, *, height_um: float = 1.0, request_id: str = "job") -> None:
+def write_small_specimen(
+    store: SpecimenStore, specimen_id: str, *, height_um: float = 1.0, request_id: str = "job"
+) -> None:
     """A one-ROI specimen without building it: a 16 x 24 map of `height_um` at 0.5 µm/px and its
     root tile, whose GLB is b"glTF" followed by the byte int(height_um)."""
     root = TileKey(0, 0, 0)
-    roi = PlacedRoi("overview", 100.0, 0.5, (2.0, 3.0), np.full((16, 24), height_um, np.float32), np.full((16, 24), 7, np.uint8))
-    entry = RoiEntry(roi.id, "", roi.magnification, roi.pixel_size_um, roi.origin_um, roi.z_um.shape, matching={"valid_fraction": 1.0})
+    roi = PlacedRoi(
+        "overview", 100.0, 0.5, (2.0, 3.0), np.full((16, 24), height_um, np.float32), np.full((16, 24), 7, np.uint8)
+    )
+    entry = RoiEntry(
+        roi.id,
+        "",
+        roi.magnification,
+        roi.pixel_size_um,
+        roi.origin_um,
+        roi.z_um.shape,
+        matching={"valid_fraction": 1.0},
+    )
     record = TileRecord(root, roi.id, roi.magnification, OPTICAL, 0.0, height_um, height_um)
     with store.writing(specimen_id) as staging:
         (staging / root.uri).parent.mkdir(parents=True)
         (staging / root.uri).write_bytes(b"glTF" + bytes([int(height_um)]))
         (staging / "tileset.json").write_text("{}")
         write_roi_arrays(staging, roi)
-        write_description(staging, specimen_id=specimen_id, request_id=request_id, rois=[entry],
-                          layout=QuadtreeLayout((2.0, 3.0), 12.0), tiles={root: record})
+        write_description(
+            staging,
+            specimen_id=specimen_id,
+            request_id=request_id,
+            rois=[entry],
+            layout=QuadtreeLayout((2.0, 3.0), 12.0),
+            tiles={root: record},
+        )
 
 
 @pytest.fixture(scope="session")
@@ -153,30 +175,47 @@ def decode_glb(glb: bytes) -> DecodedGlb:
         accessor = gltf.accessors[accessor_index]
         view = gltf.bufferViews[accessor.bufferView]
         if "EXT_meshopt_compression" not in view.extensions:
-            dtype = {pygltflib.FLOAT: np.float32, pygltflib.UNSIGNED_SHORT: np.uint16, pygltflib.UNSIGNED_INT: np.uint32}[accessor.componentType]
+            dtype = {
+                pygltflib.FLOAT: np.float32,
+                pygltflib.UNSIGNED_SHORT: np.uint16,
+                pygltflib.UNSIGNED_INT: np.uint32,
+            }[accessor.componentType]
             components = {pygltflib.SCALAR: 1, pygltflib.VEC2: 2, pygltflib.VEC3: 3}[accessor.type]
             raw = np.frombuffer(blob, dtype, accessor.count * components, view.byteOffset + (accessor.byteOffset or 0))
-            return raw.reshape(accessor.count, components).astype(np.float64) if components > 1 else raw.astype(np.int64)
+            return (
+                raw.reshape(accessor.count, components).astype(np.float64) if components > 1 else raw.astype(np.int64)
+            )
         compressed = view.extensions["EXT_meshopt_compression"]
         data = blob[compressed["byteOffset"] : compressed["byteOffset"] + compressed["byteLength"]]
         if compressed["mode"] == "TRIANGLES":
             return meshoptimizer.decode_index_buffer(compressed["count"], 4, data).astype(np.int64)
         dtype = {pygltflib.BYTE: np.int8, pygltflib.UNSIGNED_SHORT: np.uint16}[accessor.componentType]
         components = {pygltflib.VEC2: 2, pygltflib.VEC3: 3}[accessor.type]
-        vertices = meshoptimizer.decode_vertex_buffer(compressed["count"], compressed["byteStride"], data).view(np.uint8)
+        vertices = meshoptimizer.decode_vertex_buffer(compressed["count"], compressed["byteStride"], data).view(
+            np.uint8
+        )
         decoded = vertices.reshape(compressed["count"], -1).view(dtype)[:, :components].astype(np.float64)
         if accessor.normalized:
             decoded = np.maximum(decoded / np.iinfo(dtype).max, -1.0)
         return decoded
 
     node = gltf.nodes[0]
-    positions_m = np.asarray(node.translation or (0.0, 0.0, 0.0)) + values(primitive.attributes.POSITION) * np.asarray(node.scale or (1.0, 1.0, 1.0))
+    positions_m = np.asarray(node.translation or (0.0, 0.0, 0.0)) + values(primitive.attributes.POSITION) * np.asarray(
+        node.scale or (1.0, 1.0, 1.0)
+    )
+
     def triangles(material_name: str) -> np.ndarray:
-        chosen = [values(p.indices).reshape(-1, 3) for p in primitives if gltf.materials[p.material].name == material_name]
+        chosen = [
+            values(p.indices).reshape(-1, 3) for p in primitives if gltf.materials[p.material].name == material_name
+        ]
         return np.concatenate(chosen) if chosen else np.zeros((0, 3), np.int64)
 
     return DecodedGlb(
-        positions_m, values(primitive.attributes.NORMAL), values(primitive.attributes.TEXCOORD_0), triangles("surface"), triangles("wall")
+        positions_m,
+        values(primitive.attributes.NORMAL),
+        values(primitive.attributes.TEXCOORD_0),
+        triangles("surface"),
+        triangles("wall"),
     )
 
 
@@ -195,7 +234,7 @@ def rotated_to_lowest_first(triangles: np.ndarray) -> np.ndarray:
     return np.take_along_axis(triangles, (shift + np.arange(3)) % 3, axis=1)
 
 
-VALIDATOR = Path(__file__).resolve().parent / "js" / "validate_gltf.mjs"
+VALIDATOR = Path(__file__).resolve().parent / "services" / "mesh" / "validate_gltf.mjs"
 
 
 def validate_glbs(glbs: list[bytes], directory: Path) -> list[dict]:
@@ -214,8 +253,14 @@ def validate_glbs(glbs: list[bytes], directory: Path) -> list[dict]:
         paths.append(str(path))
     reports = []
     for start in range(0, len(paths), 200):
-        done = subprocess.run(["node", str(VALIDATOR), *paths[start : start + 200]], capture_output=True, text=True,
-                              check=True, cwd=VALIDATOR.parents[2], timeout=300)
+        done = subprocess.run(
+            ["node", str(VALIDATOR), *paths[start : start + 200]],
+            capture_output=True,
+            text=True,
+            check=True,
+            cwd=VALIDATOR.parents[3],
+            timeout=300,
+        )
         reports += [json.loads(line) for line in done.stdout.splitlines()]
     assert len(reports) == len(glbs)
     return reports

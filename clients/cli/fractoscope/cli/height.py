@@ -1,0 +1,288 @@
+"""`fracto height`: height maps of stereo pairs and tilt series, as .npz (and a picture), with the
+calibration they were computed with (formats.height_npz)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from fractoscope.cli.common import (
+    PICTURE_SUFFIXES,
+    SERVER_HELP,
+    UsageError,
+    connected,
+    err,
+    existing_file,
+    output_file,
+    print_json,
+    progress_bar,
+)
+from fractoscope.client import FractoscopeClient, HeightMap
+
+if TYPE_CHECKING:
+    from fractoscope.formats.calibration import Calibration
+
+
+def add_parsers(commands) -> None:
+    height = commands.add_parser("height", help="height map of a stereo pair or a tilt series")
+    height.add_argument(
+        "images",
+        nargs="+",
+        metavar="IMAGE",
+        help="the reference image (TIFF or PNG; heights use its pixel grid), then the other views",
+    )
+    height.add_argument(
+        "--tilt", nargs="+", type=float, metavar="T", help="stage tilts in degrees, one per image (default: metadata)"
+    )
+    height.add_argument(
+        "--calibrate-tilt",
+        action="store_true",
+        help="estimate the tilts from three or more images (the given or metadata tilts are the start)",
+    )
+    height.add_argument(
+        "--local-contrast",
+        action=argparse.BooleanOptionalAction,
+        help="take tilt-dependent shading out before matching (default: on; --no-local-contrast for flat, "
+        "weakly textured areas)",
+    )
+    height.add_argument(
+        "--method",
+        choices=("tgv-zncc", "window-zncc"),
+        default="tgv-zncc",
+        help="matching method: tgv-zncc (default: the window correlation refined by TGV², most accurate) or "
+        "window-zncc (the paper's window correlation, about ten times faster)",
+    )
+    height.add_argument(
+        "--propagate-at-full-resolution",
+        action="store_true",
+        help="let pixels try their neighbours' disparities at full resolution too: for steps (cleavage); "
+        "about 1.5x slower",
+    )
+    height.add_argument("--pixel-size-um", type=float, help="pixel size in µm (default: metadata)")
+    height.add_argument(
+        "--tilt-axis-deg", type=float, help="tilt axis direction in the image, degrees (default 90: vertical)"
+    )
+    height.add_argument(
+        "--level",
+        type=level_choice,
+        metavar="DATUM",
+        help="where height zero is: plane (a plane through all heights), substrate (a plane through the "
+        "lowest extensive level, e.g. what a grain lies on) or X0,Y0,X1,Y1 (a plane through that region, µm from "
+        "the image's top-left); default: as measured (arbitrary offset)",
+    )
+    height.add_argument(
+        "-o", "--output", required=True, help="output .npz with z_um, sigma_um, confidence and the calibration"
+    )
+    height.add_argument("--server", help=SERVER_HELP)
+    height.add_argument("--json", action="store_true", help="print a JSON summary instead of text")
+    height.add_argument("--png", help="also write a picture: height colour map with hillshade and colour bar in µm")
+    height.set_defaults(run=command_height)
+
+
+def level_choice(text: str) -> str | tuple[float, float, float, float]:
+    """--level's value: a datum name or a region X0,Y0,X1,Y1 in µm."""
+    from fractoscope.surface import datum
+
+    if text in datum.LEVELS:
+        return text
+    try:
+        region = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        region = ()
+    if len(region) != 4:
+        raise argparse.ArgumentTypeError(f"expected {' or '.join(datum.LEVELS)} or X0,Y0,X1,Y1 in µm, got {text!r}")
+    return region
+
+
+def check_calibration(paths: list[Path], args) -> None:
+    """Every calibration value that neither the command line nor the files' metadata gives, named
+    at once (UsageError), before any matching starts."""
+    if args.tilt is not None and args.pixel_size_um is not None:
+        return
+    from fractoscope.sem.image import read_sem_image
+
+    images = [read_sem_image(path.read_bytes(), field=str(path)) for path in paths]
+    missing = []
+    if args.tilt is None:
+        untilted = [path.name for path, image in zip(paths, images) if image.tilt_deg is None]
+        if untilted:
+            missing.append(
+                f"--tilt {' '.join(f'T{i + 1}' for i in range(len(paths)))} (no stage tilt in the metadata of "
+                f"{', '.join(untilted)})"
+            )
+    if args.pixel_size_um is None and images[0].pixel_size_um is None:
+        missing.append(f"--pixel-size-um P (no pixel size in the metadata of {paths[0].name})")
+    if missing:
+        raise UsageError("give " + " and ".join(missing))
+
+
+def compute_height(client: FractoscopeClient, args, quiet: bool) -> HeightMap:
+    if len(args.images) < 2:
+        raise UsageError("give at least two images (a stereo pair or a tilt series)")
+    if args.tilt is not None and len(args.tilt) != len(args.images):
+        raise UsageError(f"--tilt needs one angle per image: {len(args.images)} images, {len(args.tilt)} tilts")
+    if args.calibrate_tilt and len(args.images) < 3:
+        raise UsageError("--calibrate-tilt needs three or more images")
+    paths = [existing_file(image) for image in args.images]
+    check_calibration(paths, args)
+    with progress_bar("matching", enabled=not quiet and err.is_terminal) as advance:
+        return client.compute_height_map(
+            paths,
+            tilt_deg=args.tilt,
+            pixel_size_um=args.pixel_size_um,
+            tilt_axis_deg=args.tilt_axis_deg,
+            calibrate_tilt=args.calibrate_tilt,
+            normalize_local_contrast=args.local_contrast,
+            propagate_at_full_resolution=args.propagate_at_full_resolution,
+            method=args.method.replace("-", "_"),
+            on_progress=advance,
+        )
+
+
+def command_height(args) -> int:
+    from fractoscope.formats.height_npz import write_height_npz
+    from fractoscope.stereo import geometry
+    from fractoscope.surface import datum
+
+    inputs = tuple(Path(image) for image in args.images if Path(image).is_file())
+    out = output_file(args.output, "-o", suffixes=(".npz",), inputs=inputs)
+    picture = output_file(args.png, "--png", suffixes=PICTURE_SUFFIXES, inputs=(*inputs, out)) if args.png else None
+    with connected(args.server) as client:
+        result = compute_height(client, args, quiet=args.json)
+    for warning in result.report.get("warnings", []):
+        print(f"warning: {warning}", file=sys.stderr)
+    report = result.report
+    local_sigma_um = geometry.matching_sigma_um(
+        result.z_um,
+        result.sigma_um,
+        relative_height_error=geometry.series_relative_height_error(
+            report["tilt_deg"], tilt_uncertainty_deg=report["tilt_uncertainty_deg"]
+        ),
+    )
+    levelled = None
+    if args.level is not None:
+        try:
+            z_um, levelled = datum.level_heights(result.z_um, pixel_size_um=result.pixel_size_um, level=args.level)
+        except ValueError as error:
+            raise UsageError(f"--level: {error}") from None
+        result = HeightMap(z_um, result.sigma_um, result.confidence, result.texture, result.pixel_size_um, report)
+    write_height_npz(
+        out,
+        z_um=result.z_um,
+        sigma_um=result.sigma_um,
+        confidence=result.confidence,
+        local_sigma_um=local_sigma_um,
+        calibration=calibration_of(result, args),
+        record={
+            "tilt_axis_deg": report["tilt_axis_deg"],
+            "max_slope": geometry.max_measurable_slope(report["tilt_deg"]),
+            "method": report.get("method", ""),
+            "parameters": matching_parameters(args),
+            "report": report,
+            "datum": levelled.to_dict() if levelled else None,
+        },
+        tilt_deg_estimated=np.array(report["tilt_deg"]) if args.calibrate_tilt else None,
+    )
+    summary = {"output": str(out), **height_summary(result)}
+    if levelled:
+        summary["datum"] = levelled.to_dict()
+    if picture:
+        plot_height_map(result, picture)
+        summary["png"] = str(picture)
+    if args.json:
+        print_json(summary)
+    else:
+        print(
+            f"wrote {out}: {result.z_um.shape[1]}x{result.z_um.shape[0]} px, heights {summary['z_min_um']:.3f} to "
+            f"{summary['z_max_um']:.3f} µm, {100 * summary['valid_fraction']:.1f} % valid, median sigma "
+            f"{summary['median_sigma_um']:.3f} µm"
+        )
+        if args.calibrate_tilt:
+            report = result.report
+            estimated = ", ".join(f"{t:+.3f} ± {s:.3f}" for t, s in zip(report["tilt_deg"], report["tilt_sigma_deg"]))
+            nominal = ", ".join(f"{t:+.2f}" for t in report["tilt_deg_nominal"])
+            print(f"tilts estimated {estimated} ° (nominal {nominal}; residual {report['tilt_residual_px']:.3f} px)")
+    return 0
+
+
+def calibration_of(result: HeightMap, args) -> Calibration:
+    """What the heights were computed with, and where each value came from."""
+    from fractoscope.formats.calibration import Calibration
+
+    report = result.report
+    given = "argument" if args.tilt is not None else "metadata"
+    views = len(report["tilt_deg"])
+    if args.calibrate_tilt:
+        sources = [given] + ["tilt_calibration"] * (views - 1)
+        sigmas = report["tilt_sigma_deg"]
+    else:
+        sources, sigmas = [given] * views, [report["tilt_uncertainty_deg"]] * views
+    return Calibration(
+        tilt_deg=report["tilt_deg"],
+        tilt_source=sources,
+        tilt_sigma_deg=sigmas,
+        pixel_size_um=result.pixel_size_um,
+        pixel_size_source="argument" if args.pixel_size_um is not None else "metadata",
+    )
+
+
+def matching_parameters(args) -> dict:
+    """The matching settings the command asked for (None: the server's default)."""
+    return {
+        "method": args.method.replace("-", "_"),
+        "calibrate_tilt": args.calibrate_tilt,
+        "normalize_local_contrast": args.local_contrast,
+        "propagate_at_full_resolution": args.propagate_at_full_resolution,
+        "tilt_axis_deg": args.tilt_axis_deg,
+    }
+
+
+def plot_height_map(result: HeightMap, path: Path) -> None:
+    """Heights as a colour map shaded by a hillshade, with a colour bar in µm and axes in µm."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import LightSource, Normalize
+
+    z = np.ma.masked_invalid(result.z_um)
+    low, high = np.nanpercentile(result.z_um, [0.5, 99.5]) if z.count() else (0.0, 1.0)
+    norm = Normalize(low, high)
+    rows, cols = z.shape
+    extent = (0, cols * result.pixel_size_um, rows * result.pixel_size_um, 0)
+    shaded = LightSource(azdeg=315, altdeg=45).shade(
+        z.filled(np.nanmedian(result.z_um) if z.count() else 0),
+        cmap=plt.get_cmap("viridis"),
+        norm=norm,
+        blend_mode="soft",
+        vert_exag=1.0 / result.pixel_size_um,
+        dx=1,
+        dy=1,
+    )
+    shaded[np.ma.getmaskarray(z)] = (0.5, 0.5, 0.5, 1.0)
+    figure, axes = plt.subplots(figsize=(7, 6), layout="constrained")
+    axes.imshow(shaded, extent=extent)
+    axes.set_xlabel("x (µm)")
+    axes.set_ylabel("y (µm)")
+    bar = figure.colorbar(plt.cm.ScalarMappable(norm=norm, cmap="viridis"), ax=axes, shrink=0.8)
+    bar.set_label("height (µm)")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(path, dpi=110)
+    plt.close(figure)
+
+
+def height_summary(result: HeightMap) -> dict:
+    """Figures worth printing about a height map (µm where dimensional)."""
+    valid = np.isfinite(result.z_um)
+    z = result.z_um[valid]
+    return {
+        "z_min_um": float(z.min()) if z.size else float("nan"),
+        "z_max_um": float(z.max()) if z.size else float("nan"),
+        "valid_fraction": float(valid.mean()),
+        "median_sigma_um": float(np.median(result.sigma_um[valid])) if z.size else float("nan"),
+        "report": result.report,
+    }

@@ -1,0 +1,128 @@
+"""`fracto mesh`: GLB levels of detail of a height map (.npz of fracto height, whose calibration it
+reads back), written as level_L/ROW_COL.glb."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from fractoscope.cli.common import (
+    SERVER_HELP,
+    UsageError,
+    connected,
+    err,
+    existing_file,
+    output_folder,
+    print_json,
+    progress_bar,
+)
+from fractoscope.v1 import meshing_pb2
+
+
+def add_parsers(commands) -> None:
+    mesh = commands.add_parser("mesh", help="GLB levels of detail of a height map")
+    mesh.add_argument("heights", help=".npz as written by fracto height (its calibration is read back)")
+    mesh.add_argument("--texture", help="the reference SEM image to texture the surface with")
+    mesh.add_argument(
+        "--pixel-size-um", type=float, help="pixel size of the height map, µm (default: the one the .npz records)"
+    )
+    mesh.add_argument("--method", choices=("vertex-clustering", "quadric"), default="vertex-clustering")
+    mesh.add_argument("--levels", type=int, default=0, help="number of levels (default: down to one small tile)")
+    mesh.add_argument("-o", "--output", required=True, help="directory for level_L/ROW_COL.glb")
+    mesh.add_argument(
+        "--plain-glb",
+        action="store_true",
+        help="float32 GLBs without extensions, for tools that cannot decode meshopt compression (about 5x larger)",
+    )
+    mesh.add_argument(
+        "--no-walls",
+        dest="walls",
+        action="store_false",
+        help="triangulate across height jumps steeper than the pair can measure too (default: such triangles "
+        "are walls, a primitive of their own, left out of the geometric error)",
+    )
+    mesh.add_argument("--server", help=SERVER_HELP)
+    mesh.add_argument("--json", action="store_true", help="print a JSON summary instead of text")
+    mesh.set_defaults(run=command_mesh)
+
+
+def command_mesh(args) -> int:
+    from fractoscope.formats.height_npz import read_height_npz
+    from fractoscope.sem.image import read_sem_image
+
+    out = output_folder(args.output, "-o")
+    heights = read_height_npz(existing_file(args.heights), field=args.heights)
+    z_um = heights.z_um
+    pixel_size_um = args.pixel_size_um if args.pixel_size_um is not None else heights.pixel_size_um
+    if pixel_size_um is None:
+        raise UsageError(
+            f"{args.heights} records no calibration (written before fracto height stored it): give --pixel-size-um P"
+        )
+    texture = None
+    if args.texture:
+        image = read_sem_image(existing_file(args.texture).read_bytes(), field=args.texture)
+        texture = image.pixels
+        if texture.shape != z_um.shape:
+            raise UsageError(
+                f"texture {args.texture} is {texture.shape[1]}x{texture.shape[0]}, heights are "
+                f"{z_um.shape[1]}x{z_um.shape[0]}"
+            )
+    method = (
+        meshing_pb2.SIMPLIFICATION_METHOD_QUADRIC
+        if args.method == "quadric"
+        else meshing_pb2.SIMPLIFICATION_METHOD_VERTEX_CLUSTERING
+    )
+    max_slope = (heights.max_slope or 0.0) if args.walls else 0.0
+    with (
+        connected(args.server) as client,
+        progress_bar("meshing", enabled=not args.json and err.is_terminal) as advance,
+    ):
+        tiles, report = client.build_mesh(
+            z_um,
+            texture,
+            pixel_size_um=pixel_size_um,
+            method=method,
+            level_count=args.levels,
+            on_progress=advance,
+            plain_glb=args.plain_glb,
+            max_slope=max_slope,
+            sigma_um=heights.local_sigma_um if max_slope else None,
+        )
+    write_tiles(tiles, out)
+    levels = sorted({tile.level for tile in tiles})
+    summary = {
+        "output": args.output,
+        "pixel_size_um": pixel_size_um,
+        "max_slope": max_slope or None,
+        "filter": report,
+        "levels": [
+            {
+                "level": level,
+                "tiles": sum(1 for t in tiles if t.level == level),
+                "triangles": sum(t.triangle_count for t in tiles if t.level == level),
+                "wall_triangles": sum(t.wall_triangle_count for t in tiles if t.level == level),
+                "geometric_error_m": max(t.geometric_error_m for t in tiles if t.level == level),
+            }
+            for level in levels
+        ],
+    }
+    if args.json:
+        print_json(summary)
+    else:
+        print(
+            f"wrote {len(tiles)} GLB tiles in {len(levels)} levels to {args.output} ({pixel_size_um:g} µm/px"
+            + (f"; walls steeper than {max_slope:.1f} set apart)" if max_slope else ")")
+        )
+        for row in summary["levels"]:
+            print(
+                f"  level {row['level']}: {row['tiles']} tiles, {row['triangles']} triangles "
+                f"({row['wall_triangles']} walls), geometric error {row['geometric_error_m'] * 1e6:.3f} µm"
+            )
+    return 0
+
+
+def write_tiles(tiles, directory: Path) -> None:
+    """GLB tiles as DIRECTORY/level_L/ROW_COL.glb."""
+    for tile in tiles:
+        path = directory / f"level_{tile.level}" / f"{tile.tile_row}_{tile.tile_col}.glb"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(tile.glb)

@@ -1,0 +1,3 @@
+"""File formats a surface leaves Fractoscope in: X3P (`x3p`), TIFF and CSV heights
+(`surface_export`), STL, PLY and OBJ meshes (`mesh_export`), chosen by name in `exports`; and the
+height map files of the command line (`height_npz`) with the calibration they carry."""

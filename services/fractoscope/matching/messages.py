@@ -1,0 +1,210 @@
+"""The matching service's messages to and from the stereo package's types: MatchingParameters and
+MatchingOptions, strips and their disparities, height map results."""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+from collections.abc import Iterator
+
+import numpy as np
+
+from fractoscope.errors import InvalidInputError
+from fractoscope.rpc import wire
+from fractoscope.sem import image as sem_image
+from fractoscope.stereo.disparity import DisparityResult, MatchingMethod, StripTask
+from fractoscope.stereo.pipeline import (
+    DEFAULT_TILT_AXIS_DEG,
+    HeightMapResult,
+    MatchingOptions,
+    validate_options,
+    validate_same_size,
+    validate_tilt_axis_deg,
+)
+from fractoscope.v1 import matching_pb2
+
+_METHODS = {
+    matching_pb2.MATCHING_METHOD_UNSPECIFIED: MatchingOptions().method,
+    matching_pb2.MATCHING_METHOD_TGV_ZNCC: MatchingMethod.TGV_ZNCC,
+    matching_pb2.MATCHING_METHOD_WINDOW_ZNCC: MatchingMethod.WINDOW_ZNCC,
+}
+
+
+# MatchingOptions' names that are fields of MatchingParameters, and so of `parameters` in requests.
+_PARAMETER_FIELDS = frozenset(field.name for field in dataclasses.fields(MatchingOptions)) & frozenset(
+    matching_pb2.MatchingParameters.DESCRIPTOR.fields_by_name
+)
+
+
+@contextlib.contextmanager
+def request_fields() -> Iterator[None]:
+    """Input errors the stereo package raises about a MatchingOptions value, renamed as the
+    request's fields (`window_px` is `parameters.window_px`)."""
+    try:
+        yield
+    except InvalidInputError as error:
+        if error.field not in _PARAMETER_FIELDS:
+            raise
+        raise InvalidInputError(f"parameters.{error.field}", error.message) from None
+
+
+def method_from_message(code: int) -> MatchingMethod:
+    """A MatchingMethod value (UNSPECIFIED = the default); InvalidInputError for unknown ones."""
+    if code not in _METHODS:
+        raise InvalidInputError("parameters.method", f"unknown matching method {code}; known: TGV_ZNCC, WINDOW_ZNCC")
+    return _METHODS[code]
+
+
+def method_to_message(method: MatchingMethod) -> int:
+    return wire.method_code(MatchingMethod(method).value)
+
+
+def options_from_message(parameters: matching_pb2.MatchingParameters) -> MatchingOptions:
+    """MatchingParameters (zero or absent = default) to MatchingOptions."""
+    defaults = MatchingOptions()
+    return MatchingOptions(
+        window_px=parameters.window_px or defaults.window_px,
+        max_disparity_px=parameters.max_disparity_px or None,
+        min_confidence=parameters.min_confidence or defaults.min_confidence,
+        max_lr_difference_px=parameters.max_lr_difference_px or defaults.max_lr_difference_px,
+        tilt_uncertainty_deg=parameters.tilt_uncertainty_deg or defaults.tilt_uncertainty_deg,
+        calibrate_tilt=parameters.calibrate_tilt,
+        normalize_local_contrast=(
+            parameters.normalize_local_contrast
+            if parameters.HasField("normalize_local_contrast")
+            else defaults.normalize_local_contrast
+        ),
+        propagate_at_full_resolution=parameters.propagate_at_full_resolution,
+        method=method_from_message(parameters.method),
+    )
+
+
+def checked_height_map_request(
+    request: matching_pb2.ComputeHeightMapRequest,
+) -> tuple[tuple[int, int], MatchingOptions]:
+    """The first image's (rows, cols) and the options of `request`, checked before any work: at
+    least two images, each readable and of the first one's size by its header, the parameters and
+    the tilt axis (InvalidInputError names the field)."""
+    if len(request.images) < 2:
+        raise InvalidInputError("images", f"at least two images are needed, got {len(request.images)}")
+    shape = sem_image.image_shape(request.images[0].image.content, field="images[0].image")
+    for index, item in enumerate(request.images[1:], start=1):
+        validate_same_size(
+            shape, sem_image.image_shape(item.image.content, field=f"images[{index}].image"), index=index
+        )
+    options = options_from_message(request.parameters)
+    with request_fields():
+        validate_options(options, image_cols=shape[1])
+    validate_tilt_axis_deg(tilt_axis_deg(request))
+    return shape, options
+
+
+def tilt_axis_deg(request: matching_pb2.ComputeHeightMapRequest) -> float:
+    """The request's tilt axis, degrees (the default where it gives none)."""
+    return request.tilt_axis_deg if request.HasField("tilt_axis_deg") else DEFAULT_TILT_AXIS_DEG
+
+
+def strip_request(task: StripTask, *, request_id: str = "") -> matching_pb2.MatchStripRequest:
+    """MatchStrip of one strip; whole-number grey values travel as integers."""
+    first, stop = task.keep_rows or (0, 0)
+    request = matching_pb2.MatchStripRequest(
+        keep_from_row=first,
+        keep_to_row=stop,
+        parameters=matching_pb2.MatchingParameters(
+            window_px=task.window_px,
+            max_disparity_px=task.max_disparity_px,
+            min_confidence=task.min_confidence,
+            max_lr_difference_px=task.max_lr_difference_px,
+            propagate_at_full_resolution=task.propagate_at_full_resolution,
+            method=method_to_message(task.method),
+        ),
+        request_id=request_id,
+    )
+    wire.fill_raster(request.left, _exact_integers(task.left))
+    wire.fill_raster(request.right, _exact_integers(task.right))
+    return request
+
+
+def request_to_strip_task(request: matching_pb2.MatchStripRequest) -> StripTask:
+    """The strip a MatchStripRequest holds, validated (InvalidInputError names the field)."""
+    left = wire.raster_to_array(request.left, field="left").astype(np.float32)
+    right = wire.raster_to_array(request.right, field="right").astype(np.float32)
+    if left.shape != right.shape:
+        raise InvalidInputError("right", f"size {right.shape[::-1]} differs from the left strip's {left.shape[::-1]}")
+    if left.size > sem_image.MAX_IMAGE_PIXELS:
+        raise InvalidInputError(
+            "left",
+            f"{left.size} pixels is more than the limit of {sem_image.MAX_IMAGE_PIXELS} (FRACTO_MAX_IMAGE_PIXELS)",
+        )
+    for name, values in (("left", left), ("right", right)):
+        if not np.isfinite(values).all():
+            raise InvalidInputError(name, "grey values must be finite")
+    options = options_from_message(request.parameters)
+    if options.max_disparity_px is None:
+        raise InvalidInputError("parameters.max_disparity_px", "is required for a strip")
+    if min(left.shape) < options.window_px:
+        raise InvalidInputError(
+            "left",
+            f"a strip of {left.shape[1]} x {left.shape[0]} pixels is smaller than the {options.window_px} px window",
+        )
+    with request_fields():
+        validate_options(options, image_cols=left.shape[1])
+    keep_rows = None
+    if request.keep_from_row or request.keep_to_row:
+        if not 0 <= request.keep_from_row < request.keep_to_row <= left.shape[0]:
+            raise InvalidInputError(
+                "keep_to_row",
+                f"rows [{request.keep_from_row}, {request.keep_to_row}) are not within the strip's {left.shape[0]}",
+            )
+        keep_rows = (request.keep_from_row, request.keep_to_row)
+    return StripTask(
+        left,
+        right,
+        options.window_px,
+        options.max_disparity_px,
+        options.min_confidence,
+        options.max_lr_difference_px,
+        keep_rows=keep_rows,
+        propagate_at_full_resolution=options.propagate_at_full_resolution,
+        method=options.method,
+    )
+
+
+def strip_response(result: DisparityResult, *, worker: str) -> matching_pb2.MatchStripResponse:
+    response = matching_pb2.MatchStripResponse(worker=worker)
+    wire.fill_raster(response.disparity_px, result.disparity_px)
+    wire.fill_raster(response.confidence, result.confidence)
+    wire.fill_raster(response.sigma_px, result.sigma_px)
+    return response
+
+
+def response_to_disparity(response: matching_pb2.MatchStripResponse) -> DisparityResult:
+    return DisparityResult(
+        *(wire.raster_to_array(raster) for raster in (response.disparity_px, response.confidence, response.sigma_px))
+    )
+
+
+def height_map_response(result: HeightMapResult, texture: np.ndarray) -> matching_pb2.ComputeHeightMapResponse:
+    """The final ComputeHeightMap response: the maps, the reference image as texture, the report."""
+    response = matching_pb2.ComputeHeightMapResponse(report=wire.report_to_message(result.report))
+    height_map = response.height_map
+    height_map.pixel_size_um = result.report["pixel_size_um"]
+    for field, values in (
+        ("z_um", result.z_um),
+        ("sigma_um", result.sigma_um),
+        ("confidence", result.confidence),
+        ("texture", texture),
+    ):
+        wire.fill_raster(getattr(height_map, field), values)
+    return response
+
+
+def _exact_integers(values: np.ndarray) -> np.ndarray:
+    """Float grey values that are whole numbers within 0..65535 as uint8 or uint16 (half or a
+    quarter of the bytes on the wire, the same values), others unchanged."""
+    if values.dtype.kind != "f" or values.size == 0:
+        return values
+    low, high = float(values.min()), float(values.max())
+    if low < 0 or high > 65535 or not np.array_equal(values, np.rint(values)):
+        return values
+    return values.astype(np.uint8 if high <= 255 else np.uint16)

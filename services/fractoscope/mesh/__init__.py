@@ -1,0 +1,3 @@
+"""Height maps as tiled triangle meshes: levels of detail (`levels`), steep walls (`walls`), the
+grid triangulation (`grid`), glTF binary tiles (`glb`) and the meshing service's chain from
+heights to GLB tiles (`pipeline`)."""

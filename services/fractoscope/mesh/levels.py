@@ -1,0 +1,545 @@
+"""Tiled levels of detail of a 2.5D height map as triangle meshes.
+
+Level 0 is the full-resolution grid mesh: one vertex per measured pixel, two triangles per quad
+of measured pixels. Level k clusters the pixels into cells of 2**k x 2**k and keeps one vertex per
+cell, the centroid of its measured pixels (the paper's hierarchical space decomposition); with
+the quadric method, each tile of level k >= 1 is that grid further decimated to half its
+triangles by quadric error collapses (fast-simplification), which spends triangles where the
+surface bends. Each level is cut into tiles of at most LOD_TILE_MAX_CELLS x LOD_TILE_MAX_CELLS
+cells; neighbouring tiles share their border vertices exactly (decimation keeps tile borders), so
+there are no cracks. A tile of level k+1 covers the area of the four tiles of level k below it (to
+within half a cell).
+
+Walls (see mesh.walls): with a `max_slope`, triangles that bridge a height jump steeper than the
+measurement supports are flagged, kept apart from the surface and left out of geometric errors.
+Tiles without a triangle (no four neighbouring measured cells) are not produced.
+
+Pixel positions (row_px, col_px) count from the centre of the top-left pixel.
+"""
+
+from __future__ import annotations
+
+import enum
+import functools
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import cv2
+import fast_simplification
+import meshoptimizer
+import numpy as np
+
+from fractoscope.mesh.grid import cell_sums, quad_triangles
+from fractoscope.mesh.walls import (
+    WALL_SIGMA_FACTOR,
+    grid_wall_triangles,
+    wall_triangles,
+    wall_vertices,
+    within_distance,
+)
+
+LOD_TILE_MAX_CELLS = 254  # 255 x 255 vertices: indices fit 16 bits below the restart value 65535
+COARSEST_TRIANGLES = 5_000
+
+
+class Simplification(enum.Enum):
+    """How coarser levels are made."""
+
+    VERTEX_CLUSTERING = "vertex_clustering"
+    QUADRIC = "quadric"
+
+
+@dataclass(frozen=True)
+class ClusterLevel:
+    """The height map clustered into square cells of `cell_px` pixels, arrays (cells_r, cells_c).
+
+    z_um, row_px, col_px: centroid of each cell's measured pixels (NaN where it has none).
+    texture: mean grey value of each cell's pixels.
+    complete: True where every pixel of the cell is measured (its centroid is its centre).
+    sigma_um: mean local uncertainty of each cell's measured pixels (0 where none was given).
+    """
+
+    cell_px: int
+    z_um: np.ndarray
+    row_px: np.ndarray
+    col_px: np.ndarray
+    texture: np.ndarray
+    complete: np.ndarray
+    sigma_um: np.ndarray
+
+
+@dataclass(frozen=True)
+class LodTile:
+    """One tile of one level: a triangle mesh in the height map's pixel frame.
+
+    positions: (N, 3) (col_px, row_px, z_um); normals: (N, 3) unit vectors in glTF axes
+    (X along columns, Y up, Z along rows); triangles: (M, 3) vertex indices, counter-clockwise
+    seen from above; uvs: (N, 2) texture coordinates; texture: (h, w) uint8 grey image of the
+    tile's area at the level's resolution; walls: (M,) bool, the triangles that are walls.
+    geometric_error_um leaves the walls out.
+    """
+
+    level: int
+    tile_row: int
+    tile_col: int
+    positions: np.ndarray
+    normals: np.ndarray
+    triangles: np.ndarray
+    uvs: np.ndarray
+    texture: np.ndarray
+    geometric_error_um: float
+    walls: np.ndarray
+
+
+def cluster_levels(
+    z_um: np.ndarray, texture: np.ndarray, *, count: int, sigma_um: np.ndarray | None = None
+) -> list[ClusterLevel]:
+    """`count` levels of grid vertex clustering, cells of 1, 2, 4, ... pixels. z_um, texture and
+    the local uncertainty sigma_um (optional, µm) are (rows, cols) of one shape; z_um is NaN
+    where unknown."""
+    measured = np.isfinite(z_um)
+    rows = np.broadcast_to(np.arange(z_um.shape[0], dtype=np.float64)[:, None], z_um.shape)
+    cols = np.broadcast_to(np.arange(z_um.shape[1], dtype=np.float64)[None, :], z_um.shape)
+    sigma = (
+        np.zeros(z_um.shape, np.float32)
+        if sigma_um is None
+        else np.where(measured, np.nan_to_num(sigma_um), 0.0).astype(np.float32)
+    )
+    levels = [ClusterLevel(1, z_um.astype(np.float32), rows, cols, texture.astype(np.float32), measured, sigma)]
+    if count == 1:
+        return levels
+    # Sums per cell, aggregated 2x2 from level to level: heights, row and column positions,
+    # measured pixels (exact in float32 up to 2**24), grey values, all pixels, sigmas.
+    sums = [
+        cell_sums(np.where(measured, z_um, 0.0).astype(np.float64), factor=2, partial=True),
+        cell_sums(np.where(measured, rows, 0.0), factor=2, partial=True),
+        cell_sums(np.where(measured, cols, 0.0), factor=2, partial=True),
+        cell_sums(measured.astype(np.float32), factor=2, partial=True),
+        cell_sums(texture.astype(np.float32), factor=2, partial=True),
+        cell_sums(np.ones(z_um.shape, np.float32), factor=2, partial=True),
+        cell_sums(sigma, factor=2, partial=True),
+    ]
+    for level in range(1, count):
+        z_sum, row_sum, col_sum, weight, texture_sum, area, sigma_sum = sums
+        with np.errstate(invalid="ignore", divide="ignore"):
+            has = weight > 0
+            levels.append(
+                ClusterLevel(
+                    cell_px=2**level,
+                    z_um=np.where(has, z_sum / weight, np.nan),
+                    row_px=np.where(has, row_sum / weight, np.nan),
+                    col_px=np.where(has, col_sum / weight, np.nan),
+                    texture=texture_sum / area,
+                    complete=weight == 4**level,
+                    sigma_um=np.where(has, sigma_sum / weight, 0.0),
+                )
+            )
+        sums = [cell_sums(values, factor=2, partial=True) for values in sums]
+    return levels
+
+
+def level_count_for(shape: tuple[int, int]) -> int:
+    """Levels until the whole map is one tile of at most COARSEST_TRIANGLES triangles."""
+    count = 1
+    cells = max(shape)
+    while cells > LOD_TILE_MAX_CELLS or 2 * (cells - 1) ** 2 > COARSEST_TRIANGLES:
+        cells = (cells + 1) // 2
+        count += 1
+    return count
+
+
+def iter_tiles(
+    z_um: np.ndarray,
+    texture: np.ndarray,
+    *,
+    pixel_size_um: float,
+    method: Simplification = Simplification.VERTEX_CLUSTERING,
+    level_count: int | None = None,
+    max_slope: float | None = None,
+    sigma_um: np.ndarray | None = None,
+) -> Iterator[LodTile]:
+    """The tiles of every level, finest level first, as they are built. Each tile carries its
+    measured geometric error: the largest vertical distance between its surface and the
+    full-resolution grid surface, µm. With `max_slope` (see mesh.walls) triangles steeper than the
+    measurement supports are walls; `sigma_um` (rows, cols), each height's local uncertainty µm,
+    widens what it supports. The error then leaves out walls and the full-resolution pixels
+    within one cell of a full-resolution wall (a level places a cliff only to within its cell,
+    and that sideways error would read as a vertical one of the cliff's whole height), and counts
+    at each pixel only what exceeds three of its sigmas (within which the full-resolution data
+    does not know its own surface better), and is at least the errors of the finer level's tiles
+    under it (those leave out less around walls; a viewer that refines a tile must not find its
+    children worse). Tiles without triangles are skipped."""
+    if z_um.shape != texture.shape or z_um.ndim != 2:
+        raise ValueError(f"z_um and texture must be 2D of one shape, got {z_um.shape} and {texture.shape}")
+    count = level_count or level_count_for(z_um.shape)
+    tolerance_um = None if sigma_um is None else WALL_SIGMA_FACTOR * np.nan_to_num(sigma_um).astype(np.float32)
+    full_resolution_walls = None
+    finer_errors: dict[tuple[int, int], float] = {}  # the finer level's tiles' errors by (row, col)
+    for level, cluster in enumerate(cluster_levels(z_um, texture, count=count, sigma_um=sigma_um)):
+        errors: dict[tuple[int, int], float] = {}
+        grid_walls = grid_wall_triangles(
+            cluster.col_px * pixel_size_um,
+            cluster.row_px * pixel_size_um,
+            cluster.z_um,
+            max_slope=max_slope,
+            sigma_um=cluster.sigma_um,
+        )
+        if level == 0:
+            full_resolution_walls = grid_walls
+        surface_um = _away_from_walls(*full_resolution_walls, z_um, cluster.cell_px) if level > 0 else z_um
+        deviation = (
+            _grid_deviation(cluster, surface_um, grid_walls)
+            if level > 0 and method is Simplification.VERTEX_CLUSTERING
+            else None
+        )
+        for tile_row, row_cells in enumerate(_tile_spans(cluster.z_um.shape[0])):
+            for tile_col, col_cells in enumerate(_tile_spans(cluster.z_um.shape[1])):
+                if level == 0 or method is Simplification.VERTEX_CLUSTERING:
+                    positions, triangles = _grid_mesh(cluster, row_cells, col_cells)
+                    walls = _grid_tile_walls(grid_walls, cluster, row_cells, col_cells)
+                    normals = _grid_normals(cluster, row_cells, col_cells, pixel_size_um)
+                else:
+                    positions, triangles = _decimated_mesh(cluster, row_cells, col_cells)
+                    walls = wall_triangles(
+                        positions[:, :2] * pixel_size_um,
+                        positions[:, 2],
+                        triangles,
+                        max_slope=max_slope,
+                        sigma_um=_nearest_cell(cluster, row_cells, col_cells, positions, cluster.sigma_um),
+                    )
+                    normals = _decimated_normals(cluster, row_cells, col_cells, positions, pixel_size_um)
+                if len(triangles) == 0:
+                    continue
+                footprint = _footprint(cluster.cell_px, row_cells, col_cells, z_um.shape)
+                if level == 0:
+                    error = 0.0
+                elif deviation is not None:
+                    error = _nanmax(
+                        deviation[footprint] if tolerance_um is None else deviation[footprint] - tolerance_um[footprint]
+                    )
+                else:
+                    error = _mesh_deviation(
+                        positions, triangles[~walls], surface_um, footprint, tolerance_um=tolerance_um
+                    )
+                children = [finer_errors.get((2 * tile_row + i, 2 * tile_col + j), 0.0) for i in (0, 1) for j in (0, 1)]
+                error = errors[(tile_row, tile_col)] = max(error, *children)
+                block = cluster.texture[row_cells[0] : row_cells[1] + 1, col_cells[0] : col_cells[1] + 1]
+                yield LodTile(
+                    level=level,
+                    tile_row=tile_row,
+                    tile_col=tile_col,
+                    positions=positions,
+                    normals=normals,
+                    triangles=triangles,
+                    uvs=_uvs(positions, cluster.cell_px, row_cells, col_cells),
+                    texture=np.clip(np.round(block), 0, 255).astype(np.uint8),
+                    geometric_error_um=error,
+                    walls=walls,
+                )
+        finer_errors = errors
+
+
+def tile_count(shape: tuple[int, int], level_count: int | None = None) -> int:
+    """How many tiles `iter_tiles` yields at most for a height map of `shape` (all of them when
+    every tile has a triangle)."""
+    count = level_count or level_count_for(shape)
+    total = 0
+    for level in range(count):
+        cells = [-(-size // 2**level) for size in shape]
+        total += len(_tile_spans(cells[0])) * len(_tile_spans(cells[1]))
+    return total
+
+
+def _tile_spans(cells: int) -> list[tuple[int, int]]:
+    """Inclusive (first, last) vertex index of each tile along one axis; neighbours share one."""
+    if cells <= 1:
+        return [(0, 0)]
+    return [(start, min(start + LOD_TILE_MAX_CELLS, cells - 1)) for start in range(0, cells - 1, LOD_TILE_MAX_CELLS)]
+
+
+def _footprint(cell_px: int, row_cells, col_cells, shape) -> tuple[slice, slice]:
+    """Full-resolution pixels between the tile's first and last vertex (cell centres)."""
+    centre = (cell_px - 1) / 2.0
+
+    def span(first, last, size):
+        return slice(int(np.ceil(first * cell_px + centre)), min(int(np.floor(last * cell_px + centre)) + 1, size))
+
+    return span(*row_cells, shape[0]), span(*col_cells, shape[1])
+
+
+def _grid_mesh(cluster: ClusterLevel, row_cells, col_cells) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices of the measured cells of the block and two triangles per fully measured quad."""
+    block = (slice(row_cells[0], row_cells[1] + 1), slice(col_cells[0], col_cells[1] + 1))
+    z = cluster.z_um[block]
+    measured = np.isfinite(z)
+    positions = np.empty((int(measured.sum()), 3), np.float32)  # float32, as the GLB stores them
+    if measured.all():
+        for axis, values in enumerate((cluster.col_px[block], cluster.row_px[block], z)):
+            positions[:, axis] = values.ravel()
+        return positions, _complete_grid_triangles(z.shape)
+    index = np.full(z.shape, -1, np.int64)
+    index[measured] = np.arange(len(positions))
+    for axis, values in enumerate((cluster.col_px[block], cluster.row_px[block], z)):
+        positions[:, axis] = values[measured]
+    return positions, _quad_triangles(index)
+
+
+def _away_from_walls(upper: np.ndarray, lower: np.ndarray, z_um: np.ndarray, cell_px: int) -> np.ndarray:
+    """The full-resolution heights with those within `cell_px` pixels of a full-resolution wall
+    ((upper, lower) wall triangles of level 0) unknown."""
+    if not (upper.any() or lower.any()):
+        return z_um
+    return np.where(within_distance(wall_vertices(upper, lower), cell_px), np.float32(np.nan), z_um)
+
+
+def _grid_tile_walls(
+    grid_walls: tuple[np.ndarray, np.ndarray], cluster: ClusterLevel, row_cells, col_cells
+) -> np.ndarray:
+    """The wall flags of a grid tile's triangles, in `_quad_triangles`' order, from the level's
+    (upper, lower) wall triangles."""
+    quads = (slice(row_cells[0], row_cells[1]), slice(col_cells[0], col_cells[1]))
+    measured = np.isfinite(cluster.z_um[row_cells[0] : row_cells[1] + 1, col_cells[0] : col_cells[1] + 1])
+    complete = measured[:-1, :-1] & measured[:-1, 1:] & measured[1:, :-1] & measured[1:, 1:]
+    upper, lower = (walls[quads][complete] for walls in grid_walls)
+    return np.column_stack([upper, lower]).ravel()
+
+
+@functools.lru_cache(maxsize=16)
+def _complete_grid_triangles(shape: tuple[int, int]) -> np.ndarray:
+    """Triangles of a fully measured grid block (shared by every such block of one shape)."""
+    triangles = quad_triangles(np.ones((shape[0] - 1, shape[1] - 1), bool), shape[1])
+    triangles.setflags(write=False)
+    return triangles
+
+
+def _quad_triangles(index: np.ndarray) -> np.ndarray:
+    """Two triangles per quad whose four corners have a vertex index (>= 0), in those indices."""
+    known = index >= 0
+    complete = known[:-1, :-1] & known[:-1, 1:] & known[1:, :-1] & known[1:, 1:]
+    return index.reshape(-1)[quad_triangles(complete, index.shape[1])]
+
+
+def _decimated_mesh(cluster: ClusterLevel, row_cells, col_cells):
+    """The level's grid mesh of the tile decimated to half its triangles by quadric error
+    collapses (heights in cell units for the quadrics), tile borders kept, vertices on the
+    level's surface."""
+    positions, triangles = _grid_mesh(cluster, row_cells, col_cells)
+    if len(triangles) < 8:
+        return positions, triangles
+    scale = np.array([1.0, 1.0, 1.0 / cluster.cell_px])  # heights in units of the cell size
+    simplified, faces = fast_simplification.simplify(
+        positions * scale, np.array(triangles, np.int64), target_reduction=0.5, preserve_border=True
+    )
+    used, faces = np.unique(faces, return_inverse=True)  # drop vertices no triangle uses
+    simplified = simplified[used] / scale
+    # Quadric placement is ill-conditioned on flat patches; keep every vertex on the level's
+    # surface. Vertices on hole rims (kept, being borders) may fall in an open quad: unchanged.
+    on_surface = _grid_height_at(cluster, simplified[:, 0], simplified[:, 1])
+    simplified[:, 2] = np.where(np.isfinite(on_surface), on_surface, simplified[:, 2])
+    return _in_vertex_cache_order(simplified, faces.reshape(-1, 3))
+
+
+def _in_vertex_cache_order(positions: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Triangles in vertex-cache order and vertices in the order they are first used
+    (meshoptimizer): quicker to draw, and it takes a decimated tile's compressed indices to about a
+    third. (Grid meshes keep their row order, which compresses better still.)"""
+    indices = np.ascontiguousarray(triangles, np.uint32).ravel()
+    cached = np.empty_like(indices)
+    meshoptimizer.optimize_vertex_cache(cached, indices, len(indices), len(positions))
+    new_index = np.empty(len(positions), np.uint32)
+    meshoptimizer.optimize_vertex_fetch_remap(new_index, cached, len(cached), len(positions))
+    reordered = np.empty_like(positions)
+    reordered[new_index] = positions
+    return reordered, new_index[cached].astype(np.int64).reshape(-1, 3)
+
+
+def _grid_height_at(cluster: ClusterLevel, col_px: np.ndarray, row_px: np.ndarray) -> np.ndarray:
+    """Height of the level's grid mesh (its triangles through the cell centroids) at points."""
+    size = cluster.cell_px
+    centre = (size - 1) / 2.0
+    quad_rows = np.clip(np.floor((row_px - centre) / size).astype(np.int64), 0, cluster.z_um.shape[0] - 2)
+    quad_cols = np.clip(np.floor((col_px - centre) / size).astype(np.int64), 0, cluster.z_um.shape[1] - 2)
+
+    def corner(row_step, col_step):
+        index = (quad_rows + row_step, quad_cols + col_step)
+        return cluster.col_px[index], cluster.row_px[index], cluster.z_um[index]
+
+    a, b, c, d = corner(0, 0), corner(0, 1), corner(1, 0), corner(1, 1)
+    first, in_first = _barycentric_height(col_px, row_px, a, c, b)
+    second, _ = _barycentric_height(col_px, row_px, b, c, d)
+    return np.where(in_first, first, second)
+
+
+def _grid_deviation(cluster: ClusterLevel, z_full: np.ndarray, walls: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """|grid mesh - full-resolution heights| at every full-resolution pixel (NaN where the mesh
+    has no triangle, a wall triangle (`walls`: (upper, lower) per quad), or the pixel is
+    unknown), for a level of even cell size.
+
+    Quads run between cell centres, so the pixels inside quad (i, j) form the block that starts
+    at (i s + s/2, j s + s/2), and all quads are evaluated at once. Quads with an incomplete corner cell (map edges,
+    holes), whose vertices are
+    centroids away from the regular layout, are evaluated with their actual vertex positions."""
+    size, half = cluster.cell_px, cluster.cell_px // 2
+    quads_r, quads_c = cluster.z_um.shape[0] - 1, cluster.z_um.shape[1] - 1
+    deviation = np.full(z_full.shape, np.nan, np.float32)
+    if quads_r < 1 or quads_c < 1:
+        return deviation
+    padded = np.full((half + quads_r * size, half + quads_c * size), np.nan, np.float32)
+    rows, cols = min(padded.shape[0], z_full.shape[0]), min(padded.shape[1], z_full.shape[1])
+    padded[:rows, :cols] = z_full[:rows, :cols]
+    blocks = padded[half:, half:].reshape(quads_r, size, quads_c, size)
+
+    # The triangle pair equals the bilinear patch minus the quad's twist (a - b - c + d) times
+    # u v in the upper triangle and (1 - u)(1 - v) in the lower one. OpenCV's linear resize puts
+    # output pixel x at input coordinate (x - (s - 1) / 2) / s: the cell-centre convention.
+    z = cluster.z_um.astype(np.float32)
+    bilinear = cv2.resize(z, (z.shape[1] * size, z.shape[0] * size), interpolation=cv2.INTER_LINEAR)
+    bilinear_blocks = bilinear[half : half + quads_r * size, half : half + quads_c * size].reshape(
+        quads_r, size, quads_c, size
+    )
+    offset = (np.arange(size, dtype=np.float32) + 0.5) / size
+    u, v = offset[None, None, None, :], offset[None, :, None, None]
+    twist_weight = np.where(u + v <= 1.0, u * v, (1.0 - u) * (1.0 - v)).astype(np.float32)
+    twist = (z[:-1, :-1] - z[:-1, 1:] - z[1:, :-1] + z[1:, 1:])[:, None, :, None]
+    difference = np.subtract(blocks, bilinear_blocks)
+    difference += twist * twist_weight
+    np.abs(difference, out=difference)
+
+    complete = cluster.complete
+    regular = complete[:-1, :-1] & complete[:-1, 1:] & complete[1:, :-1] & complete[1:, 1:]
+    measured = np.isfinite(z)
+    irregular = ~regular & measured[:-1, :-1] & measured[:-1, 1:] & measured[1:, :-1] & measured[1:, 1:]
+    if irregular.any():
+        difference[np.nonzero(irregular)[0], :, np.nonzero(irregular)[1], :] = _irregular_quad_deviation(
+            cluster, blocks, np.nonzero(irregular)
+        )
+    upper_walls, lower_walls = walls
+    if upper_walls.any() or lower_walls.any():
+        in_wall = np.where(u + v <= 1.0, upper_walls[:, None, :, None], lower_walls[:, None, :, None])
+        difference[in_wall] = np.nan
+    flat = difference.reshape(quads_r * size, quads_c * size)
+    deviation[half : half + flat.shape[0], half : half + flat.shape[1]] = flat[
+        : z_full.shape[0] - half, : z_full.shape[1] - half
+    ]
+    return deviation
+
+
+def _irregular_quad_deviation(cluster: ClusterLevel, blocks, quads) -> np.ndarray:
+    """(n, s, s) deviations of the pixels of quads (i, j) whose vertices sit at their centroids."""
+    size, half = cluster.cell_px, cluster.cell_px // 2
+    quad_rows, quad_cols = quads
+    pixel_rows = (quad_rows * size + half)[:, None, None] + np.arange(size)[None, :, None]
+    pixel_cols = (quad_cols * size + half)[:, None, None] + np.arange(size)[None, None, :]
+    surface = _grid_height_at(cluster, pixel_cols.astype(np.float64), pixel_rows.astype(np.float64))
+    return np.abs(blocks[quad_rows, :, quad_cols, :] - surface)
+
+
+def _barycentric_height(x, y, p, q, r):
+    """Height of the plane through triangle (p, q, r) at (x, y), and whether (x, y) lies inside
+    (up to rounding). Each corner is (x, y, z) arrays."""
+    (x1, y1, z1), (x2, y2, z2), (x3, y3, z3) = p, q, r
+    tolerance = -1e-4
+    with np.errstate(invalid="ignore", divide="ignore"):  # degenerate triangles give NaN: outside
+        determinant = (y2 - y3) * (x1 - x3) + (x3 - x2) * (y1 - y3)
+        w1 = ((y2 - y3) * (x - x3) + (x3 - x2) * (y - y3)) / determinant
+        w2 = ((y3 - y1) * (x - x3) + (x1 - x3) * (y - y3)) / determinant
+        w3 = 1.0 - w1 - w2
+        return w1 * z1 + w2 * z2 + w3 * z3, (w1 >= tolerance) & (w2 >= tolerance) & (w3 >= tolerance)
+
+
+def _nanmax(values: np.ndarray) -> float:
+    """The largest finite value, at least 0."""
+    finite = values[np.isfinite(values)]
+    return max(float(finite.max()), 0.0) if finite.size else 0.0
+
+
+def _mesh_deviation(
+    positions, triangles, z_um, footprint, *, tolerance_um=None, chunk_pixels: int = 4_000_000
+) -> float:
+    """Largest vertical distance between an irregular (decimated) mesh and the full-resolution
+    heights over the footprint, less `tolerance_um` (rows, cols) at each pixel: every pixel inside
+    a triangle's bounding box is tested with barycentric coordinates, in chunks of about
+    `chunk_pixels` candidate pixels."""
+    corners = positions[triangles]  # (T, 3 corners, 3 coordinates)
+    low = np.floor(corners[:, :, :2].min(axis=1)).astype(np.int64)
+    high = np.ceil(corners[:, :, :2].max(axis=1)).astype(np.int64)
+    low = np.maximum(low, [footprint[1].start, footprint[0].start])
+    high = np.minimum(high, [footprint[1].stop - 1, footprint[0].stop - 1])
+    widths, heights = np.maximum(high - low + 1, 0).T
+    counts = widths * heights
+    ends = np.cumsum(counts)  # candidate pixels up to and including each triangle
+    worst = 0.0
+    start = 0
+    while start < len(triangles):
+        done = ends[start - 1] if start else 0
+        stop = max(int(np.searchsorted(ends, done + chunk_pixels, side="right")), start + 1)
+        ids = np.repeat(np.arange(start, stop), counts[start:stop])
+        offsets = np.arange(len(ids)) - np.repeat(ends[start:stop] - counts[start:stop] - done, counts[start:stop])
+        x = low[ids, 0] + offsets % widths[ids]
+        y = low[ids, 1] + offsets // widths[ids]
+        p, q, r = (tuple(corners[ids, k, axis] for axis in range(3)) for k in range(3))
+        height, inside = _barycentric_height(x.astype(np.float64), y.astype(np.float64), p, q, r)
+        difference = (
+            np.abs(height - z_um[y, x]) if tolerance_um is None else np.abs(height - z_um[y, x]) - tolerance_um[y, x]
+        )
+        difference = difference[inside]
+        difference = difference[np.isfinite(difference)]
+        if difference.size:
+            worst = max(worst, float(difference.max()))
+        start = stop
+    return worst
+
+
+def _uvs(positions, cell_px, row_cells, col_cells) -> np.ndarray:
+    """Texture coordinates: the tile texture's texel (i, j) covers cell (row_cells[0] + i, ...)."""
+    centre = (cell_px - 1) / 2.0
+    u = ((positions[:, 0] - centre) / cell_px - col_cells[0] + 0.5) / (col_cells[1] - col_cells[0] + 1)
+    v = ((positions[:, 1] - centre) / cell_px - row_cells[0] + 0.5) / (row_cells[1] - row_cells[0] + 1)
+    return np.column_stack([u, v])
+
+
+def _normal_field(cluster: ClusterLevel, row_cells, col_cells, pixel_size_um: float) -> np.ndarray:
+    """(rows, cols, 3) upward unit normals (-dh/dX, 1, -dh/dZ) / norm in glTF axes over a block
+    of cells, from central differences over the actual centroid spacing (cells at the map's edge
+    are partial); (0, 1, 0) where a neighbour is unknown."""
+    block = (slice(row_cells[0], row_cells[1] + 1), slice(col_cells[0], col_cells[1] + 1))
+    z = cluster.z_um[block].astype(np.float32)
+    if min(z.shape) < 2:
+        slope_rows = slope_cols = np.zeros_like(z)
+    else:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            slope_rows = np.gradient(z, axis=0) / (np.gradient(cluster.row_px[block], axis=0) * pixel_size_um)
+            slope_cols = np.gradient(z, axis=1) / (np.gradient(cluster.col_px[block], axis=1) * pixel_size_um)
+    slope_rows, slope_cols = np.nan_to_num(slope_rows), np.nan_to_num(slope_cols)
+    inverse_norm = 1.0 / np.sqrt(1.0 + slope_rows**2 + slope_cols**2)
+    return np.stack([-slope_cols * inverse_norm, inverse_norm, -slope_rows * inverse_norm], axis=-1)
+
+
+def _grid_normals(cluster: ClusterLevel, row_cells, col_cells, pixel_size_um: float) -> np.ndarray:
+    """Normals of the measured vertices of a grid block, in `_grid_mesh`'s order."""
+    field = _normal_field(cluster, row_cells, col_cells, pixel_size_um)
+    block = (slice(row_cells[0], row_cells[1] + 1), slice(col_cells[0], col_cells[1] + 1))
+    return field[np.isfinite(cluster.z_um[block])]
+
+
+def _decimated_normals(cluster: ClusterLevel, row_cells, col_cells, positions, pixel_size_um: float) -> np.ndarray:
+    """Normals of decimated vertices (which lie on the level's surface): the surface normal of the
+    nearest cell."""
+    return _nearest_cell(
+        cluster, row_cells, col_cells, positions, _normal_field(cluster, row_cells, col_cells, pixel_size_um)
+    )
+
+
+def _nearest_cell(cluster: ClusterLevel, row_cells, col_cells, positions, values: np.ndarray) -> np.ndarray:
+    """`values` of a tile's block of cells ((rows, cols, ...), or the level's whole grid) at the
+    cell nearest each vertex (col_px, row_px, ...)."""
+    if values.shape[:2] == cluster.z_um.shape:
+        values = values[row_cells[0] : row_cells[1] + 1, col_cells[0] : col_cells[1] + 1]
+    centre = (cluster.cell_px - 1) / 2.0
+    rows = np.clip(
+        np.round((positions[:, 1] - centre) / cluster.cell_px).astype(np.int64) - row_cells[0], 0, values.shape[0] - 1
+    )
+    cols = np.clip(
+        np.round((positions[:, 0] - centre) / cluster.cell_px).astype(np.int64) - col_cells[0], 0, values.shape[1] - 1
+    )
+    return values[rows, cols]

@@ -1,0 +1,2 @@
+"""What the three services share at run time: authentication (`auth`), bounded job pools (`jobs`),
+the memory budget (`budget`), caches, request decoding, thread routing and process settings."""

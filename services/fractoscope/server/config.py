@@ -1,0 +1,111 @@
+"""fracto-server's configuration: flags, each defaulting to its environment variable, read once.
+
+FRACTO_ADDRESS (listen address), FRACTO_SERVICES, FRACTO_MAX_MESSAGE_MB (largest message either
+way), FRACTO_WORKERS (threads answering queries), FRACTO_BUILD_WORKERS and FRACTO_BUILD_QUEUE
+(builds, height maps and meshes run at once and waiting; strips matched for peers likewise, on
+threads of their own), FRACTO_MAX_REQUEST_MB (memory one such request may take; default: 60 % of
+the server's memory over the build workers), FRACTO_LOG_LEVEL, FRACTO_DATA_DIR (where specimens are
+kept), FRACTO_MATCHING_ADDRESS and FRACTO_MESHING_ADDRESS (the services the tile service calls;
+default: this process's own, called in-process), FRACTO_STRIP_PEERS (matching replicas that match the strips of large
+pairs, e.g. the headless Service of the matching Deployment; empty = match here), FRACTO_STRIP_PIXELS and
+FRACTO_STRIP_IN_FLIGHT, FRACTO_HTTP_ADDRESS (host:port of the plain-HTTP tile endpoint; empty =
+off). Tokens (FRACTO_TOKENS, see auth) and TLS (FRACTO_TLS_CERT, FRACTO_TLS_KEY) likewise.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+
+from fractoscope.rpc.limits import DEFAULT_MAX_MESSAGE_MB
+from fractoscope.stereo.matching import DEFAULT_STRIP_PIXELS
+
+SERVICE_NAMES = ("matching", "meshing", "tiles")
+DEFAULT_DATA_DIR = "data"
+DEFAULT_BUILD_QUEUE = 8
+
+
+def default_build_workers() -> int:
+    """Half this process's CPUs (at least one): a build keeps about two busy."""
+    return max(1, len(os.sched_getaffinity(0)) // 2)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """fracto-server's flags, each defaulting to its environment variable."""
+    parser = argparse.ArgumentParser(prog="fracto-server", description="Serve Fractoscope's gRPC services.")
+    parser.add_argument("--address", default=os.environ.get("FRACTO_ADDRESS", "[::]:50051"))
+    parser.add_argument(
+        "--services",
+        default=os.environ.get("FRACTO_SERVICES", ",".join(SERVICE_NAMES)),
+        help="comma-separated services to serve",
+    )
+    parser.add_argument(
+        "--max-message-mb", type=int, default=int(os.environ.get("FRACTO_MAX_MESSAGE_MB", DEFAULT_MAX_MESSAGE_MB))
+    )
+    parser.add_argument(
+        "--workers", type=int, default=int(os.environ.get("FRACTO_WORKERS", "8")), help="threads answering queries"
+    )
+    parser.add_argument(
+        "--build-workers",
+        type=int,
+        default=int(os.environ.get("FRACTO_BUILD_WORKERS", default_build_workers())),
+        help="builds, height maps and meshes run at once (and strips for peers)",
+    )
+    parser.add_argument(
+        "--build-queue",
+        type=int,
+        default=int(os.environ.get("FRACTO_BUILD_QUEUE", DEFAULT_BUILD_QUEUE)),
+        help="of those, how many may wait; more get RESOURCE_EXHAUSTED",
+    )
+    max_request_mb = os.environ.get("FRACTO_MAX_REQUEST_MB")
+    parser.add_argument(
+        "--max-request-mb",
+        type=int,
+        default=int(max_request_mb) if max_request_mb else None,
+        help="estimated peak memory one request may take (default: 60%% of the server's memory over the build workers)",
+    )
+    parser.add_argument("--log-level", default=os.environ.get("FRACTO_LOG_LEVEL", "INFO"))
+    parser.add_argument(
+        "--data", default=os.environ.get("FRACTO_DATA_DIR", DEFAULT_DATA_DIR), help="specimen directory"
+    )
+    parser.add_argument(
+        "--matching-address",
+        default=os.environ.get("FRACTO_MATCHING_ADDRESS") or None,
+        help="matching service for the tile service, e.g. dns:///matching:50051 (default: this process's, in-process)",
+    )
+    parser.add_argument(
+        "--meshing-address",
+        default=os.environ.get("FRACTO_MESHING_ADDRESS") or None,
+        help="meshing service for the tile service (default: this process's, in-process)",
+    )
+    parser.add_argument(
+        "--strip-peers",
+        default=os.environ.get("FRACTO_STRIP_PEERS") or None,
+        help="matching replicas that match strips of large pairs in parallel, e.g. "
+        "dns:///matching:50051 or ipv4:10.0.0.1:50051,10.0.0.2:50051 (default: match here)",
+    )
+    parser.add_argument(
+        "--strip-pixels",
+        type=int,
+        default=int(os.environ.get("FRACTO_STRIP_PIXELS", DEFAULT_STRIP_PIXELS)),
+        help="pixels per strip of dense matching",
+    )
+    parser.add_argument(
+        "--strip-in-flight",
+        type=int,
+        default=int(os.environ.get("FRACTO_STRIP_IN_FLIGHT", "4")),
+        help="strips sent to the peers at a time (about the number of matching replicas)",
+    )
+    parser.add_argument(
+        "--http-address",
+        default=os.environ.get("FRACTO_HTTP_ADDRESS", "0.0.0.0:8080"),
+        help="host:port of the HTTP tile endpoint; empty = off",
+    )
+    parser.add_argument(
+        "--tls-cert", default=os.environ.get("FRACTO_TLS_CERT") or None, help="PEM certificate: serve TLS"
+    )
+    parser.add_argument(
+        "--tls-key", default=os.environ.get("FRACTO_TLS_KEY") or None, help="PEM private key of --tls-cert"
+    )
+    parser.add_argument("--grace-s", type=float, default=30.0, help="seconds in-flight calls get on SIGTERM")
+    return parser

@@ -1,0 +1,270 @@
+"""The gRPC server: Fractoscope's services plus health checking and reflection, from one process
+(`make run`, in-process `fracto` commands) to one service per process (`--services`, as deployed).
+Configuration: see config."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import signal
+import threading
+from collections.abc import Iterator
+from concurrent import futures
+from pathlib import Path
+
+import grpc
+from grpc_health.v1 import health, health_pb2, health_pb2_grpc
+from grpc_reflection.v1alpha import reflection
+
+from fractoscope.matching.servicer import MatchingServicer
+from fractoscope.meshing.servicer import MeshingServicer
+from fractoscope.rpc.limits import DEFAULT_MAX_MESSAGE_MB, message_size_options
+from fractoscope.runtime.auth import AuthInterceptor, TokenTable, peer_token_problem
+from fractoscope.runtime.budget import MemoryBudget
+from fractoscope.runtime.decoding import MalformedRequests
+from fractoscope.runtime.jobs import JobRunner
+from fractoscope.runtime.process import configure_logging, keep_freed_memory, settle_garbage_collector
+from fractoscope.runtime.threads import ThreadPoolRouting
+from fractoscope.server.config import (
+    DEFAULT_BUILD_QUEUE,
+    DEFAULT_DATA_DIR,
+    SERVICE_NAMES,
+    build_parser,
+    default_build_workers,
+)
+from fractoscope.specimen.store import SpecimenStore
+from fractoscope.stereo.matching import DEFAULT_STRIP_PIXELS
+from fractoscope.tiles.http import start_http_server
+from fractoscope.tiles.servicer import SerializedGetTile, TileServicer
+from fractoscope.v1 import matching_pb2, matching_pb2_grpc, meshing_pb2, meshing_pb2_grpc, tiles_pb2, tiles_pb2_grpc
+
+_log = logging.getLogger("fractoscope.server")
+_REGISTRATIONS = {
+    "matching": (
+        matching_pb2.DESCRIPTOR.services_by_name["MatchingService"],
+        matching_pb2_grpc.add_MatchingServiceServicer_to_server,
+    ),
+    "meshing": (
+        meshing_pb2.DESCRIPTOR.services_by_name["MeshingService"],
+        meshing_pb2_grpc.add_MeshingServiceServicer_to_server,
+    ),
+    "tiles": (tiles_pb2.DESCRIPTOR.services_by_name["TileService"], tiles_pb2_grpc.add_TileServiceServicer_to_server),
+}
+# The calls that follow jobs (see jobs), answered on threads of their own (see threads).
+_JOB_METHODS = (
+    "/fractoscope.v1.MatchingService/ComputeHeightMap",
+    "/fractoscope.v1.MatchingService/MatchStrip",
+    "/fractoscope.v1.MeshingService/BuildMesh",
+    "/fractoscope.v1.TileService/ReconstructSpecimen",
+)
+# Threads beyond those for every call the job runners admit, to refuse the others at once.
+_SPARE_JOB_CALL_THREADS = 8
+
+
+def create_server(
+    address: str = "[::]:0",
+    *,
+    services: tuple[str, ...] = SERVICE_NAMES,
+    max_message_mb: int = DEFAULT_MAX_MESSAGE_MB,
+    workers: int = 8,
+    build_workers: int | None = None,
+    build_queue: int = DEFAULT_BUILD_QUEUE,
+    max_request_mb: int | None = None,
+    data_dir: str | Path = DEFAULT_DATA_DIR,
+    store: SpecimenStore | None = None,
+    matching_address: str | None = None,
+    meshing_address: str | None = None,
+    tokens: TokenTable | None = None,
+    tls_cert_path: str | None = None,
+    tls_key_path: str | None = None,
+    strip_peers: str | None = None,
+    strip_pixels: int = DEFAULT_STRIP_PIXELS,
+    strip_in_flight: int = 4,
+) -> tuple[grpc.Server, int]:
+    """A server with the named services, health and reflection, bound to `address`; returns it
+    (not started) with the bound port. `workers` threads answer queries; builds, height maps and
+    meshes run `build_workers` at a time (default: half the CPUs) with `build_queue` waiting, and
+    strips for peers likewise, each request within `max_request_mb` of estimated memory (see
+    budget); health checks have threads of their own. The tile service keeps specimens in `store`
+    (default: a store under `data_dir`; pass the one an HTTP endpoint of this process serves) and
+    calls matching and meshing at their addresses (default: in this process). With `tokens`, calls
+    need a bearer token (see auth); with a certificate and key, the port speaks TLS. The matching
+    service farms strips of about `strip_pixels` out to `strip_peers` when given,
+    `strip_in_flight` at a time."""
+    for name in services:
+        if name not in _REGISTRATIONS:
+            raise ValueError(f"unknown service {name!r}; known: {', '.join(SERVICE_NAMES)}")
+    build_workers = build_workers or default_build_workers()
+    builds = JobRunner("builds", workers=build_workers, queue_limit=build_queue)
+    strips = JobRunner("strips", workers=build_workers, queue_limit=build_queue)
+    memory = MemoryBudget.for_server(max_request_mb, concurrent_requests=build_workers)
+    servicers = {}
+    if "matching" in services:
+        servicers["matching"] = MatchingServicer(
+            builds=builds,
+            strips=strips,
+            memory=memory,
+            strip_peers=strip_peers,
+            strip_pixels=strip_pixels,
+            strip_in_flight=strip_in_flight,
+        )
+    if "meshing" in services:
+        servicers["meshing"] = MeshingServicer(builds=builds, memory=memory)
+    tokens = tokens if tokens is not None and tokens.enabled else None
+    interceptors = [AuthInterceptor(tokens)] if tokens else []
+    interceptors.append(
+        ThreadPoolRouting(
+            _JOB_METHODS, job_call_threads=builds.max_followers + strips.max_followers + _SPARE_JOB_CALL_THREADS
+        )
+    )
+    interceptors.append(MalformedRequests())  # within the routing, which keeps its deserializer
+    if "tiles" in services:
+        store = store or SpecimenStore(Path(data_dir))
+        restored, _ = store.recover()  # this server is the store's one writer
+        for specimen_id in restored:
+            _log.warning(
+                f"specimen {specimen_id!r}: a build was killed while it replaced the stored one, which is restored"
+            )
+        servicers["tiles"] = TileServicer(
+            store,
+            builds=builds,
+            memory=memory,
+            local_matching=servicers.get("matching") if matching_address is None else None,
+            matching_address=matching_address,
+            local_meshing=servicers.get("meshing") if meshing_address is None else None,
+            meshing_address=meshing_address,
+        )
+        interceptors.append(SerializedGetTile(servicers["tiles"]))  # after the token check
+    _warn_of_peer_credentials(tokens, servicers)
+    server = grpc.server(
+        futures.ThreadPoolExecutor(max_workers=workers),
+        options=message_size_options(max_message_mb),
+        interceptors=interceptors,
+    )
+    _register(server, servicers)
+    port = _bind(server, address, tls_cert_path, tls_key_path)
+    _log.info(
+        f"builds: {build_workers} at a time, {build_queue} waiting, {memory.limit_bytes // 2**20} MiB of memory per "
+        "request"
+    )
+    return server, port
+
+
+def _warn_of_peer_credentials(tokens: TokenTable | None, servicers: dict) -> None:
+    """Warns when this server requires tokens but its own calls to other servers will not carry
+    a good one (see auth.peer_token_problem)."""
+    tiles, matching = servicers.get("tiles"), servicers.get("matching")
+    peers = [
+        target
+        for target in (
+            tiles and tiles.matching_address,
+            tiles and tiles.meshing_address,
+            matching and matching.strip_peers,
+        )
+        if target
+    ]
+    problem = peer_token_problem(tokens, os.environ.get("FRACTO_TOKEN")) if tokens and peers else None
+    if problem:
+        _log.warning(f"{problem} ({', '.join(peers)}); builds that need them will fail with UNAUTHENTICATED")
+
+
+def _register(server: grpc.Server, servicers: dict) -> None:
+    """Adds the servicers (by service name, in SERVICE_NAMES order) with health and reflection."""
+    health_servicer = health.HealthServicer()
+    health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
+    names = [reflection.SERVICE_NAME, health.SERVICE_NAME]
+    for name, servicer in servicers.items():
+        descriptor, add = _REGISTRATIONS[name]
+        add(servicer, server)
+        names.append(descriptor.full_name)
+        health_servicer.set(descriptor.full_name, health_pb2.HealthCheckResponse.SERVING)
+    health_servicer.set("", health_pb2.HealthCheckResponse.SERVING)
+    reflection.enable_server_reflection(names, server)
+
+
+def _bind(server: grpc.Server, address: str, tls_cert_path: str | None, tls_key_path: str | None) -> int:
+    if tls_cert_path and tls_key_path:
+        credentials = grpc.ssl_server_credentials([(Path(tls_key_path).read_bytes(), Path(tls_cert_path).read_bytes())])
+        port = server.add_secure_port(address, credentials)
+    else:
+        port = server.add_insecure_port(address)
+    if port == 0:
+        raise RuntimeError(f"cannot bind {address}")
+    return port
+
+
+@contextlib.contextmanager
+def embedded_server(
+    data_dir: str | Path = DEFAULT_DATA_DIR,
+    *,
+    host: str = "127.0.0.1",
+    port: int = 0,
+    store: SpecimenStore | None = None,
+) -> Iterator[str]:
+    """Runs all services in this process on `host:port` (port 0: a free one) for the block's
+    duration, with specimens kept in `store` (default: under `data_dir`); yields the address."""
+    server, bound = create_server(f"{host}:{port}", data_dir=data_dir, store=store)
+    server.start()
+    try:
+        yield f"{host}:{bound}"
+    finally:
+        server.stop(grace=None)
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = build_parser().parse_args(argv)
+    configure_logging(args.log_level)
+    keep_freed_memory()
+    tokens = TokenTable.from_environment()
+    services = tuple(name.strip() for name in args.services.split(",") if name.strip())
+    store = SpecimenStore(Path(args.data)) if "tiles" in services else None
+    server, port = create_server(
+        args.address,
+        services=services,
+        max_message_mb=args.max_message_mb,
+        workers=args.workers,
+        build_workers=args.build_workers,
+        build_queue=args.build_queue,
+        max_request_mb=args.max_request_mb,
+        store=store,
+        matching_address=args.matching_address,
+        meshing_address=args.meshing_address,
+        tokens=tokens,
+        tls_cert_path=args.tls_cert,
+        tls_key_path=args.tls_key,
+        strip_peers=args.strip_peers,
+        strip_pixels=args.strip_pixels,
+        strip_in_flight=args.strip_in_flight,
+    )
+    settle_garbage_collector()
+    server.start()
+    _log.info(f"serving {', '.join(services)} on port {port}")
+    http = None
+    if store is not None and args.http_address:
+        host, _, http_port = args.http_address.rpartition(":")
+        http = start_http_server(
+            store,
+            host or "0.0.0.0",
+            int(http_port),
+            tokens=tokens,
+            grpc_address=f"127.0.0.1:{port}",
+            max_upload_bytes=args.max_message_mb * 1024 * 1024,
+        )
+        _log.info(f"serving tilesets over HTTP on port {http.server_port}")
+    stopped = threading.Event()
+
+    def stop(signum, frame):
+        _log.info("stopping")
+        server.stop(args.grace_s).wait()
+        if http is not None:
+            http.shutdown()
+        stopped.set()
+
+    signal.signal(signal.SIGTERM, stop)
+    signal.signal(signal.SIGINT, stop)
+    stopped.wait()
+
+
+if __name__ == "__main__":
+    main()

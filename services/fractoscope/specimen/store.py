@@ -1,0 +1,293 @@
+"""Specimens on disk: `DATA/specimens/{id}/` holds specimen.json, tileset.json, tiles/ and rois/.
+
+A specimen is written in a staging folder, fsynced, and renamed into place (the stored one first
+renamed aside as its retired twin, then removed), so readers see the old one or the new one
+complete, never half of one. A process killed between the two renames leaves the retired copy
+and no specimen; `recover`, at the next start, renames it back.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import os
+import re
+import shutil
+import threading
+import uuid
+from collections.abc import Iterator
+from dataclasses import asdict, dataclass, field
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+
+from fractoscope.errors import InvalidInputError, NotFoundError
+from fractoscope.specimen.fusion import FusedSurface, PlacedRoi, footprint_um, overlaps
+from fractoscope.specimen.quadtree import QuadtreeLayout, TileKey, TileRecord
+
+_ID = re.compile(r"[A-Za-z0-9_-]{1,64}")
+# Folders of unfinished writes: `{prefix}{id}-{token}`, the token shared by a write's two.
+_STAGING, _RETIRED = ".staging-", ".retired-"
+
+
+def validate_id(value: str, *, field: str) -> str:
+    """Specimen and ROI ids: 1 to 64 of A-Z a-z 0-9 _ -, which keeps them safe in paths and URLs."""
+    if not _ID.fullmatch(value or ""):
+        raise InvalidInputError(field, f"{value!r} is not an id of 1 to 64 letters, digits, '_' or '-'")
+    return value
+
+
+@dataclass
+class RoiEntry:
+    """An ROI as stored: placement (origin of pixel (0, 0), µm), shape (rows, cols), fit figures,
+    the matching report, the datum its heights were levelled on (surface.datum.Datum.to_dict;
+    None: as measured) and its image files (`views`: {"file": path in the specimen folder,
+    "name": the name it was given}, reference first; empty for specimens built before they
+    were kept)."""
+
+    id: str
+    parent: str
+    magnification: float
+    pixel_size_um: float
+    origin_um: tuple[float, float]
+    shape: tuple[int, int]
+    alignment_residual_um: float = 0.0
+    registration_score: float = 0.0
+    matching: dict = field(default_factory=dict)
+    datum: dict | None = None
+    tilt_rel_uncertainty: float | None = None  # relative height error a tilt error makes (None: not known)
+    views: list[dict] = field(default_factory=list)
+
+    @property
+    def region_um(self) -> tuple[float, float, float, float]:
+        return footprint_um(self.origin_um, self.shape, self.pixel_size_um)
+
+
+class Specimen:
+    """A stored specimen: ROIs (overview first), tile layout and records, lazily loaded surface.
+    `version` tells builds of one id apart (the description's modification time, ns), so caches
+    key on (id, version) without holding the specimen, and its surface, alive."""
+
+    def __init__(self, directory: Path, description: dict, version: int = 0):
+        self.directory = directory
+        self.version = version
+        self.id: str = description["id"]
+        self.request_id: str = description.get("request_id", "")
+        self.rois = [
+            RoiEntry(**{**roi, "origin_um": tuple(roi["origin_um"]), "shape": tuple(roi["shape"])})
+            for roi in description["rois"]
+        ]
+        self.layout = QuadtreeLayout(tuple(description["layout"]["origin_um"]), description["layout"]["size_um"])
+        self.tiles = {record.key: record for record in map(TileRecord.from_json, description["tiles"])}
+
+    def roi(self, roi_id: str) -> RoiEntry:
+        for roi in self.rois:
+            if roi.id == roi_id:
+                return roi
+        raise NotFoundError(f"specimen {self.id!r} has no ROI {roi_id!r}", field="roi")
+
+    def pixel_size_at_magnification(self, magnification: float) -> float:
+        """Pixel size, µm, that a magnification means here (inversely proportional, from the overview)."""
+        overview = self.rois[0]
+        if overview.magnification <= 0:
+            raise InvalidInputError(
+                "magnification", f"specimen {self.id!r} was built without magnifications; give them in its manifest"
+            )
+        pixel_size_um = overview.pixel_size_um * overview.magnification / magnification
+        if not (math.isfinite(pixel_size_um) and pixel_size_um > 0):
+            raise InvalidInputError("magnification", f"{magnification} gives no usable pixel size")
+        return pixel_size_um
+
+    def finest_pixel_size_um(self, region_um: tuple[float, float, float, float]) -> float:
+        """The smallest pixel size among the ROIs that meet a region (the overview's if none)."""
+        sizes = [roi.pixel_size_um for roi in self.rois if overlaps(roi.region_um, region_um)]
+        return min(sizes) if sizes else self.rois[0].pixel_size_um
+
+    def heights(self, roi_id: str) -> PlacedRoi:
+        return next(placed for placed in self.surface.rois if placed.id == roi_id)
+
+    @cached_property
+    def surface(self) -> FusedSurface:
+        placed = []
+        for roi in self.rois:
+            with np.load(self.directory / "rois" / f"{roi.id}.npz") as arrays:
+                sigma_um = (
+                    arrays["sigma_um"] if "sigma_um" in arrays else None
+                )  # specimens built before it was kept have none
+                placed.append(
+                    PlacedRoi(
+                        roi.id,
+                        roi.magnification,
+                        roi.pixel_size_um,
+                        roi.origin_um,
+                        arrays["z_um"],
+                        arrays["texture"],
+                        sigma_um,
+                    )
+                )
+        return FusedSurface(placed)
+
+    @cached_property
+    def tileset_bytes(self) -> bytes:
+        return (self.directory / "tileset.json").read_bytes()
+
+    def tile_record(self, uri: str) -> TileRecord:
+        try:
+            key = TileKey.from_uri(uri)
+        except ValueError:
+            raise InvalidInputError("uri", f"{uri!r} is not a tile URI of the form tiles/LEVEL/COL/ROW.glb") from None
+        if key not in self.tiles:
+            raise NotFoundError(f"specimen {self.id!r} has no tile {uri!r}", field="uri")
+        return self.tiles[key]
+
+    def view_bytes(self, roi_id: str, index: int) -> bytes:
+        """The image file of view `index` (0: the reference) of an ROI, as it was given."""
+        views = self.roi(roi_id).views
+        if not 0 <= index < len(views):
+            raise NotFoundError(f"ROI {roi_id!r} of specimen {self.id!r} keeps no view {index}")
+        return (self.directory / views[index]["file"]).read_bytes()
+
+    def tile_bytes(self, uri: str) -> bytes:
+        """The GLB of a tile named as in tileset.json."""
+        return (self.directory / self.tile_record(uri).key.uri).read_bytes()
+
+
+class SpecimenStore:
+    """The specimens under `root/specimens`, cached in memory once read. A process makes one store
+    per directory and hands it to everything that serves it (the tile service and the HTTP
+    endpoint), so a specimen's surface is read and held once."""
+
+    def __init__(self, root: Path):
+        self.root = Path(root) / "specimens"
+        self.root.mkdir(parents=True, exist_ok=True)
+        self._cache: dict[str, tuple[int, Specimen]] = {}
+        self._lock = threading.Lock()
+        self._commit_lock = threading.Lock()
+
+    def recover(self) -> tuple[list[str], int]:
+        """Undoes what writes of a killed process left; only the one writer may call this, when it
+        starts. A retired specimen whose replacement never came into place (the process died
+        between the two renames) is restored; every other leftover (staging folders, retired
+        copies already replaced) is removed. Returns the restored ids and the number removed."""
+        restored, removed = [], 0
+        for retired in sorted(self.root.glob(f"{_RETIRED}*")):
+            specimen_id = retired.name[len(_RETIRED) :].rpartition("-")[0]
+            if _ID.fullmatch(specimen_id) and not (self.root / specimen_id).exists():
+                retired.rename(self.root / specimen_id)
+                restored.append(specimen_id)
+            else:
+                shutil.rmtree(retired, ignore_errors=True)
+                removed += 1
+        for staging in self.root.glob(f"{_STAGING}*"):
+            shutil.rmtree(staging, ignore_errors=True)
+            removed += 1
+        _sync_folder(self.root)
+        return restored, removed
+
+    def ids(self) -> list[str]:
+        return sorted(
+            p.name
+            for p in self.root.iterdir()
+            if p.is_dir() and _ID.fullmatch(p.name) and (p / "specimen.json").is_file()
+        )
+
+    def load(self, specimen_id: str) -> Specimen:
+        validate_id(specimen_id, field="specimen_id")
+        description_path = self.root / specimen_id / "specimen.json"
+        try:
+            stamp = description_path.stat().st_mtime_ns
+        except FileNotFoundError:
+            raise NotFoundError(f"no specimen {specimen_id!r}", field="specimen_id") from None
+        with self._lock:
+            cached = self._cache.get(specimen_id)
+            if cached and cached[0] == stamp:
+                return cached[1]
+        specimen = Specimen(self.root / specimen_id, json.loads(description_path.read_text()), version=stamp)
+        with self._lock:
+            self._cache[specimen_id] = (stamp, specimen)
+        return specimen
+
+    @contextlib.contextmanager
+    def writing(self, specimen_id: str) -> Iterator[Path]:
+        """A staging folder to write a specimen into; on success it is fsynced and replaces the
+        stored one at once, on failure it is removed and the stored one stays as it was."""
+        token = uuid.uuid4().hex
+        staging = self.root / f"{_STAGING}{specimen_id}-{token}"
+        staging.mkdir()
+        try:
+            yield staging
+            _sync_tree(staging)
+            target, retired = self.root / specimen_id, self.root / f"{_RETIRED}{specimen_id}-{token}"
+            with self._commit_lock:  # two builds of one id must not interleave their renames
+                if target.exists():
+                    target.rename(retired)
+                    _sync_folder(self.root)
+                staging.rename(target)
+                _sync_folder(self.root)
+            shutil.rmtree(retired, ignore_errors=True)
+        finally:
+            shutil.rmtree(staging, ignore_errors=True)
+
+
+def _sync_tree(folder: Path) -> None:
+    """Flushes every file and folder under `folder` (and itself) to disk, deepest first."""
+    for directory, _, files in os.walk(folder, topdown=False):
+        for name in files:
+            descriptor = os.open(os.path.join(directory, name), os.O_RDONLY)
+            try:
+                os.fsync(descriptor)
+            finally:
+                os.close(descriptor)
+        _sync_folder(Path(directory))
+
+
+def _sync_folder(folder: Path) -> None:
+    """Flushes a folder's entries (the renames within it) to disk."""
+    descriptor = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        os.fsync(descriptor)
+    finally:
+        os.close(descriptor)
+
+
+def write_description(
+    directory: Path,
+    *,
+    specimen_id: str,
+    request_id: str,
+    rois: list[RoiEntry],
+    layout: QuadtreeLayout,
+    tiles: dict[TileKey, TileRecord],
+) -> None:
+    """specimen.json: everything about a specimen except arrays and tiles' bytes."""
+    description = {
+        "id": specimen_id,
+        "request_id": request_id,
+        "rois": [asdict(roi) for roi in rois],
+        "layout": {"origin_um": list(layout.origin_um), "size_um": layout.size_um},
+        "tiles": [record.to_json() for _, record in sorted(tiles.items())],
+    }
+    (directory / "specimen.json").write_text(json.dumps(description, indent=1))
+
+
+def write_roi_arrays(directory: Path, roi: PlacedRoi) -> None:
+    """rois/{id}.npz: z_um, texture and, when known, sigma_um."""
+    (directory / "rois").mkdir(exist_ok=True)
+    arrays = {"z_um": roi.z_um, "texture": roi.texture} | (
+        {"sigma_um": roi.sigma_um} if roi.sigma_um is not None else {}
+    )
+    np.savez_compressed(directory / "rois" / f"{roi.id}.npz", **arrays)
+
+
+def write_roi_views(directory: Path, roi_id: str, images) -> list[dict]:
+    """rois/{id}.view{N}: the ROI's image files ((name, bytes), reference first) as given; returns
+    the RoiEntry's `views`."""
+    (directory / "rois").mkdir(exist_ok=True)
+    views = []
+    for index, (name, content) in enumerate(images):
+        relative = f"rois/{roi_id}.view{index}"
+        (directory / relative).write_bytes(content)
+        views.append({"file": relative, "name": name})
+    return views

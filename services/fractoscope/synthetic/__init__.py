@@ -1,0 +1,45 @@
+"""Synthetic fracture surfaces and the SEM images they give: the known truth for tests, benchmarks
+and the demo. `surfaces` makes height fields, `rendering` the SEM views of them, `metrics` scores
+a measured height map against the truth, `examples` writes the demo specimen as a user gives it."""
+
+from fractoscope.synthetic.metrics import HeightErrors, height_errors, hidden_in_second_view
+from fractoscope.synthetic.rendering import (
+    MultiscaleSpecimen,
+    RenderedView,
+    StereoPair,
+    render_multiscale_specimen,
+    render_sem_view,
+    render_stereo_pair,
+    render_tilt_series,
+)
+from fractoscope.synthetic.surfaces import (
+    OVERVIEW_PIXEL_SIZE_UM,
+    REFERENCE_PIXEL_SIZE_UM,
+    REFERENCE_SURFACES,
+    cleavage_surface,
+    dimple_surface,
+    overview_dimple_surface,
+    reference_surface,
+    self_affine_surface,
+)
+
+__all__ = [
+    "HeightErrors",
+    "MultiscaleSpecimen",
+    "OVERVIEW_PIXEL_SIZE_UM",
+    "REFERENCE_PIXEL_SIZE_UM",
+    "REFERENCE_SURFACES",
+    "RenderedView",
+    "StereoPair",
+    "cleavage_surface",
+    "dimple_surface",
+    "height_errors",
+    "hidden_in_second_view",
+    "reference_surface",
+    "render_multiscale_specimen",
+    "overview_dimple_surface",
+    "render_sem_view",
+    "render_stereo_pair",
+    "render_tilt_series",
+    "self_affine_surface",
+]

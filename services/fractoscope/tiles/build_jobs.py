@@ -1,0 +1,183 @@
+"""Work the HTTP API runs for its callers: reconstructions (ReconstructSpecimen calls on this
+server's own gRPC endpoint, followed as jobs) and analyses on a bounded pool."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import re
+import threading
+import time
+import uuid
+from collections import OrderedDict
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from http import HTTPStatus
+
+from google.protobuf import json_format
+
+from fractoscope.errors import InvalidInputError, NotFoundError
+from fractoscope.rpc.channel import open_channel
+from fractoscope.rpc.status import ClientError, raised_as_client_errors
+from fractoscope.tiles.http_json import ApiError
+from fractoscope.v1 import tiles_pb2, tiles_pb2_grpc
+
+# Analyses at once (CPU-bound: one per CPU) and waiting before 429.
+DEFAULT_ANALYSIS_WORKERS = len(os.sched_getaffinity(0))
+
+
+DEFAULT_QUEUED_ANALYSES = 16
+
+
+@dataclass
+class HttpBuildJob:
+    """A reconstruction submitted over HTTP and what became of it."""
+
+    id: str
+    specimen_id: str
+    request_id: str
+    upload_id: str
+    state: str = "queued"  # queued, running, succeeded, failed
+    fraction: float = 0.0
+    message: str = ""
+    created_s: float = field(default_factory=time.time)
+    finished_s: float | None = None
+    specimen: dict | None = None
+    error: dict | None = None
+
+    def as_dict(self) -> dict:
+        return {
+            "job_id": self.id,
+            "specimen_id": self.specimen_id,
+            "request_id": self.request_id,
+            "upload_id": self.upload_id,
+            "state": self.state,
+            "progress": {"fraction": self.fraction, "message": self.message},
+            "created": _iso(self.created_s),
+            "finished": _iso(self.finished_s) if self.finished_s else None,
+            "specimen": self.specimen,
+            "error": self.error,
+        }
+
+
+class Analyses:
+    """The API's analyses (roughness, profiles, height statistics, exports, reports) on `workers`
+    threads of their own, so lookups, jobs and the viewer's tiles never wait behind them (twelve
+    roughness queries at once once held a specimen lookup for 77 s); more than `queue_limit`
+    waiting get 429. Used from the event loop's thread only."""
+
+    def __init__(self, *, workers: int, queue_limit: int):
+        self.limit = workers + queue_limit
+        self._pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="fractoscope-http-analysis")
+        self._under_way = 0
+
+    async def run(self, function, *args):
+        """`function(*args)` on the analysis threads, or 429 when `limit` are under way."""
+        if self._under_way >= self.limit:
+            raise ApiError(
+                HTTPStatus.TOO_MANY_REQUESTS,
+                f"{self._under_way} analyses are running or waiting; retry later",
+                None,
+                **{"Retry-After": "5"},
+            )
+        self._under_way += 1
+        try:
+            return await asyncio.get_running_loop().run_in_executor(self._pool, function, *args)
+        finally:
+            self._under_way -= 1
+
+    def close(self) -> None:
+        """Waiting analyses never start; returns once running ones end."""
+        self._pool.shutdown(wait=True, cancel_futures=True)
+
+
+class BuildJobs:
+    """Builds submitted over HTTP, each a ReconstructSpecimen call on `address` (this server's gRPC
+    endpoint) with the submitter's token, at most `workers` at once and `queue_limit` waiting
+    (more get 429); the last `keep` jobs stay queryable."""
+
+    def __init__(
+        self, address: str | None, *, workers: int, queue_limit: int, keep: int = 1000, timeout_s: float = 3600.0
+    ):
+        self.address = address
+        self.queue_limit = queue_limit
+        self.timeout_s = timeout_s
+        self._pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="fractoscope-http-build")
+        self._jobs: OrderedDict[str, HttpBuildJob] = OrderedDict()
+        self._keep = keep
+        self._lock = threading.Lock()
+        self._calls: set = set()  # the ReconstructSpecimen calls under way, cancelled by close()
+
+    @property
+    def enabled(self) -> bool:
+        return self.address is not None
+
+    def submit(self, specimen_id: str, rois, *, request_id: str, token: str | None, upload_id: str) -> HttpBuildJob:
+        with self._lock:
+            waiting = sum(job.state == "queued" for job in self._jobs.values())
+            if waiting >= self.queue_limit:
+                raise ApiError(
+                    HTTPStatus.TOO_MANY_REQUESTS,
+                    f"{waiting} builds are waiting; retry later",
+                    None,
+                    **{"Retry-After": "30"},
+                )
+            job = HttpBuildJob(uuid.uuid4().hex, specimen_id, request_id, upload_id)
+            self._jobs[job.id] = job
+            while len(self._jobs) > self._keep:
+                self._jobs.popitem(last=False)
+        self._pool.submit(self._run, job, rois, token)
+        return job
+
+    def get(self, job_id: str) -> HttpBuildJob:
+        if not re.fullmatch(r"[0-9a-f]{32}", job_id):
+            raise InvalidInputError("job_id", "is not a job id (32 hexadecimal digits)")
+        with self._lock:
+            job = self._jobs.get(job_id)
+        if job is None:
+            raise NotFoundError(f"no job {job_id!r}", field="job_id")
+        return job
+
+    def close(self) -> None:
+        """Queued jobs never start; running ones are cancelled; returns once their threads end."""
+        self._pool.shutdown(wait=False, cancel_futures=True)
+        with self._lock:
+            calls = list(self._calls)
+        for call in calls:
+            call.cancel()
+        self._pool.shutdown(wait=True)
+
+    def _run(self, job: HttpBuildJob, rois, token: str | None) -> None:
+        job.state = "running"
+        request = tiles_pb2.ReconstructSpecimenRequest(
+            specimen_id=job.specimen_id, rois=rois, request_id=job.request_id
+        )
+        call = None
+        try:
+            with open_channel(self.address, token=token) as channel, raised_as_client_errors():
+                call = tiles_pb2_grpc.TileServiceStub(channel).ReconstructSpecimen(request, timeout=self.timeout_s)
+                with self._lock:
+                    self._calls.add(call)
+                for response in call:
+                    if response.HasField("progress"):
+                        job.fraction, job.message = response.progress.fraction, response.progress.message
+                    else:
+                        job.specimen = json_format.MessageToDict(
+                            response.specimen,
+                            preserving_proto_field_name=True,
+                            always_print_fields_with_no_presence=True,
+                        )
+            job.state, job.fraction = ("succeeded", 1.0) if job.specimen is not None else ("failed", job.fraction)
+            if job.specimen is None:
+                job.error = {"error": "the build ended without a specimen", "field": None, "code": "INTERNAL"}
+        except ClientError as error:
+            job.state = "failed"
+            job.error = {"error": str(error), "field": error.field, "code": error.code.name}
+        finally:
+            job.finished_s = time.time()
+            with self._lock:
+                self._calls.discard(call)
+
+
+def _iso(seconds: float) -> str:
+    return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(seconds))

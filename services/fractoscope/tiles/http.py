@@ -1,0 +1,272 @@
+"""Plain HTTP for standard 3D Tiles viewers and our web viewer.
+
+- `/specimens/{id}/tileset.json` and the tiles it names, each under its one URI (a tile number
+  zero-padded or in other digits is a 404, not another cache entry): CORS headers (viewers run on
+  other origins), gzip when Accept-Encoding accepts it (q > 0), a strong ETag per representation
+  (the gzip one has its own) and 304 when If-None-Match holds it (weak comparison, RFC 9110).
+- `/viewer/` the web viewer (the installed clients/web package, see WEB_ROOT) and `/vendor/` the
+  three.js and 3DTilesRendererJS modules it imports (that package's node_modules).
+- `/api/` the HTTP/JSON API (services.tiles.api, described at `/api/openapi.json`), which the
+  viewer uses too.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import gzip
+import hashlib
+import os
+import re
+import sys
+import threading
+from http import HTTPStatus
+from pathlib import Path
+
+from aiohttp import web
+
+from fractoscope.errors import FractoscopeError, NotFoundError
+from fractoscope.runtime.auth import TokenTable
+from fractoscope.runtime.caches import BoundedCache
+from fractoscope.specimen.quadtree import TILE_URI
+from fractoscope.specimen.store import SpecimenStore
+from fractoscope.tiles.api import JsonApi
+from fractoscope.tiles.build_jobs import DEFAULT_ANALYSIS_WORKERS, DEFAULT_QUEUED_ANALYSES
+from fractoscope.tiles.http_json import json_error
+from fractoscope.tiles.uploads import DEFAULT_MAX_UPLOAD_BYTES
+
+_ROUTE = re.compile(
+    rf"/specimens/(?P<specimen>[A-Za-z0-9_-]{{1,64}})/(?P<path>tileset\.json|{TILE_URI.pattern})", re.ASCII
+)
+_TYPES = {
+    ".json": "application/json",
+    ".glb": "model/gltf-binary",
+    ".html": "text/html; charset=utf-8",
+    ".js": "text/javascript",
+    ".css": "text/css",
+    ".svg": "image/svg+xml",
+}
+# The web viewer's installed location, read once: FRACTO_WEB_ROOT, else the environment's data
+# folder (`make install` links clients/web there; the container image copies it there).
+WEB_ROOT = Path(os.environ.get("FRACTO_WEB_ROOT") or Path(sys.prefix, "share", "fractoscope", "web"))
+VENDOR_ROOTS = {package: WEB_ROOT / "node_modules" / package for package in ("three", "3d-tiles-renderer")}
+_STATIC = re.compile(r"/(?P<area>viewer|vendor)/(?P<path>[A-Za-z0-9_./-]*)")
+# An entity tag in If-None-Match: its opaque part, weak or not.
+_ENTITY_TAG = re.compile(r'(?:W/)?("[^"]*")')
+# The longest request target (path and query) served; a longer one is refused as 414 in the
+# API's JSON (plain text elsewhere). aiohttp's own parser, which answers in plain text before any
+# handler runs, is let take lines and headers up to eight times as long, so that our answer is
+# the one clients get.
+MAX_TARGET_BYTES = 8190
+_PARSER_LINE_BYTES = 8 * MAX_TARGET_BYTES
+
+
+class _Body:
+    """One response body with its gzip form and the strong ETag of each, computed once."""
+
+    def __init__(self, raw: bytes):
+        self.raw = raw
+        self.gzipped = gzip.compress(raw, compresslevel=6)
+        digest = hashlib.sha256(raw).hexdigest()[:32]
+        self.etag, self.gzip_etag = f'"{digest}"', f'"{digest}-gzip"'
+
+
+def body_cache(limit_bytes: int = 256 * 1024 * 1024) -> BoundedCache[_Body]:
+    """Response bodies by key, bounded by their raw and gzip bytes together."""
+    return BoundedCache(limit_bytes, size=lambda body: len(body.raw) + len(body.gzipped))
+
+
+class _TileApp:
+    """Request handling: one coroutine for every path, so the routing below reads top to bottom.
+    Cached bodies are answered on the event loop; producing them (file reads, gzip) and the
+    analysis queries run on the default executor so that they never stall it."""
+
+    def __init__(self, store: SpecimenStore, tokens: TokenTable, api: JsonApi):
+        self.store = store
+        self.cache = body_cache()
+        self.tokens = tokens
+        self.api = api
+
+    async def handle(self, request: web.Request) -> web.StreamResponse:
+        if request.method == "OPTIONS":
+            return web.Response(
+                status=HTTPStatus.NO_CONTENT,
+                headers={
+                    **_CORS,
+                    "Access-Control-Allow-Methods": "GET, HEAD, POST, OPTIONS",
+                    "Access-Control-Allow-Headers": "*",
+                },
+            )
+        if len(request.raw_path) > MAX_TARGET_BYTES:
+            message = f"the request target is {len(request.raw_path)} bytes long, at most {MAX_TARGET_BYTES} are served"
+            if request.path.startswith("/api/"):
+                return json_error(HTTPStatus.REQUEST_URI_TOO_LONG, message, "url")
+            return _plain(HTTPStatus.REQUEST_URI_TOO_LONG, message + "\n")
+        if request.path.startswith("/api/"):
+            return await self.api.handle(request)  # its own JSON errors, scopes and methods
+        if request.method not in ("GET", "HEAD"):
+            return _plain(HTTPStatus.METHOD_NOT_ALLOWED, "only GET, HEAD and OPTIONS\n", Allow="GET, HEAD, OPTIONS")
+        path = request.path
+        if path == "/healthz":
+            return _plain(HTTPStatus.OK, "ok\n")
+        if path == "/":
+            return web.Response(status=HTTPStatus.FOUND, headers={"Location": "/viewer/"})
+        if self.tokens.enabled and not path.startswith(("/viewer/", "/vendor/")):
+            offered = request.headers.get("Authorization") or "Bearer " + request.query.get("token", "")
+            if self.tokens.grant(offered) is None:
+                return _plain(HTTPStatus.UNAUTHORIZED, "a valid bearer token is required\n")
+        if (static := _STATIC.fullmatch(path)) is not None:
+            return await self._static(request, static["area"], static["path"] or "index.html")
+        route = _ROUTE.fullmatch(path)
+        if route is None:
+            return _plain(HTTPStatus.NOT_FOUND, "not found\n")
+        relative = route["path"]
+        try:
+            specimen = self.store.load(route["specimen"])
+            content = (
+                (lambda: specimen.tileset_bytes)
+                if relative == "tileset.json"
+                else (lambda: specimen.tile_bytes(relative))
+            )
+            produce = lambda: _Body(content())  # noqa: E731 - runs on the executor below
+            key = (specimen.id, specimen.version, relative)
+            body = self.cache.cached(key) or await _off_loop(self.cache.get, key, produce)
+        except (NotFoundError, FileNotFoundError):
+            return _plain(HTTPStatus.NOT_FOUND, "not found\n")
+        except FractoscopeError as error:
+            return _plain(HTTPStatus.BAD_REQUEST, f"{error}\n")
+        return _body_response(request, body, _TYPES[relative[relative.rfind(".") :]])
+
+    async def _static(self, request: web.Request, area: str, relative: str) -> web.StreamResponse:
+        if area == "viewer":
+            root = WEB_ROOT
+        else:
+            package, _, relative = relative.partition("/")
+            root = VENDOR_ROOTS.get(package)
+        path = (root / relative).resolve() if root else None
+        if path is None or not path.is_relative_to(root.resolve()) or not path.is_file() or path.suffix not in _TYPES:
+            return _plain(HTTPStatus.NOT_FOUND, "not found\n")
+        key = ("static", path.stat().st_mtime_ns, str(path))
+        body = self.cache.cached(key) or await _off_loop(self.cache.get, key, lambda: _Body(path.read_bytes()))
+        return _body_response(request, body, _TYPES[path.suffix])
+
+
+_CORS = {"Access-Control-Allow-Origin": "*", "Access-Control-Expose-Headers": "ETag, Content-Encoding"}
+
+
+async def _off_loop(function, *args):
+    return await asyncio.get_running_loop().run_in_executor(None, function, *args)
+
+
+def _body_response(request: web.Request, body: _Body, content_type: str) -> web.Response:
+    """The raw or gzip representation as Accept-Encoding chooses, or 304 when If-None-Match names
+    its ETag; the 304 carries the headers a 200 would validate (RFC 9110, 15.4.5)."""
+    gzipped = accepts_gzip(",".join(request.headers.getall("Accept-Encoding", [])))
+    etag = body.gzip_etag if gzipped else body.etag
+    headers = {**_CORS, "ETag": etag, "Cache-Control": "no-cache", "Vary": "Accept-Encoding"}
+    if not_modified(",".join(request.headers.getall("If-None-Match", [])), etag):
+        return web.Response(status=HTTPStatus.NOT_MODIFIED, headers=headers)
+    headers["Content-Type"] = content_type
+    if gzipped:
+        headers["Content-Encoding"] = "gzip"
+        return web.Response(body=body.gzipped, headers=headers)
+    return web.Response(body=body.raw, headers=headers)
+
+
+def not_modified(if_none_match: str, etag: str) -> bool:
+    """Whether If-None-Match fails for a representation with `etag`, so a GET gets 304 (RFC 9110,
+    13.1.2): the header is `*` or lists an entity tag weakly equal to it (the opaque parts equal,
+    `W/` or not). An empty header never does."""
+    return if_none_match.strip() == "*" or etag.removeprefix("W/") in _ENTITY_TAG.findall(if_none_match)
+
+
+def accepts_gzip(accept_encoding: str) -> bool:
+    """Whether Accept-Encoding admits gzip (RFC 9110, 12.5.3): `gzip` (or `x-gzip`) with a
+    weight above 0, or else `*` with one; a malformed weight counts as 0."""
+    weights = {}
+    for element in accept_encoding.split(","):
+        coding, *parameters = (part.strip() for part in element.split(";"))
+        weight = 1.0
+        for parameter in parameters:
+            name, _, value = parameter.partition("=")
+            if name.strip().lower() == "q":
+                try:
+                    weight = float(value)
+                except ValueError:
+                    weight = 0.0
+        if coding:
+            weights[coding.lower()] = weight
+    weight = weights.get("gzip", weights.get("x-gzip", weights.get("*", 0.0)))
+    return weight > 0
+
+
+def _plain(status: HTTPStatus, text: str, **headers: str) -> web.Response:
+    return web.Response(
+        status=status, body=text.encode(), headers={**_CORS, "Content-Type": "text/plain; charset=utf-8", **headers}
+    )
+
+
+class HttpTileServer:
+    """The HTTP endpoint, served by aiohttp from an event loop on its own daemon thread."""
+
+    def __init__(self, store: SpecimenStore, host: str, port: int, tokens: TokenTable, api: JsonApi):
+        self._loop = asyncio.new_event_loop()
+        self._api = api
+        app = _TileApp(store, tokens, api)
+        application = web.Application()
+        application.router.add_route("*", r"/{tail:[\s\S]*}", app.handle)  # any path, new lines too
+        self._runner = web.AppRunner(
+            application,
+            access_log=None,
+            handle_signals=False,
+            max_line_size=_PARSER_LINE_BYTES,
+            max_field_size=_PARSER_LINE_BYTES,
+        )
+        self._loop.run_until_complete(self._runner.setup())
+        site = web.TCPSite(self._runner, host, port, reuse_address=True)
+        self._loop.run_until_complete(site.start())
+        self.server_port: int = self._runner.addresses[0][1]
+        self._thread = threading.Thread(target=self._loop.run_forever, name="fractoscope-http", daemon=True)
+        self._thread.start()
+
+    def send_builds_to(self, grpc_address: str) -> None:
+        """Builds submitted to the API go to this gRPC endpoint from now on."""
+        self._api.jobs.address = grpc_address
+
+    def shutdown(self) -> None:
+        """Stops serving: open connections are closed, the loop and its thread end."""
+        asyncio.run_coroutine_threadsafe(self._runner.cleanup(), self._loop).result(timeout=30)
+        self._api.jobs.close()
+        self._api.analyses.close()
+        self._loop.call_soon_threadsafe(self._loop.stop)
+        self._thread.join(timeout=30)
+        self._loop.close()
+
+
+def start_http_server(
+    store: SpecimenStore,
+    host: str = "127.0.0.1",
+    port: int = 0,
+    *,
+    tokens: TokenTable | None = None,
+    grpc_address: str | None = None,
+    max_upload_bytes: int = DEFAULT_MAX_UPLOAD_BYTES,
+    analysis_workers: int = DEFAULT_ANALYSIS_WORKERS,
+    queued_analyses: int = DEFAULT_QUEUED_ANALYSES,
+) -> HttpTileServer:
+    """Serves the store's tilesets, the viewer and the JSON API over HTTP from a daemon thread;
+    `server_port` is the bound port. With `tokens`, everything but the viewer's static files and
+    the OpenAPI document needs a bearer token, and the API's builds a write token. Builds go to the
+    gRPC endpoint at `grpc_address` (None: the API refuses them); uploads are kept next to the
+    specimens (DATA/uploads), at most `max_upload_bytes` each. Analyses run `analysis_workers` at
+    a time with `queued_analyses` waiting (by default one per CPU and 16; see api.Analyses)."""
+    tokens = tokens or TokenTable({})
+    api = JsonApi(
+        store,
+        tokens,
+        grpc_address=grpc_address,
+        uploads_root=store.root.parent / "uploads",
+        max_upload_bytes=max_upload_bytes,
+        analysis_workers=analysis_workers,
+        queued_analyses=queued_analyses,
+    )
+    return HttpTileServer(store, host, port, tokens, api)

@@ -1,0 +1,229 @@
+"""The HTTP API's inputs: query parameters, JSON bodies and multipart forms, each checked before
+use, with errors that name the parameter, field or part at fault."""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+from http import HTTPStatus
+
+import numpy as np
+from aiohttp import web
+from aiohttp.http_exceptions import HttpProcessingError
+
+from fractoscope.errors import InvalidInputError
+from fractoscope.formats.exports import MEDIA_TYPES
+from fractoscope.rpc import wire
+from fractoscope.specimen import queries
+from fractoscope.tiles.http_json import CHUNK_BYTES, ApiError
+
+
+def query_parameters(request: web.Request, known: set[str]) -> dict[str, str]:
+    """The query's parameters (`token` aside), each given once and known."""
+    values = {}
+    for name in request.query.keys():
+        if name == "token":
+            continue
+        if name not in known:
+            raise InvalidInputError(
+                name or "query",
+                f"{'an unnamed parameter ' if not name else ''}is not a parameter "
+                f"here{'; known: ' + ', '.join(sorted(known)) if known else ''}",
+            )
+        given = request.query.getall(name)
+        if len(given) > 1:
+            raise InvalidInputError(name, "is given more than once")
+        values[name] = given[0]
+    return values
+
+
+def numbers(values: dict, name: str, count: int) -> list[float]:
+    """`name=a,b,...` as `count` finite numbers."""
+    if name not in values:
+        raise InvalidInputError(name, "is required")
+    try:
+        numbers = [float(v) for v in values[name].split(",")]
+    except (ValueError, AttributeError):
+        numbers = []
+    if len(numbers) != count or not all(math.isfinite(v) for v in numbers):
+        raise InvalidInputError(name, f"must be {count} comma-separated finite numbers")
+    return numbers
+
+
+def number(values: dict, name: str, *, default: float | None = None, minimum: float | None = None) -> float | None:
+    if name not in values:
+        if default is None:
+            raise InvalidInputError(name, "is required")
+        return default
+    value = numbers(values, name, 1)[0]
+    if minimum is not None and value < minimum:
+        raise InvalidInputError(name, f"must be at least {minimum:g}")
+    return value
+
+
+def choice(values: dict, name: str, choices: tuple[str, ...], *, default: str | None = None) -> str:
+    value = values.get(name, default)
+    if value not in choices:
+        raise InvalidInputError(
+            name, f"must be one of {', '.join(choices)}" if name in values or default is None else "is required"
+        )
+    return value
+
+
+def flag(values: dict, name: str) -> bool:
+    return choice(values, name, ("true", "false"), default="false") == "true"
+
+
+# The surface texture chain's query parameters (see queries.ChainRequest); profiles take the first three.
+PROFILE_CHAIN_PARAMETERS = ("form", "s_filter_um", "l_filter_um")
+
+
+CHAIN_PARAMETERS = (
+    *PROFILE_CHAIN_PARAMETERS,
+    "direction_deg",
+    "levelling_region",
+    "window_px",
+    "min_windows",
+    "robust_form",
+)
+
+
+def chain_request(values: dict) -> queries.ChainRequest:
+    """The chain's settings among the query's parameters; absent ones stay at their defaults."""
+
+    def number(name: str) -> float | None:
+        return numbers(values, name, 1)[0] if name in values else None
+
+    form = choice(values, "form", tuple(wire.FORMS)) if "form" in values else None
+    return queries.ChainRequest(
+        form=form,
+        s_filter_um=number("s_filter_um"),
+        l_filter_um=number("l_filter_um"),
+        direction_deg=number("direction_deg"),
+        levelling_region_um=tuple(numbers(values, "levelling_region", 4)) if "levelling_region" in values else None,
+        window_px=number("window_px"),
+        min_windows=number("min_windows"),
+        robust_form=flag(values, "robust_form") if "robust_form" in values else None,
+    )
+
+
+def area_of(values: dict) -> dict:
+    """roi= or region= (not both); neither: the overview."""
+    if "roi" in values and "region" in values:
+        raise InvalidInputError("region", "give roi or region, not both")
+    region = queries.checked_region(numbers(values, "region", 4)) if "region" in values else None
+    return {"roi": values.get("roi"), "region_um": region}
+
+
+def export_options(values: dict) -> dict:
+    pixel_size_um = number(values, "pixel_size_um", default=0.0, minimum=0.0) or None
+    return {
+        "file_format": choice(values, "format", tuple(MEDIA_TYPES)),
+        "pixel_size_um": pixel_size_um,
+        "solid": flag(values, "solid"),
+        "units": choice(values, "units", tuple(wire.LENGTH_UNITS), default="um"),
+    }
+
+
+async def json_body(request: web.Request, *, limit_bytes: int) -> dict:
+    raw = await request.content.read(limit_bytes + 1)
+    if len(raw) > limit_bytes:
+        raise ApiError(HTTPStatus.REQUEST_ENTITY_TOO_LARGE, f"a JSON body of at most {limit_bytes} bytes", "body")
+    try:
+        body = json.loads(raw)
+    except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as error:
+        raise InvalidInputError("body", f"is not JSON: {error}") from None
+    if not isinstance(body, dict):
+        raise InvalidInputError("body", "must be a JSON object")
+    return body
+
+
+async def small_form(request: web.Request, *, files: set[str], fields: set[str], limit_bytes: int) -> dict:
+    """A multipart form held in memory: the `fields` as str, the `files` parts as bytes."""
+    form, total = {}, 0
+    async for part in form_parts(await multipart_reader(request, limit_bytes=limit_bytes)):
+        name = part.name or ""
+        if name not in files | fields:
+            raise InvalidInputError(name or "body", f"is not a part of this form ({', '.join(sorted(files | fields))})")
+        if name in form:
+            raise InvalidInputError(name, "is given more than once")
+        content = bytearray()
+        while chunk := await read_chunk(part):
+            total += len(chunk)
+            if total > limit_bytes:
+                raise ApiError(HTTPStatus.REQUEST_ENTITY_TOO_LARGE, f"the request exceeds {limit_bytes} bytes", name)
+            content += chunk
+        if name in files:
+            form[name] = bytes(content)
+        else:
+            try:
+                form[name] = content.decode("utf-8")
+            except UnicodeDecodeError:
+                raise InvalidInputError(name, "must be UTF-8 text") from None
+    return form
+
+
+async def form_parts(reader):
+    """The parts of a multipart body; a malformed one is the caller's error, not ours."""
+    while True:
+        try:
+            part = await reader.next()
+        except (HttpProcessingError, ValueError, AssertionError, LookupError) as error:
+            raise InvalidInputError("body", f"is not valid multipart/form-data: {first_line(error)}") from None
+        if part is None:
+            return
+        yield part
+
+
+async def read_chunk(part) -> bytes:
+    try:
+        return await part.readread_chunk(CHUNK_BYTES)
+    except (HttpProcessingError, ValueError, AssertionError, LookupError) as error:
+        raise InvalidInputError(part.name or "body", f"is not valid multipart/form-data: {first_line(error)}") from None
+
+
+def first_line(error: Exception) -> str:
+    return (str(error).strip().splitlines() or [type(error).__name__])[0][:200]
+
+
+# What a multipart body may carry besides its parts' contents: boundaries and part headers.
+_MULTIPART_FRAMING_BYTES = 1024 * 1024
+
+
+async def multipart_reader(request: web.Request, *, limit_bytes: int):
+    """The reader of a multipart body whose parts may hold `limit_bytes` in all: a Content-Length
+    beyond that is refused (413) before anything is read."""
+    if request.content_type != "multipart/form-data":
+        raise ApiError(HTTPStatus.UNSUPPORTED_MEDIA_TYPE, "send multipart/form-data", "content-type")
+    if (request.content_length or 0) > limit_bytes + _MULTIPART_FRAMING_BYTES:
+        raise ApiError(
+            HTTPStatus.REQUEST_ENTITY_TOO_LARGE,
+            f"a body of {request.content_length} bytes exceeds the {limit_bytes} allowed",
+            "body",
+            Connection="close",
+        )  # the body is not read
+    try:
+        return await request.multipart()
+    except (ValueError, AssertionError, KeyError) as error:
+        raise InvalidInputError("body", f"is not multipart/form-data: {error}") from None
+
+
+def npz_height_map(content: bytes | None) -> tuple[np.ndarray, np.ndarray | None, float | None]:
+    """z_um (and sigma_um, pixel_size_um if stored) of an uploaded npz, as `fracto height` writes it."""
+    if not content:
+        raise InvalidInputError("height_map", "is required: an .npz with z_um (as fracto height writes it)")
+    if not content.startswith(b"PK"):  # npz files are zip archives; np.load would try a pickle
+        raise InvalidInputError(
+            "height_map", "is not an npz file (a zip archive with z_um, as fracto height writes it)"
+        )
+    try:
+        with np.load(io.BytesIO(content), allow_pickle=False) as arrays:
+            z_um = np.asarray(arrays["z_um"])
+            sigma_um = np.asarray(arrays["sigma_um"]) if "sigma_um" in arrays.files else None
+            stored = float(arrays["pixel_size_um"]) if "pixel_size_um" in arrays.files else None
+    except (OSError, ValueError, KeyError, TypeError, EOFError) as error:
+        raise InvalidInputError("height_map", f"is not an npz with z_um: {error}") from None
+    if z_um.dtype.kind not in "fiu" or (sigma_um is not None and sigma_um.dtype.kind not in "fiu"):
+        raise InvalidInputError("height_map", "z_um and sigma_um must be real numbers")
+    return z_um, sigma_um, stored

@@ -1,0 +1,370 @@
+"""TileService: multi-scale specimens built on the matching and meshing services, and queries."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import tempfile
+from pathlib import Path
+from typing import Protocol
+
+import grpc
+import numpy as np
+
+from fractoscope import report
+from fractoscope.errors import (
+    InvalidInputError,
+    NotFoundError,
+    error_of_code,
+)
+from fractoscope.formats.exports import MEDIA_TYPES
+from fractoscope.mesh.pipeline import EncodedTile
+from fractoscope.progress import ProgressCallback, silent
+from fractoscope.rpc import calls, wire
+from fractoscope.rpc.channel import open_channel
+from fractoscope.rpc.status import ClientError, abort_on_error, raised_as_client_errors
+from fractoscope.runtime import budget
+from fractoscope.runtime.caches import BoundedCache
+from fractoscope.runtime.jobs import Job, JobRunner
+from fractoscope.specimen import quadtree
+from fractoscope.specimen import queries as specimen_queries
+from fractoscope.specimen.build import MeasuredHeights, RoiRequest, reconstruct_specimen
+from fractoscope.specimen.quadtree import TileSamples
+from fractoscope.specimen.store import Specimen, SpecimenStore, validate_id
+from fractoscope.stereo.pipeline import HeightMapResult
+from fractoscope.surface.filtering import FilterReport
+from fractoscope.tiles import messages as rpc_tiles
+from fractoscope.v1 import (
+    common_pb2,
+    matching_pb2,
+    matching_pb2_grpc,
+    meshing_pb2,
+    meshing_pb2_grpc,
+    tiles_pb2,
+    tiles_pb2_grpc,
+)
+
+_log = logging.getLogger("fractoscope.tiles")
+GET_TILE_METHOD = "/fractoscope.v1.TileService/GetTile"
+
+
+class LocalMatching(Protocol):
+    """The matching service of this process, called in-process (see MatchingServicer)."""
+
+    def peak_bytes(self, request: matching_pb2.ComputeHeightMapRequest) -> int: ...
+
+    def height_map(
+        self, request: matching_pb2.ComputeHeightMapRequest, job: Job, progress: ProgressCallback
+    ) -> tuple[HeightMapResult, np.ndarray]: ...
+
+
+class LocalMeshing(Protocol):
+    """The meshing service of this process, called in-process (see MeshingServicer)."""
+
+    def mesh(
+        self, request: meshing_pb2.BuildMeshRequest, progress: ProgressCallback
+    ) -> tuple[list[EncodedTile], FilterReport]: ...
+
+
+class TileServicer(tiles_pb2_grpc.TileServiceServicer):
+    """Thin wrappers over reconstruction, the specimen store and the analysis modules.
+
+    Reconstructions are `builds` jobs (see jobs), checked against the memory budget first.
+    Concurrent calls with one request id follow one job. Matching and meshing run in this process
+    when it serves them (`local_matching`, `local_meshing`), else on the services at
+    `matching_address` and `meshing_address` (gRPC targets; a `dns:///` name of several replicas
+    is balanced round-robin), each call with the deadline the build's callers still wait, at most
+    `call_timeout_s`, and cancelled with the build.
+
+    GetTile is answered by `get_tile_serialized`, which the server routes there (SerializedGetTile);
+    up to `tile_response_cache_bytes` of serialized tile responses are kept."""
+
+    def __init__(
+        self,
+        store: SpecimenStore,
+        *,
+        builds: JobRunner,
+        memory: budget.MemoryBudget,
+        local_matching: LocalMatching | None = None,
+        local_meshing: LocalMeshing | None = None,
+        matching_address: str | None = None,
+        meshing_address: str | None = None,
+        call_timeout_s: float = 1800.0,
+        tile_response_cache_bytes: int = 256 * 1024 * 1024,
+    ):
+        if (local_matching is None) == (matching_address is None) or (local_meshing is None) == (
+            meshing_address is None
+        ):
+            raise ValueError(
+                "the tile service needs matching and meshing, each served by this process or given an address "
+                "(--matching-address, --meshing-address)"
+            )
+        self.store = store
+        self._builds, self._memory = builds, memory
+        self._local_matching, self._local_meshing = local_matching, local_meshing
+        self.matching_address = matching_address
+        self.meshing_address = meshing_address
+        self.call_timeout_s = call_timeout_s
+        self._tile_responses: BoundedCache[bytes] = BoundedCache(tile_response_cache_bytes, size=len)
+
+    @abort_on_error
+    def ReconstructSpecimen(self, request, context):
+        specimen_id = validate_id(request.specimen_id, field="specimen_id")
+        stored = self._stored(specimen_id, request.request_id)
+        if stored is None:
+            rois, height_requests, shapes = rpc_tiles.checked_rois(
+                request.rois, request.request_id
+            )  # before it takes a place in the queue
+            estimate = self._estimate(height_requests, shapes)
+            rows, cols = max(shapes, key=lambda shape: shape[0] * shape[1])
+            self._memory.check(
+                estimate, f"specimen {specimen_id!r} ({len(rois)} ROIs, the largest of {cols} x {rows} pixels)"
+            )
+            key = (specimen_id, request.request_id) if request.request_id else None
+            for event in self._builds.follow(
+                context, lambda job: self._reconstruct(request, rois, height_requests, job), key=key
+            ):
+                if isinstance(event, common_pb2.Progress):
+                    yield tiles_pb2.ReconstructSpecimenResponse(progress=event)
+                else:
+                    stored = event
+                    _log.info("specimen built", extra={"request_id": request.request_id})
+        if stored is not None:
+            yield tiles_pb2.ReconstructSpecimenResponse(specimen=rpc_tiles.specimen_message(stored))
+
+    def _estimate(
+        self, height_requests: list[matching_pb2.ComputeHeightMapRequest], shapes: list[tuple[int, int]]
+    ) -> int:
+        """A reconstruction's estimated peak memory (see budget); InvalidInputError names the ROI."""
+        matched_here = []
+        if self._local_matching is not None:
+            for index, height_request in enumerate(height_requests):
+                with rpc_tiles.in_roi(index):
+                    matched_here.append(self._local_matching.peak_bytes(height_request))
+        return budget.specimen_bytes(shapes, matched_here=matched_here)
+
+    def _reconstruct(
+        self,
+        request: tiles_pb2.ReconstructSpecimenRequest,
+        rois: list[RoiRequest],
+        height_requests: list[matching_pb2.ComputeHeightMapRequest],
+        job: Job,
+    ) -> Specimen:
+        """Builds the specimen, unless an earlier job of its request id stored it meanwhile."""
+        stored = self._stored(request.specimen_id, request.request_id)
+        if stored is not None:
+            return stored
+        indices = {spec.id: index for index, spec in enumerate(request.rois)}
+        with contextlib.ExitStack() as channels:
+            matching = meshing = None
+            if self._local_matching is None:
+                matching = matching_pb2_grpc.MatchingServiceStub(
+                    channels.enter_context(open_channel(self.matching_address))
+                )
+            if self._local_meshing is None:
+                meshing = meshing_pb2_grpc.MeshingServiceStub(
+                    channels.enter_context(open_channel(self.meshing_address))
+                )
+
+            def measure(roi: RoiRequest, progress: ProgressCallback) -> MeasuredHeights:
+                index = indices[roi.id]
+                with rpc_tiles.in_roi(index):
+                    if matching is None:
+                        result, texture = self._local_matching.height_map(height_requests[index], job, progress)
+                        return MeasuredHeights(
+                            result.z_um, texture, result.report["pixel_size_um"], result.report, result.sigma_um
+                        )
+                    with _calling("matching", self.matching_address):
+                        call = matching.ComputeHeightMap(
+                            height_requests[index], timeout=job.time_remaining_s(at_most_s=self.call_timeout_s)
+                        )
+                        job.on_cancel(call.cancel)
+                        heights = calls.read_height_map(call, progress)
+                    return MeasuredHeights(
+                        heights.z_um, heights.texture, heights.pixel_size_um, heights.report, heights.sigma_um
+                    )
+
+            def mesh_tile(tile: TileSamples) -> bytes:
+                mesh_request = calls.mesh_request(
+                    tile.z_um,
+                    tile.texture,
+                    pixel_size_um=tile.cell_um,
+                    origin_um=tile.origin_um,
+                    level_count=1,
+                    max_slope=tile.max_slope or 0.0,
+                    sigma_um=np.full(tile.z_um.shape, tile.noise_um, np.float32),
+                )
+                if meshing is None:
+                    tiles, _ = self._local_meshing.mesh(mesh_request, silent)
+                    return tiles[0].glb
+                with _calling("meshing", self.meshing_address):
+                    tiles, _ = calls.read_mesh(
+                        meshing.BuildMesh(mesh_request, timeout=job.time_remaining_s(at_most_s=self.call_timeout_s)),
+                        None,
+                    )
+                return tiles[0].glb
+
+            return reconstruct_specimen(
+                request.specimen_id,
+                rois,
+                measure=measure,
+                mesh_tile=mesh_tile,
+                store=self.store,
+                request_id=request.request_id,
+                progress=job.progress,
+            )
+
+    @abort_on_error
+    def GetSpecimen(self, request, context):
+        return tiles_pb2.GetSpecimenResponse(specimen=rpc_tiles.specimen_message(self.store.load(request.specimen_id)))
+
+    @abort_on_error
+    def ListSpecimens(self, request, context):
+        return tiles_pb2.ListSpecimensResponse(
+            specimens=[rpc_tiles.specimen_message(self.store.load(i)) for i in self.store.ids()]
+        )
+
+    @abort_on_error
+    def GetTileset(self, request, context):
+        return tiles_pb2.GetTilesetResponse(tileset_json=self.store.load(request.specimen_id).tileset_bytes)
+
+    @abort_on_error
+    def get_tile_serialized(self, request: tiles_pb2.GetTileRequest, context) -> bytes:
+        """GetTile, answered with the serialized GetTileResponse: each tile's response is built and
+        serialized once, then served from memory, which saves reading and serializing some 40 kB
+        on every call."""
+        specimen = self.store.load(request.specimen_id)
+
+        def serialized() -> bytes:
+            return rpc_tiles.with_tile(
+                tiles_pb2.GetTileResponse(), specimen, specimen.tile_record(request.uri)
+            ).SerializeToString()
+
+        return self._tile_responses.get((specimen.id, specimen.version, request.uri), serialized)
+
+    @abort_on_error
+    def StreamView(self, request, context):
+        specimen = self.store.load(request.specimen_id)
+        region = rpc_tiles.region(request.region, "region")
+        viewport_px = request.viewport_px or wire.DEFAULT_VIEWPORT_PX
+        if not 1 <= viewport_px <= 65536:
+            raise InvalidInputError("viewport_px", "must be 1 to 65536")
+        for record in quadtree.tiles_for_view(specimen.layout, specimen.tiles, region, viewport_px=viewport_px):
+            yield rpc_tiles.with_tile(tiles_pb2.StreamViewResponse(), specimen, record)
+
+    @abort_on_error
+    def Zoom(self, request, context):
+        specimen = self.store.load(request.specimen_id)
+        region = rpc_tiles.region(request.region, "region")
+        cell_um = specimen.pixel_size_at_magnification(
+            specimen_queries.positive_input(request.magnification, "magnification")
+        )
+        chosen = quadtree.tiles_in_region(specimen.layout, specimen.tiles, region, cell_um=cell_um)
+        return tiles_pb2.ZoomResponse(
+            tiles=[rpc_tiles.tile_message(specimen, record, upsampled=upsampled) for record, upsampled in chosen]
+        )
+
+    @abort_on_error
+    def GetProfile(self, request, context):
+        specimen = self.store.load(request.specimen_id)
+        with rpc_tiles.chain_fields():
+            found = specimen_queries.profile_along(
+                specimen,
+                [[p.x_um, p.y_um] for p in request.points],
+                spacing_um=request.spacing_um,
+                magnification=request.magnification,
+                chain=rpc_tiles.profile_chain_request(request.chain),
+            )
+        return rpc_tiles.profile_response(found)
+
+    @abort_on_error
+    def GetRoughness(self, request, context):
+        specimen = self.store.load(request.specimen_id)
+        area = request.WhichOneof("area")
+        chain = rpc_tiles.chain_request(request.chain)
+        with rpc_tiles.chain_fields():
+            analysis = specimen_queries.roughness_of(
+                specimen,
+                roi=request.roi or None,
+                region_um=rpc_tiles.region(request.region, "region") if area == "region" else None,
+                chain=chain,
+            )
+        return rpc_tiles.roughness_response(analysis, chain)
+
+    @abort_on_error
+    def Export(self, request, context):
+        with tempfile.TemporaryDirectory(prefix="fractoscope-export-") as directory:
+            exported = rpc_tiles.export(request, Path(directory), self.store)
+            first = tiles_pb2.ExportResponse(grid=rpc_tiles.export_grid(exported))
+            media_type = MEDIA_TYPES[exported.file_format]
+            yield from rpc_tiles.streamed_file(
+                first, exported.path, file_name=exported.path.name, media_type=media_type
+            )
+
+    @abort_on_error
+    def GetReport(self, request, context):
+        file_format = wire.report_format_name(request.format)
+        area = rpc_tiles.area_of(request.area, "area")
+        with tempfile.TemporaryDirectory(prefix="fractoscope-report-") as directory:
+            path = report.write_report(
+                self.store.load(request.area.specimen_id), Path(directory), file_format=file_format, **area
+            )
+            yield from rpc_tiles.streamed_file(
+                tiles_pb2.GetReportResponse(), path, file_name=path.name, media_type=report.MEDIA_TYPES[file_format]
+            )
+
+    def _stored(self, specimen_id: str, request_id: str) -> Specimen | None:
+        """The stored specimen that a request with `request_id` built, if any."""
+        if not request_id:
+            return None
+        try:
+            existing = self.store.load(specimen_id)
+        except NotFoundError:
+            return None
+        return existing if existing.request_id == request_id else None
+
+
+class SerializedGetTile(grpc.ServerInterceptor):
+    """Routes GetTile to `servicer.get_tile_serialized`, whose bytes go out as they are; the
+    generated registration would serialize a message on every call."""
+
+    def __init__(self, servicer: TileServicer):
+        self._handler = grpc.unary_unary_rpc_method_handler(
+            servicer.get_tile_serialized,
+            request_deserializer=tiles_pb2.GetTileRequest.FromString,
+            response_serializer=None,
+        )
+
+    def intercept_service(self, continuation, handler_call_details):
+        if handler_call_details.method == GET_TILE_METHOD:
+            return self._handler
+        return continuation(handler_call_details)
+
+
+@contextlib.contextmanager
+def _calling(service: str, address: str):
+    """Turns the failure of a call to `service` into the error this build fails with (the status
+    table read backwards, errors.error_of_code), with what the operator can do about it."""
+    try:
+        with raised_as_client_errors():
+            yield
+    except ClientError as error:
+        if error.field:
+            raise InvalidInputError(error.field, str(error).split(": ", 1)[-1]) from None
+        template = _CALL_FAILURES.get(error.code.name, "the {service} service at {address} failed ({code}: {error})")
+        message = template.format(service=service, address=address, code=error.code.name, error=error)
+        raise error_of_code(error.code.name, message, retry_after_s=error.retry_after_s) from None
+
+
+_RETRY = "the {service} service at {address} failed ({code}: {error}); nothing was stored, retry"
+_TOKEN = (
+    "this server could not authenticate to the {service} service at {address} ({code}: {error}); give it a write "
+    "token of that service in FRACTO_TOKEN"
+)
+_CALL_FAILURES = {
+    "UNAVAILABLE": _RETRY,
+    "DEADLINE_EXCEEDED": _RETRY,
+    "UNAUTHENTICATED": _TOKEN,
+    "PERMISSION_DENIED": _TOKEN,
+    "RESOURCE_EXHAUSTED": "the {service} service at {address} is busy: {error}",
+}

@@ -1,0 +1,210 @@
+"""Our tilesets and the web viewer in headless Chromium (Debian's, which `make test` installs),
+driven by the scripts beside this file through playwright-core. Screenshots are kept as artefacts in
+bench-results/browser/ (not committed)."""
+
+import base64
+import json
+import re
+import subprocess
+from pathlib import Path
+from urllib.parse import parse_qs, urlparse
+
+import numpy as np
+import pytest
+
+from fractoscope.client import FractoscopeClient
+from fractoscope.client.manifest import load_manifest
+from fractoscope.server.main import create_server
+from fractoscope.specimen.store import SpecimenStore
+from fractoscope.tiles.http import start_http_server
+
+pytestmark = pytest.mark.slow
+ROOT = Path(__file__).resolve().parents[3]
+ARTEFACTS = ROOT / "bench-results" / "browser"
+# How long the pollen overview may take to settle before the test calls it stuck: a hang bound,
+# not the issue's speed target (45 s; measured 6.8 s, kept in the artefacts' result.json), which
+# a busy machine's software rendering would make a timing a test cannot assert.
+STUCK_AFTER_S = 300.0
+
+
+def _in_chromium(script: str, data: Path, *arguments: str, timeout_s: float = 900) -> dict:
+    """Runs SCRIPT (beside this file) with the base URL of an HTTP endpoint serving `data` and `arguments`
+    ("{base}" in them is replaced by that URL); its JSON result."""
+    http = start_http_server(SpecimenStore(data))
+    base = f"http://127.0.0.1:{http.server_port}"
+    runner = Path(__file__).resolve().parent / script
+    try:
+        done = subprocess.run(
+            ["node", str(runner), *(argument.replace("{base}", base) for argument in arguments)],
+            capture_output=True,
+            text=True,
+            timeout=timeout_s,
+            cwd=ROOT,
+        )
+    finally:
+        http.shutdown()
+    assert done.returncode == 0, done.stderr[-3000:]
+    return json.loads(done.stdout.splitlines()[-1])
+
+
+def _artefacts(name: str) -> Path:
+    directory = ARTEFACTS / name
+    directory.mkdir(parents=True, exist_ok=True)
+    return directory
+
+
+def test_tileset_loads_in_3d_tiles_renderer_in_headless_chromium(built):
+    _, _, data, _ = built
+    result = _in_chromium(
+        "load_tileset.mjs", data, "{base}/specimens/synthetic/tileset.json", str(_artefacts("tileset") / "view.png")
+    )
+    assert result["tilesetLoaded"] and not result["failed"] and not result["errors"], result
+    assert result["loaded"] >= 5  # the root and refining levels streamed in
+    assert result["litFraction"] > 0.3  # the textured surface fills much of the view
+
+
+def _numbers_in(text: str) -> list[float]:
+    return [float(v) for v in re.findall(r"-?\d+(?:\.\d+)?", text)]
+
+
+def test_web_viewer_tools_styles_permalink_and_snapshot(built):
+    """The viewer page, served by the tile endpoint: a link to a missing specimen shows an error
+    and opens nothing else; tiles stream in, counted on screen; the optical/digital legend and the
+    ROI's label show; every measuring tool answers from the server's data; a profile's line is
+    drawn on the surface, and two profiles share the plot; the heights' exaggeration changes the
+    picture; roughness shows that it is busy; a style change
+    reaches tiles cached outside the scene; the permalink reopens the view and its
+    measurements; the snapshot is a PNG."""
+    truth, _, data, _ = built
+    out = _artefacts("viewer")
+    result = _in_chromium("check_viewer.mjs", data, "{base}", "synthetic", str(out))
+    (out / "result.json").write_text(json.dumps(result, indent=1))
+    assert not result["errors"] and result["status"]["failed"] == 0, result["errors"]
+    missing = result["missing"]
+    assert missing["shown"] and "doesnotexist" in missing["message"] and "synthetic" in missing["message"]
+    assert missing["chosen"] == "" and result["missingTileRequests"] == 0
+    assert result["tileRequests"] >= 5 and result["status"]["loaded"] >= 5 and result["litFraction"] > 0.2
+    overlays = result["overlays"]  # the tile counter, the optical/digital legend and the ROI's label on the surface
+    assert re.fullmatch(r"tiles: \d+ shown, 0 loading", overlays["tileProgress"]), overlays
+    assert (
+        "optical zoom (measured)" in overlays["legend"]
+        and "digital zoom (upsampled)" in overlays["legend"]
+        and overlays["legendAfter"] == ""
+    )
+    assert any(
+        label.startswith("zoom · ") and "×" in label and label.endswith("µm/px") for label in overlays["roiLabels"]
+    ), overlays
+    tools = result["tools"]
+    assert (
+        result["profile"]["samples"] > 100
+        and result["profile"]["parameters"]["Ra"] > 0
+        and "Ra" in result["profile"]["text"]
+    )
+    assert result["profileLinePixels"] > 300  # a 3 px line across a third of the view
+    assert tools["secondProfile"].startswith("Profile 6:") and len(result["plotted"]) == 2
+    assert all(curve["pixels"] > 50 for curve in result["plotted"]), result["plotted"]  # both profiles in the one plot
+    assert result["exaggerationShown"] == "10.0" and result["exaggerationChange"] > 5.0, result["exaggerationChange"]
+    assert tools["point"].startswith("Height 2: z = ") and "µm" in tools["point"]
+    distance = _numbers_in(tools["distance"])
+    assert tools["distance"].startswith("Distance 3:") and distance[1] >= distance[2] > 0  # 3D length >= horizontal
+    angle = _numbers_in(tools["angle"])[1]
+    assert tools["angle"].endswith("°") and 0 < angle < 180
+    assert tools["step"].startswith("Step 5:") and "±" in tools["step"] and "area means" in tools["step"]
+    assert result["roughnessBusy"] and result["roughness"]["Sa"] > 0 and 0 < result["roughness"]["hurst_exponent"] < 1.5
+    rough = result["roughness"]  # the panel shows each value with its uncertainty, then the chain that made them
+    panel = result["roughnessText"]
+    assert (
+        f"Sa {rough['Sa']:.3f} ± " in panel
+        and f"Sq {rough['Sq']:.3f} ± " in panel
+        and f"Sdr {rough['Sdr']:.2f} ± " in panel
+    ), panel
+    assert f"chain: form {rough['chain']['form']}, no filters, " in panel and panel.count("µm/px") == 1, panel
+    assert "Hurst " in panel and " µm)" in panel, panel
+    assert result["scaleBar"].endswith("µm")
+    assert result["heightColourSpread"] > 0.3  # heights from the dequantized positions span the ramp
+    assert (
+        result["restyledSpread"] < 0.5 * result["heightColourSpread"]
+    )  # cached tiles came back as SEM image, not height colours
+    assert result["tintedBefore"] < 0.1 and result["tintedAfter"] > 0.8, (
+        result["tintedBefore"],
+        result["tintedAfter"],
+    )  # and tinted
+    link = parse_qs(urlparse(result["permalink"]).query)
+    assert (
+        link["specimen"] == ["synthetic"]
+        and link["measurements"][0].startswith("profile:")
+        and len(link["camera"][0].split(",")) == 6
+    )
+    np.testing.assert_allclose(result["reopened"]["camera"], result["camera"], rtol=1e-3)
+    assert [text.split(":")[0] for text in result["reopened"]["tools"]] == [
+        text.split(":")[0] for text in tools.values()
+    ]
+    for again, first in zip(result["reopened"]["tools"], tools.values()):  # points kept to the nm
+        np.testing.assert_allclose(_numbers_in(again), _numbers_in(first), rtol=0.02, atol=0.01)
+    assert result["snapshot"].startswith("data:image/png;base64,")
+    assert (out / "snapshot.png").read_bytes()[:8] == base64.b64decode("iVBORw0KGgo=")
+
+
+@pytest.fixture(scope="module")
+def pollen_data(pollen_series, tmp_path_factory):
+    """The real pollen pair (pot_02 / pot_04, full size) reconstructed as the demo builds it: tilts,
+    pixel size and magnification from the metadata, heights from the substrate."""
+    from fractoscope.cli.demo import _write_pollen_manifest
+
+    root = tmp_path_factory.mktemp("pollen")
+    manifest = _write_pollen_manifest(pollen_series, root / "input")
+    server, port = create_server("127.0.0.1:0", data_dir=root / "data")
+    server.start()
+    try:
+        with FractoscopeClient(f"127.0.0.1:{port}", timeout_s=1800) as client:
+            specimen_id, rois = load_manifest(manifest)
+            client.reconstruct_specimen(specimen_id, rois)
+    finally:
+        server.stop(grace=None)
+    return root / "data"
+
+
+@pytest.mark.real_data
+def test_the_pollen_overview_settles_coarse_to_fine_with_few_tiles(pollen_data):
+    """A first session on the real pollen pair: the overview in 1280 x 800 with the default error
+    target settles (its time in the artefacts' result.json) and requests at most 60 of its 800-odd tiles; a profile's
+    line is drawn on the surface; the shading follows the light; the colour bar shows the heights' range
+    in µm."""
+    out = _artefacts("pollen")
+    result = _in_chromium(
+        "pollen_overview.mjs", pollen_data, "{base}/viewer/?specimen=pollen", str(out), str(STUCK_AFTER_S)
+    )
+    (out / "result.json").write_text(json.dumps(result, indent=1))
+    assert not result["errors"], result["errors"]
+    assert result["status"]["failed"] == 0
+    print(
+        f"pollen overview settled in {result['settleS']:.1f} s (issue 20's target 45 s) after "
+        f"{result['firstViewRequests']} tile requests"
+    )
+    assert 5 <= result["firstViewRequests"] <= 60, result["firstViewRequests"]
+    assert result["profileLinePixels"] > 300 and result["profile"]["known"] > 100 and "Ra" in result["profile"]["text"]
+    # Turning the light round changes the picture; with the shading off it does not.
+    assert result["lightChange"] > 4 * max(result["unlitChange"], 0.25), (result["lightChange"], result["unlitChange"])
+    bar = result["colourBar"]
+    assert not bar["hidden"] and bar["min"].endswith("µm") and bar["max"].endswith("µm")
+    low, high = bar["rangeUm"]
+    assert _numbers_in(bar["min"])[0] == pytest.approx(low, abs=0.1) and _numbers_in(bar["max"])[0] == pytest.approx(
+        high, abs=0.1
+    )
+    assert high - low > 30  # the grain stands some 40 µm above the substrate, the datum
+    assert "substrate" in bar["datum"] and result["heightColourSpread"] > 0.3
+
+
+@pytest.mark.real_data
+def test_the_pollen_specimen_keeps_its_magnification_and_datum(pollen_data):
+    """The demo's pollen specimen is built with the TIFFs' magnification (1000x), so zooming by
+    magnification works on it, and with its heights from the substrate."""
+    from fractoscope.specimen.quadtree import tiles_in_region
+
+    specimen = SpecimenStore(pollen_data).load("pollen")
+    overview = specimen.rois[0]
+    assert overview.magnification == 1000.0 and overview.datum["level"] == "substrate"
+    cell_um = specimen.pixel_size_at_magnification(2000.0)
+    assert cell_um == pytest.approx(overview.pixel_size_um / 2)
+    chosen = tiles_in_region(specimen.layout, specimen.tiles, (20.0, 20.0, 40.0, 40.0), cell_um=cell_um)
+    assert chosen and all(upsampled for _, upsampled in chosen)  # 2000x is beyond the data: digital zoom
