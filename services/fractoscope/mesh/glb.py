@@ -119,10 +119,7 @@ def mesh_glb(
     it is plain float32 with no extensions, which any glTF reader opens. `extras` lands on the
     mesh node."""
     count = len(positions_m)
-    # 16-bit indices when they stay below 65535, which glTF reserves for primitive restart.
-    index_type = np.uint16 if count <= 65535 else np.uint32
-    parts = [(triangles, 0), (wall_triangles if wall_triangles is not None else np.zeros((0, 3)), 1)]
-    index_sets = [(np.ascontiguousarray(t, index_type).ravel(), material) for t, material in parts if len(t)]
+    index_sets = _index_sets(triangles, wall_triangles, count)
     attributes = _vertex_attributes(positions_m, normals, uvs, grid)
     geometry = _GeometryBuffers.of(
         [indices for indices, _ in index_sets], attributes, count, compressed=grid is not None
@@ -137,16 +134,7 @@ def mesh_glb(
         buffers.append(pygltflib.Buffer(byteLength=geometry.decoded_size, extensions={MESHOPT: {"fallback": True}}))
         node.translation, node.scale = list(grid.origin_m), list(grid.step_m)
         extensions = [MESHOPT, QUANTIZATION]
-    # Accessors 0 to 2 are the vertex attributes, then one index accessor per primitive.
-    primitives = [
-        pygltflib.Primitive(
-            attributes=pygltflib.Attributes(POSITION=0, NORMAL=1, TEXCOORD_0=2),
-            indices=3 + k,
-            material=material,
-            mode=pygltflib.TRIANGLES,
-        )
-        for k, (_, material) in enumerate(index_sets)
-    ]
+    primitives = _primitives([material for _, material in index_sets])
     gltf = pygltflib.GLTF2(
         asset=pygltflib.Asset(version="2.0", generator="fractoscope"),
         extensionsUsed=extensions,
@@ -157,20 +145,46 @@ def mesh_glb(
         meshes=[pygltflib.Mesh(primitives=primitives)],
         materials=[_MATERIAL, _WALL_MATERIAL],
         textures=[pygltflib.Texture(source=0, sampler=0)],
-        samplers=[
-            pygltflib.Sampler(
-                magFilter=pygltflib.LINEAR,
-                minFilter=pygltflib.LINEAR,
-                wrapS=pygltflib.CLAMP_TO_EDGE,
-                wrapT=pygltflib.CLAMP_TO_EDGE,
-            )
-        ],
+        samplers=[_sampler()],
         images=[pygltflib.Image(bufferView=image_view, mimeType="image/jpeg")],
         accessors=_accessors([indices for indices, _ in index_sets], attributes, count, normalized=grid is not None),
         bufferViews=views,
         buffers=buffers,
     )
     return _glb(gltf, blob)
+
+
+def _index_sets(triangles: np.ndarray, wall_triangles: np.ndarray | None, count: int) -> list[tuple[np.ndarray, int]]:
+    """(flat indices, material) of each primitive that has triangles: the surface's (material 0),
+    then the walls' (material 1), for `count` vertices."""
+    # 16-bit indices when they stay below 65535, which glTF reserves for primitive restart.
+    index_type = np.uint16 if count <= 65535 else np.uint32
+    parts = [(triangles, 0), (wall_triangles if wall_triangles is not None else np.zeros((0, 3)), 1)]
+    return [(np.ascontiguousarray(t, index_type).ravel(), material) for t, material in parts if len(t)]
+
+
+def _primitives(materials: list[int]) -> list[pygltflib.Primitive]:
+    """One triangle primitive per index buffer, with its material."""
+    # Accessors 0 to 2 are the vertex attributes, then one index accessor per primitive.
+    return [
+        pygltflib.Primitive(
+            attributes=pygltflib.Attributes(POSITION=0, NORMAL=1, TEXCOORD_0=2),
+            indices=3 + k,
+            material=material,
+            mode=pygltflib.TRIANGLES,
+        )
+        for k, material in enumerate(materials)
+    ]
+
+
+def _sampler() -> pygltflib.Sampler:
+    """Linear filtering; texture coordinates clamped to the edge."""
+    return pygltflib.Sampler(
+        magFilter=pygltflib.LINEAR,
+        minFilter=pygltflib.LINEAR,
+        wrapS=pygltflib.CLAMP_TO_EDGE,
+        wrapT=pygltflib.CLAMP_TO_EDGE,
+    )
 
 
 _MATERIAL = pygltflib.Material(

@@ -177,65 +177,34 @@ def iter_tiles(
     finer_errors: dict[tuple[int, int], float] = {}  # the finer level's tiles' errors by (row, col)
     for level, cluster in enumerate(cluster_levels(z_um, texture, count=count, sigma_um=sigma_um)):
         errors: dict[tuple[int, int], float] = {}
-        grid_walls = grid_wall_triangles(
-            cluster.col_px * pixel_size_um,
-            cluster.row_px * pixel_size_um,
-            cluster.z_um,
-            max_slope=max_slope,
-            sigma_um=cluster.sigma_um,
-        )
+        grid_walls = _level_walls(cluster, pixel_size_um=pixel_size_um, max_slope=max_slope)
         if level == 0:
             full_resolution_walls = grid_walls
         surface_um = _away_from_walls(*full_resolution_walls, z_um, cluster.cell_px) if level > 0 else z_um
-        deviation = (
-            _grid_deviation(cluster, surface_um, grid_walls)
-            if level > 0 and method is Simplification.VERTEX_CLUSTERING
-            else None
-        )
+        decimated = level > 0 and method is not Simplification.VERTEX_CLUSTERING
+        deviation = _grid_deviation(cluster, surface_um, grid_walls) if level > 0 and not decimated else None
         for tile_row, row_cells in enumerate(_tile_spans(cluster.z_um.shape[0])):
             for tile_col, col_cells in enumerate(_tile_spans(cluster.z_um.shape[1])):
-                if level == 0 or method is Simplification.VERTEX_CLUSTERING:
-                    positions, triangles = _grid_mesh(cluster, row_cells, col_cells)
-                    walls = _grid_tile_walls(grid_walls, cluster, row_cells, col_cells)
-                    normals = _grid_normals(cluster, row_cells, col_cells, pixel_size_um)
-                else:
-                    positions, triangles = _decimated_mesh(cluster, row_cells, col_cells)
-                    walls = wall_triangles(
-                        positions[:, :2] * pixel_size_um,
-                        positions[:, 2],
-                        triangles,
-                        max_slope=max_slope,
-                        sigma_um=_nearest_cell(cluster, row_cells, col_cells, positions, cluster.sigma_um),
-                    )
-                    normals = _decimated_normals(cluster, row_cells, col_cells, positions, pixel_size_um)
-                if len(triangles) == 0:
+                mesh = _tile_mesh(
+                    cluster,
+                    row_cells,
+                    col_cells,
+                    grid_walls,
+                    decimated=decimated,
+                    pixel_size_um=pixel_size_um,
+                    max_slope=max_slope,
+                )
+                if len(mesh.triangles) == 0:
                     continue
                 footprint = _footprint(cluster.cell_px, row_cells, col_cells, z_um.shape)
-                if level == 0:
-                    error = 0.0
-                elif deviation is not None:
-                    error = _nanmax(
-                        deviation[footprint] if tolerance_um is None else deviation[footprint] - tolerance_um[footprint]
-                    )
-                else:
-                    error = _mesh_deviation(
-                        positions, triangles[~walls], surface_um, footprint, tolerance_um=tolerance_um
+                error = 0.0
+                if level > 0:
+                    error = _measured_error_um(
+                        mesh, footprint, deviation=deviation, surface_um=surface_um, tolerance_um=tolerance_um
                     )
                 children = [finer_errors.get((2 * tile_row + i, 2 * tile_col + j), 0.0) for i in (0, 1) for j in (0, 1)]
                 error = errors[(tile_row, tile_col)] = max(error, *children)
-                block = cluster.texture[row_cells[0] : row_cells[1] + 1, col_cells[0] : col_cells[1] + 1]
-                yield LodTile(
-                    level=level,
-                    tile_row=tile_row,
-                    tile_col=tile_col,
-                    positions=positions,
-                    normals=normals,
-                    triangles=triangles,
-                    uvs=_uvs(positions, cluster.cell_px, row_cells, col_cells),
-                    texture=np.clip(np.round(block), 0, 255).astype(np.uint8),
-                    geometric_error_um=error,
-                    walls=walls,
-                )
+                yield _lod_tile(mesh, cluster, row_cells, col_cells, key=(level, tile_row, tile_col), error_um=error)
         finer_errors = errors
 
 
@@ -265,6 +234,79 @@ def _footprint(cell_px: int, row_cells, col_cells, shape) -> tuple[slice, slice]
         return slice(int(np.ceil(first * cell_px + centre)), min(int(np.floor(last * cell_px + centre)) + 1, size))
 
     return span(*row_cells, shape[0]), span(*col_cells, shape[1])
+
+
+def _level_walls(
+    cluster: ClusterLevel, *, pixel_size_um: float, max_slope: float | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """(upper, lower) wall flags of the level's grid quads (see mesh.walls)."""
+    x_um, y_um = cluster.col_px * pixel_size_um, cluster.row_px * pixel_size_um
+    return grid_wall_triangles(x_um, y_um, cluster.z_um, max_slope=max_slope, sigma_um=cluster.sigma_um)
+
+
+@dataclass(frozen=True)
+class _TileMesh:
+    """A tile's triangle mesh: positions (N, 3) (col_px, row_px, z_um), triangles (M, 3), walls
+    (M,) bool, normals (N, 3) unit vectors in glTF axes."""
+
+    positions: np.ndarray
+    triangles: np.ndarray
+    walls: np.ndarray
+    normals: np.ndarray
+
+
+def _tile_mesh(
+    cluster: ClusterLevel, row_cells, col_cells, grid_walls, *, decimated: bool, pixel_size_um: float, max_slope
+) -> _TileMesh:
+    """The tile's grid mesh of the level, its walls taken from the level's (upper, lower)
+    `grid_walls`; or, `decimated`, its quadric decimation, whose walls are found anew."""
+    if not decimated:
+        positions, triangles = _grid_mesh(cluster, row_cells, col_cells)
+        walls = _grid_tile_walls(grid_walls, cluster, row_cells, col_cells)
+        normals = _grid_normals(cluster, row_cells, col_cells, pixel_size_um)
+    else:
+        positions, triangles = _decimated_mesh(cluster, row_cells, col_cells)
+        walls = wall_triangles(
+            positions[:, :2] * pixel_size_um,
+            positions[:, 2],
+            triangles,
+            max_slope=max_slope,
+            sigma_um=_nearest_cell(cluster, row_cells, col_cells, positions, cluster.sigma_um),
+        )
+        normals = _decimated_normals(cluster, row_cells, col_cells, positions, pixel_size_um)
+    return _TileMesh(positions, triangles, walls, normals)
+
+
+def _measured_error_um(mesh: _TileMesh, footprint, *, deviation, surface_um, tolerance_um) -> float:
+    """Largest vertical distance, µm, between a coarser level's tile and the full-resolution
+    `surface_um` over its footprint, less `tolerance_um` (None: nothing): read off the level's
+    grid `deviation` (vertex clustering), or else measured on the tile's triangles, walls left out."""
+    if deviation is not None:
+        return _nanmax(deviation[footprint] if tolerance_um is None else deviation[footprint] - tolerance_um[footprint])
+    return _mesh_deviation(
+        mesh.positions, mesh.triangles[~mesh.walls], surface_um, footprint, tolerance_um=tolerance_um
+    )
+
+
+def _lod_tile(
+    mesh: _TileMesh, cluster: ClusterLevel, row_cells, col_cells, *, key: tuple[int, int, int], error_um: float
+) -> LodTile:
+    """The tile `key` (level, tile_row, tile_col) with its texture coordinates and its block of
+    the level's texture as uint8."""
+    level, tile_row, tile_col = key
+    block = cluster.texture[row_cells[0] : row_cells[1] + 1, col_cells[0] : col_cells[1] + 1]
+    return LodTile(
+        level=level,
+        tile_row=tile_row,
+        tile_col=tile_col,
+        positions=mesh.positions,
+        normals=mesh.normals,
+        triangles=mesh.triangles,
+        uvs=_uvs(mesh.positions, cluster.cell_px, row_cells, col_cells),
+        texture=np.clip(np.round(block), 0, 255).astype(np.uint8),
+        geometric_error_um=error_um,
+        walls=mesh.walls,
+    )
 
 
 def _grid_mesh(cluster: ClusterLevel, row_cells, col_cells) -> tuple[np.ndarray, np.ndarray]:

@@ -74,14 +74,8 @@ def mesh_height_map(
         max_slope=options.max_slope,
         sigma_um=sigma_um,
     )
-    rows, cols = z_um.shape
-    corners = np.array([[0.0, 0.0, np.nanmin(filtered.z_um)], [cols - 1.0, rows - 1.0, np.nanmax(filtered.z_um)]])
     grid = (
-        None
-        if options.plain_glb
-        else glb.PositionGrid.spanning(
-            *glb.to_gltf_positions_m(corners, pixel_size_um=pixel_size_um, origin_um=origin_um)
-        )
+        None if options.plain_glb else _position_grid(filtered.z_um, pixel_size_um=pixel_size_um, origin_um=origin_um)
     )
     encoded = []
     # Tiles are built (numpy, mostly outside the GIL) in a worker thread while this thread encodes
@@ -90,18 +84,33 @@ def mesh_height_map(
         pending = builder.submit(next, tiles, None)
         while (tile := pending.result()) is not None:
             pending = builder.submit(next, tiles, None)
-            extras = {"level": tile.level, "tile_row": tile.tile_row, "tile_col": tile.tile_col}
-            encoded.append(
-                EncodedTile(
-                    level=tile.level,
-                    tile_row=tile.tile_row,
-                    tile_col=tile.tile_col,
-                    glb=glb.tile_glb(tile, pixel_size_um=pixel_size_um, grid=grid, origin_um=origin_um, extras=extras),
-                    geometric_error_m=tile.geometric_error_um * METRES_PER_UM,
-                    vertex_count=len(tile.positions),
-                    triangle_count=len(tile.triangles),
-                    wall_triangle_count=int(tile.walls.sum()),
-                )
-            )
+            encoded.append(_encoded_tile(tile, pixel_size_um=pixel_size_um, grid=grid, origin_um=origin_um))
             report(0.1 + 0.9 * len(encoded) / total, f"level {tile.level}: {len(encoded)} of at most {total} tiles")
     return encoded, filtered.report
+
+
+def _position_grid(z_um: np.ndarray, *, pixel_size_um: float, origin_um: tuple[float, float]) -> glb.PositionGrid:
+    """The quantization grid spanning the whole height map (rows, cols) µm, NaN unknown, in glTF
+    metres with pixel (0, 0) at `origin_um` (x, y): one grid for all its tiles."""
+    rows, cols = z_um.shape
+    corners = np.array([[0.0, 0.0, np.nanmin(z_um)], [cols - 1.0, rows - 1.0, np.nanmax(z_um)]])
+    return glb.PositionGrid.spanning(
+        *glb.to_gltf_positions_m(corners, pixel_size_um=pixel_size_um, origin_um=origin_um)
+    )
+
+
+def _encoded_tile(
+    tile: levels.LodTile, *, pixel_size_um: float, grid: glb.PositionGrid | None, origin_um: tuple[float, float]
+) -> EncodedTile:
+    """A tile as GLB on `grid` (None: plain float32), its level and place in the node's extras."""
+    extras = {"level": tile.level, "tile_row": tile.tile_row, "tile_col": tile.tile_col}
+    return EncodedTile(
+        level=tile.level,
+        tile_row=tile.tile_row,
+        tile_col=tile.tile_col,
+        glb=glb.tile_glb(tile, pixel_size_um=pixel_size_um, grid=grid, origin_um=origin_um, extras=extras),
+        geometric_error_m=tile.geometric_error_um * METRES_PER_UM,
+        vertex_count=len(tile.positions),
+        triangle_count=len(tile.triangles),
+        wall_triangle_count=int(tile.walls.sum()),
+    )

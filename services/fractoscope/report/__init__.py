@@ -14,6 +14,7 @@ from pathlib import Path
 
 import matplotlib.pyplot as plt
 
+from fractoscope.formats.calibration import Calibration
 from fractoscope.report.content import ReportContent, report_content
 from fractoscope.report.document import (
     Cell,
@@ -26,7 +27,7 @@ from fractoscope.report.document import (
     write_html,
     write_pdf,
 )
-from fractoscope.specimen.store import Specimen
+from fractoscope.specimen.store import RoiEntry, Specimen
 from fractoscope.surface.areal_parameters import UNITS
 from fractoscope.surface.profile_parameters import UNITS as PROFILE_UNITS
 
@@ -134,38 +135,6 @@ def _calibration(document: Document, content: ReportContent) -> None:
                 )
             )
             continue
-        rows = [
-            [
-                Cell(f"tilt of view {index}"),
-                Cell(f"{tilt:+.4f}", tilt, f"{roi.id}.tilt_deg[{index}]"),
-                Cell("°"),
-                Cell(source),
-                Cell(number(sigma), sigma if math.isfinite(sigma) else None, f"{roi.id}.tilt_sigma_deg[{index}]"),
-            ]
-            for index, (tilt, source, sigma) in enumerate(
-                zip(calibration.tilt_deg, calibration.tilt_source, calibration.tilt_sigma_deg)
-            )
-        ]
-        rows.append(
-            [
-                Cell("pixel size"),
-                Cell(f"{calibration.pixel_size_um:.6g}", calibration.pixel_size_um, f"{roi.id}.pixel_size_um"),
-                Cell("µm"),
-                Cell(calibration.pixel_size_source),
-                Cell(""),
-            ]
-        )
-        axis = roi.matching.get("tilt_axis_deg")
-        if axis is not None:
-            rows.append(
-                [
-                    Cell("tilt axis"),
-                    Cell(f"{axis:.4g}", axis, f"{roi.id}.tilt_axis_deg"),
-                    Cell("°"),
-                    Cell(roi.matching.get("tilt_axis_source") or "unknown"),
-                    Cell(""),
-                ]
-            )
         caption = (
             "tilt calibrated from the images (the reference view keeps its nominal tilt: only differences are "
             "observable)"
@@ -175,11 +144,49 @@ def _calibration(document: Document, content: ReportContent) -> None:
         document.add(
             Table(
                 ["ROI " + roi.id, "value", "unit", "source", "sigma (°)"],
-                rows,
+                _calibration_rows(roi, calibration),
                 caption=caption,
                 anchor=f"calibration-{roi.id}",
             )
         )
+
+
+def _calibration_rows(roi: RoiEntry, calibration: Calibration) -> list[list[Cell]]:
+    """One ROI's calibration table: each view's tilt, the pixel size and, where recorded, the tilt
+    axis, as (quantity, value, unit, source, sigma °)."""
+    rows = [
+        [
+            Cell(f"tilt of view {index}"),
+            Cell(f"{tilt:+.4f}", tilt, f"{roi.id}.tilt_deg[{index}]"),
+            Cell("°"),
+            Cell(source),
+            Cell(number(sigma), sigma if math.isfinite(sigma) else None, f"{roi.id}.tilt_sigma_deg[{index}]"),
+        ]
+        for index, (tilt, source, sigma) in enumerate(
+            zip(calibration.tilt_deg, calibration.tilt_source, calibration.tilt_sigma_deg)
+        )
+    ]
+    rows.append(
+        [
+            Cell("pixel size"),
+            Cell(f"{calibration.pixel_size_um:.6g}", calibration.pixel_size_um, f"{roi.id}.pixel_size_um"),
+            Cell("µm"),
+            Cell(calibration.pixel_size_source),
+            Cell(""),
+        ]
+    )
+    axis = roi.matching.get("tilt_axis_deg")
+    if axis is not None:
+        rows.append(
+            [
+                Cell("tilt axis"),
+                Cell(f"{axis:.4g}", axis, f"{roi.id}.tilt_axis_deg"),
+                Cell("°"),
+                Cell(roi.matching.get("tilt_axis_source") or "unknown"),
+                Cell(""),
+            ]
+        )
+    return rows
 
 
 def _roughness(document: Document, content: ReportContent) -> None:
@@ -242,41 +249,9 @@ def _finite(value) -> float | None:
 
 
 def _scaling(document: Document, content: ReportContent, figures) -> None:
-    values = content.roughness.legacy()
     document.add(
         Heading("Scaling", "scaling"),
-        Table(
-            ["quantity", "value", "unit"],
-            [
-                [
-                    Cell("Hurst exponent H"),
-                    Cell(number(values["hurst_exponent"], 3), _finite(values["hurst_exponent"]), "hurst_exponent"),
-                    Cell("1"),
-                ],
-                [
-                    Cell("fit from"),
-                    Cell(number(values["hurst_fit_min_um"]), _finite(values["hurst_fit_min_um"]), "hurst_fit_min_um"),
-                    Cell("µm"),
-                ],
-                [
-                    Cell("fit to"),
-                    Cell(number(values["hurst_fit_max_um"]), _finite(values["hurst_fit_max_um"]), "hurst_fit_max_um"),
-                    Cell("µm"),
-                ],
-                [
-                    Cell("fractal dimension 3 - H"),
-                    Cell(
-                        number(values["fractal_dimension"], 3),
-                        _finite(values["fractal_dimension"]),
-                        "fractal_dimension",
-                    ),
-                    Cell("1"),
-                ],
-            ],
-            anchor="scaling-table",
-            caption="The slope of log h(r) against log r, h(r) the height-height correlation (second "
-            f"differences) along {content.roughness.chain.direction_deg:g}° from +x, over the fit range below.",
-        ),
+        _scaling_table(content),
         Paragraph(f"Fit range: {content.trustworthy_note}."),
         FigureBlock(
             figures.hurst_figure(content), "The height-height correlation and its power-law fit.", "hurst-figure"
@@ -284,35 +259,7 @@ def _scaling(document: Document, content: ReportContent, figures) -> None:
     )
     fits = content.roughness.hurst.fits
     if fits:
-        document.add(
-            Table(
-                ["method", "direction (°)", "H", "standard error", "fit from (µm)", "fit to (µm)"],
-                [
-                    [
-                        Cell(_METHOD_NAMES[method]),
-                        Cell(f"{fit.direction_deg:g} ({side})"),
-                        *(
-                            Cell(
-                                number(value, 3 if key in ("hurst", "hurst_stderr") else 4),
-                                value if math.isfinite(value) else None,
-                                f"hurst.{method}.{side}.{key}",
-                            )
-                            for key, value in (
-                                ("hurst", fit.hurst),
-                                ("hurst_stderr", fit.hurst_stderr),
-                                ("fit_min_um", fit.fit_min_um),
-                                ("fit_max_um", fit.fit_max_um),
-                            )
-                        ),
-                    ]
-                    for method, sides in fits.items()
-                    for side, fit in sides.items()
-                ],
-                anchor="hurst-table",
-                caption="Both methods along the chain's direction and across it (90° more); standard errors by "
-                "jackknife over bands of profiles. The PSD's fit range is in wavelengths (twice the lags).",
-            )
-        )
+        document.add(_hurst_fits_table(fits))
     if content.roughness.hurst.note:
         note = content.roughness.hurst.note
         document.add(Paragraph(note[:1].upper() + note[1:] + ".", emphasis=not fits))
@@ -323,6 +270,74 @@ def _scaling(document: Document, content: ReportContent, figures) -> None:
             "fits' curves), and the power laws fitted.",
             "psd-figure",
         )
+    )
+
+
+def _scaling_table(content: ReportContent) -> Table:
+    """The Hurst exponent, its fit range (µm) and the fractal dimension, as the API gives them."""
+    values = content.roughness.legacy()
+    return Table(
+        ["quantity", "value", "unit"],
+        [
+            [
+                Cell("Hurst exponent H"),
+                Cell(number(values["hurst_exponent"], 3), _finite(values["hurst_exponent"]), "hurst_exponent"),
+                Cell("1"),
+            ],
+            [
+                Cell("fit from"),
+                Cell(number(values["hurst_fit_min_um"]), _finite(values["hurst_fit_min_um"]), "hurst_fit_min_um"),
+                Cell("µm"),
+            ],
+            [
+                Cell("fit to"),
+                Cell(number(values["hurst_fit_max_um"]), _finite(values["hurst_fit_max_um"]), "hurst_fit_max_um"),
+                Cell("µm"),
+            ],
+            [
+                Cell("fractal dimension 3 - H"),
+                Cell(
+                    number(values["fractal_dimension"], 3),
+                    _finite(values["fractal_dimension"]),
+                    "fractal_dimension",
+                ),
+                Cell("1"),
+            ],
+        ],
+        anchor="scaling-table",
+        caption="The slope of log h(r) against log r, h(r) the height-height correlation (second "
+        f"differences) along {content.roughness.chain.direction_deg:g}° from +x, over the fit range below.",
+    )
+
+
+def _hurst_fits_table(fits) -> Table:
+    """Each method's Hurst fit ({method: {side: fit}}) along the chain's direction and across it."""
+    return Table(
+        ["method", "direction (°)", "H", "standard error", "fit from (µm)", "fit to (µm)"],
+        [
+            [
+                Cell(_METHOD_NAMES[method]),
+                Cell(f"{fit.direction_deg:g} ({side})"),
+                *(
+                    Cell(
+                        number(value, 3 if key in ("hurst", "hurst_stderr") else 4),
+                        value if math.isfinite(value) else None,
+                        f"hurst.{method}.{side}.{key}",
+                    )
+                    for key, value in (
+                        ("hurst", fit.hurst),
+                        ("hurst_stderr", fit.hurst_stderr),
+                        ("fit_min_um", fit.fit_min_um),
+                        ("fit_max_um", fit.fit_max_um),
+                    )
+                ),
+            ]
+            for method, sides in fits.items()
+            for side, fit in sides.items()
+        ],
+        anchor="hurst-table",
+        caption="Both methods along the chain's direction and across it (90° more); standard errors by "
+        "jackknife over bands of profiles. The PSD's fit range is in wavelengths (twice the lags).",
     )
 
 

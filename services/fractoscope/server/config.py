@@ -6,10 +6,12 @@ way), FRACTO_WORKERS (threads answering queries), FRACTO_BUILD_WORKERS and FRACT
 threads of their own), FRACTO_MAX_REQUEST_MB (memory one such request may take; default: 60 % of
 the server's memory over the build workers), FRACTO_LOG_LEVEL, FRACTO_DATA_DIR (where specimens are
 kept), FRACTO_MATCHING_ADDRESS and FRACTO_MESHING_ADDRESS (the services the tile service calls;
-default: this process's own, called in-process), FRACTO_STRIP_PEERS (matching replicas that match the strips of large
-pairs, e.g. the headless Service of the matching Deployment; empty = match here), FRACTO_STRIP_PIXELS and
-FRACTO_STRIP_IN_FLIGHT, FRACTO_HTTP_ADDRESS (host:port of the plain-HTTP tile endpoint; empty =
-off). Tokens (FRACTO_TOKENS, see auth) and TLS (FRACTO_TLS_CERT, FRACTO_TLS_KEY) likewise.
+default: this process's own, called in-process), FRACTO_STRIP_PEERS (matching replicas that match
+the strips of large pairs, e.g. the headless Service of the matching Deployment; empty = match
+here), FRACTO_STRIP_PIXELS and FRACTO_STRIP_IN_FLIGHT, FRACTO_HTTP_ADDRESS (host:port of the
+plain-HTTP tile endpoint; empty = off). Tokens (FRACTO_TOKENS, see auth) and TLS (FRACTO_TLS_CERT,
+FRACTO_TLS_KEY) likewise. FRACTO_WEB_ROOT (the installed web viewer, read by tiles.http; default
+sys.prefix/share/fractoscope/web) has no flag.
 """
 
 from __future__ import annotations

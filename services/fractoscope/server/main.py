@@ -92,9 +92,7 @@ def create_server(
     need a bearer token (see auth); with a certificate and key, the port speaks TLS. The matching
     service farms strips of about `strip_pixels` out to `strip_peers` when given,
     `strip_in_flight` at a time."""
-    for name in services:
-        if name not in _REGISTRATIONS:
-            raise ValueError(f"unknown service {name!r}; known: {', '.join(SERVICE_NAMES)}")
+    _check_known(services)
     build_workers = build_workers or default_build_workers()
     builds = JobRunner("builds", workers=build_workers, queue_limit=build_queue)
     strips = JobRunner("strips", workers=build_workers, queue_limit=build_queue)
@@ -111,44 +109,79 @@ def create_server(
         )
     if "meshing" in services:
         servicers["meshing"] = MeshingServicer(builds=builds, memory=memory)
-    tokens = tokens if tokens is not None and tokens.enabled else None
-    interceptors = [AuthInterceptor(tokens)] if tokens else []
-    interceptors.append(
-        ThreadPoolRouting(
-            _JOB_METHODS, job_call_threads=builds.max_followers + strips.max_followers + _SPARE_JOB_CALL_THREADS
-        )
-    )
-    interceptors.append(MalformedRequests())  # within the routing, which keeps its deserializer
     if "tiles" in services:
         store = store or SpecimenStore(Path(data_dir))
-        restored, _ = store.recover()  # this server is the store's one writer
-        for specimen_id in restored:
-            _log.warning(
-                f"specimen {specimen_id!r}: a build was killed while it replaced the stored one, which is restored"
-            )
-        servicers["tiles"] = TileServicer(
-            store,
-            builds=builds,
-            memory=memory,
-            local_matching=servicers.get("matching") if matching_address is None else None,
-            matching_address=matching_address,
-            local_meshing=servicers.get("meshing") if meshing_address is None else None,
-            meshing_address=meshing_address,
-        )
-        interceptors.append(SerializedGetTile(servicers["tiles"]))  # after the token check
+        servicers["tiles"] = _tile_servicer(store, builds, memory, servicers, matching_address, meshing_address)
+    tokens = tokens if tokens is not None and tokens.enabled else None
     _warn_of_peer_credentials(tokens, servicers)
-    server = grpc.server(
-        futures.ThreadPoolExecutor(max_workers=workers),
-        options=message_size_options(max_message_mb),
-        interceptors=interceptors,
-    )
-    _register(server, servicers)
+    interceptors = _interceptors(tokens, servicers.get("tiles"), job_runners=(builds, strips))
+    server = _grpc_server(servicers, interceptors, workers=workers, max_message_mb=max_message_mb)
     port = _bind(server, address, tls_cert_path, tls_key_path)
     _log.info(
         f"builds: {build_workers} at a time, {build_queue} waiting, {memory.limit_bytes // 2**20} MiB of memory per "
         "request"
     )
     return server, port
+
+
+def _check_known(services: tuple[str, ...]) -> None:
+    """ValueError naming the first of `services` that this server has none of."""
+    for name in services:
+        if name not in _REGISTRATIONS:
+            raise ValueError(f"unknown service {name!r}; known: {', '.join(SERVICE_NAMES)}")
+
+
+def _tile_servicer(
+    store: SpecimenStore,
+    builds: JobRunner,
+    memory: MemoryBudget,
+    servicers: dict,
+    matching_address: str | None,
+    meshing_address: str | None,
+) -> TileServicer:
+    """The tile service over `store`, restored first, calling matching and meshing at their
+    addresses or else in `servicers`."""
+    restored, _ = store.recover()  # this server is the store's one writer
+    for specimen_id in restored:
+        _log.warning(
+            f"specimen {specimen_id!r}: a build was killed while it replaced the stored one, which is restored"
+        )
+    return TileServicer(
+        store,
+        builds=builds,
+        memory=memory,
+        local_matching=servicers.get("matching") if matching_address is None else None,
+        matching_address=matching_address,
+        local_meshing=servicers.get("meshing") if meshing_address is None else None,
+        meshing_address=meshing_address,
+    )
+
+
+def _interceptors(
+    tokens: TokenTable | None, tiles: TileServicer | None, *, job_runners: tuple[JobRunner, ...]
+) -> list[grpc.ServerInterceptor]:
+    """The token check (with `tokens`), then the routing of job calls to threads of their own,
+    one for every call the `job_runners` admit and some spare, then the rest."""
+    job_call_threads = sum(runner.max_followers for runner in job_runners) + _SPARE_JOB_CALL_THREADS
+    interceptors = [AuthInterceptor(tokens)] if tokens else []
+    interceptors.append(ThreadPoolRouting(_JOB_METHODS, job_call_threads=job_call_threads))
+    interceptors.append(MalformedRequests())  # within the routing, which keeps its deserializer
+    if tiles is not None:
+        interceptors.append(SerializedGetTile(tiles))  # after the token check
+    return interceptors
+
+
+def _grpc_server(
+    servicers: dict, interceptors: list[grpc.ServerInterceptor], *, workers: int, max_message_mb: int
+) -> grpc.Server:
+    """A server of the servicers (see _register) answering on `workers` threads, not yet bound."""
+    server = grpc.server(
+        futures.ThreadPoolExecutor(max_workers=workers),
+        options=message_size_options(max_message_mb),
+        interceptors=interceptors,
+    )
+    _register(server, servicers)
+    return server
 
 
 def _warn_of_peer_credentials(tokens: TokenTable | None, servicers: dict) -> None:

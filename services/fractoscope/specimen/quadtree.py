@@ -23,7 +23,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from fractoscope.mesh.walls import WALL_SIGMA_FACTOR, grid_wall_triangles, wall_vertices, within_distance
-from fractoscope.specimen.fusion import FusedSurface, overlaps
+from fractoscope.specimen.fusion import FusedSurface, PlacedRoi, overlaps
 
 OPTICAL, DIGITAL = "optical", "digital"
 # 64 x 64 cells keep a textured tile near 200 KB, small enough to stream many per second; the
@@ -169,16 +169,7 @@ def build_tiles(
         )
         emit(key, tile)
         announce(f"tile {key.uri}")
-        record = TileRecord(
-            key=key,
-            roi=shown.id,
-            magnification=shown.magnification,
-            zoom=OPTICAL if shown.pixel_size_um <= cell_um * _REFINE_RATIO else DIGITAL,
-            geometric_error_um=0.0,
-            z_min_um=float(np.nanmin(samples.z_um)),
-            z_max_um=float(np.nanmax(samples.z_um)),
-        )
-        records[key] = record
+        record = records[key] = _leaf_record(key, shown, tile)
         finest_um = min(roi.pixel_size_um for roi in below)
         if finest_um * _REFINE_RATIO < cell_um:
             for child in key.children():
@@ -187,22 +178,7 @@ def build_tiles(
                     record.z_min_um = min(record.z_min_um, records[child].z_min_um)
                     record.z_max_um = max(record.z_max_um, records[child].z_max_um)
         if record.children:
-            levels_below = math.ceil(math.log2(cell_um / (finest_um * _REFINE_RATIO)) - 1e-9)
-            error_um = _deviation_um(surface, layout, key, tile, levels_below=min(levels_below, _ERROR_LEVELS))
-            if levels_below > _ERROR_LEVELS:  # what the tiles _ERROR_LEVELS below leave, by the triangle inequality
-                error_um += max(
-                    (
-                        r.geometric_error_um
-                        for k, r in records.items()
-                        if k.level == key.level + _ERROR_LEVELS and _within(k, key)
-                    ),
-                    default=0.0,
-                )
-            # The image shown loses detail finer than a cell as the surface loses height detail;
-            # and viewers refine a tile whose error is not below its parent's without showing it.
-            record.geometric_error_um = max(
-                error_um, cell_um, _ABOVE_CHILDREN * max(records[child].geometric_error_um for child in record.children)
-            )
+            record.geometric_error_um = _refined_error_um(surface, layout, tile, record, records, finest_um=finest_um)
         return True
 
     visit(TileKey(0, 0, 0))
@@ -213,6 +189,49 @@ _ABOVE_CHILDREN = 1.01
 # A tile's error is measured on the surface sampled up to 2**_ERROR_LEVELS times finer than its
 # cells (at most (64 * 16 + 1)² points): the finest data below a tile of a deep tree.
 _ERROR_LEVELS = 4
+
+
+def _leaf_record(key: TileKey, shown: PlacedRoi, tile: TileSamples) -> TileRecord:
+    """The record of a tile meshed from `tile` and shown by the ROI `shown`, as if it had no
+    children: no geometric error, the height range of its own vertices."""
+    return TileRecord(
+        key=key,
+        roi=shown.id,
+        magnification=shown.magnification,
+        zoom=OPTICAL if shown.pixel_size_um <= tile.cell_um * _REFINE_RATIO else DIGITAL,
+        geometric_error_um=0.0,
+        z_min_um=float(np.nanmin(tile.z_um)),
+        z_max_um=float(np.nanmax(tile.z_um)),
+    )
+
+
+def _refined_error_um(
+    surface: FusedSurface,
+    layout: QuadtreeLayout,
+    tile: TileSamples,
+    record: TileRecord,
+    records: dict[TileKey, TileRecord],
+    *,
+    finest_um: float,
+) -> float:
+    """The geometric error of a tile with children (`record`, its children's records in
+    `records`), µm: its height error against the data below it, whose finest pixels are
+    `finest_um`, at least its cell size and above its children's errors."""
+    key, cell_um = record.key, tile.cell_um
+    levels_below = math.ceil(math.log2(cell_um / (finest_um * _REFINE_RATIO)) - 1e-9)
+    error_um = _deviation_um(surface, layout, key, tile, levels_below=min(levels_below, _ERROR_LEVELS))
+    if levels_below > _ERROR_LEVELS:  # what the tiles _ERROR_LEVELS below leave, by the triangle inequality
+        error_um += max(
+            (
+                r.geometric_error_um
+                for k, r in records.items()
+                if k.level == key.level + _ERROR_LEVELS and _within(k, key)
+            ),
+            default=0.0,
+        )
+    # The image shown loses detail finer than a cell as the surface loses height detail;
+    # and viewers refine a tile whose error is not below its parent's without showing it.
+    return max(error_um, cell_um, _ABOVE_CHILDREN * max(records[child].geometric_error_um for child in record.children))
 
 
 def _deviation_um(

@@ -128,9 +128,21 @@ def profile_along(
     # ISO 21920-2's five sections need two samples each.
     if np.isfinite(z_um[regular]).sum() < 2 * profile_parameters.SECTIONS:
         return SpecimenProfile(distances, z_um, samples.source, sources, None)
+    made = _roughness_profile(z_um[regular], spacing_um, form, lambdas[0], lambdas[1])
+    r_um = np.full(z_um.shape, np.nan)
+    r_um[regular] = made.r_um
+    parameters = profile_parameters.profile_parameters(made.r_um, spacing_um=spacing_um)
+    return SpecimenProfile(distances, z_um, samples.source, sources, parameters, made, r_um)
+
+
+def _roughness_profile(
+    z_um: np.ndarray, spacing_um: float, form: str, lambda_s_um: float | None, lambda_c_um: float | None
+) -> profile_parameters.RoughnessProfile:
+    """The ISO 21920-3 chain on equally spaced heights (n,) µm; a setting it rejects is an error
+    naming the request's field."""
     try:
-        made = profile_parameters.roughness_profile(
-            z_um[regular], spacing_um=spacing_um, form=form, lambda_s_um=lambdas[0], lambda_c_um=lambdas[1]
+        return profile_parameters.roughness_profile(
+            z_um, spacing_um=spacing_um, form=form, lambda_s_um=lambda_s_um, lambda_c_um=lambda_c_um
         )
     except ValueError as error:
         message = str(error)
@@ -142,10 +154,6 @@ def profile_along(
             else "form"
         )
         raise InvalidInputError(field, message) from None
-    r_um = np.full(z_um.shape, np.nan)
-    r_um[regular] = made.r_um
-    parameters = profile_parameters.profile_parameters(made.r_um, spacing_um=spacing_um)
-    return SpecimenProfile(distances, z_um, samples.source, sources, parameters, made, r_um)
 
 
 def height_statistics(specimen: Specimen, region_um) -> dict:

@@ -5,3 +5,19 @@ drives dense matching (local contrast, strips, stitching) and `window_zncc` is t
 matches a strip; `geometry` and `tilt_series` turn disparities into heights and their
 uncertainty; `pipeline` runs the whole chain for one request.
 """
+
+__all__ = [
+    "alignment",
+    "correlation",
+    "disparity",
+    "geometry",
+    "matching",
+    "photometric",
+    "pipeline",
+    "semi_global",
+    "tgv_refinement",
+    "tgv_zncc",
+    "tilt_series",
+    "visibility",
+    "window_zncc",
+]

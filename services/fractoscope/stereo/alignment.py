@@ -75,6 +75,44 @@ def estimate_alignment(
     """Global placement of `second` against `first` (both (rows, cols), parallax along x), from
     SIFT features found on copies at most `max_side_px` wide; returns zeros when fewer than 12
     features match."""
+    points = _matched_feature_points(first, second, max_features=max_features, max_side_px=max_side_px)
+    if points is None:
+        return _NO_ALIGNMENT
+    points1, points2 = points
+    # Rows: y2 - y1 = sin(θ) x1 + (scale - 1) y1 + shift_across (small rotation and magnification
+    # change), fitted with outlier trimming. Features within a few dozen rows cannot tell a
+    # magnification (a 48-row strip once got 0.981 ± 0.005 and a 20 µm ramp): it is then left at 1.
+    fit_scale = float(np.std(points1[:, 1])) >= _MIN_ROW_SPREAD_PX
+    design = np.column_stack(
+        [points1[:, 0], points1[:, 1] if fit_scale else np.zeros(len(points1)), np.ones(len(points1))]
+    )
+    row_fit = _trimmed_row_fit(design, points2[:, 1] - points1[:, 1])
+    if row_fit is None:
+        return _NO_ALIGNMENT
+    (sin_rotation, scale_change, shift_across), residual, inliers = row_fit
+    magnification = 1.0 + scale_change
+    rotation = np.arcsin(np.clip(sin_rotation / magnification, -1.0, 1.0))
+    rotated_x = magnification * (np.cos(rotation) * points1[:, 0] - np.sin(rotation) * points1[:, 1])
+    shift_parallel_px, spread_px = _parallax_median_and_spread_px((points2[:, 0] - rotated_x)[inliers])
+    return Alignment(
+        parallax_direction_deg=_parallax_direction_deg(points1[inliers], points2[inliers]),
+        shift_parallel_px=shift_parallel_px,
+        shift_across_px=float(shift_across),
+        rotation_deg=float(np.degrees(rotation)),
+        residual_vertical_parallax_px=float(np.sqrt(np.mean(residual[inliers] ** 2))),
+        parallax_spread_px=spread_px,
+        matched_features=int(inliers.sum()),
+        scale=float(magnification),
+        scale_sigma=_scale_sigma(design, residual, inliers, fit_scale=fit_scale),
+    )
+
+
+def _matched_feature_points(
+    first: np.ndarray, second: np.ndarray, *, max_features: int, max_side_px: int
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """Where the SIFT features that match lie in `first` and in `second` ((K, 2) each: col, row,
+    full-resolution px from the first image's centre), found on copies at most `max_side_px`
+    wide; None when either image has fewer than 12 features or fewer than 12 match."""
     scale = min(1.0, max_side_px / max(first.shape))
     first8, second8 = (
         _to_uint8(cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA))
@@ -84,61 +122,56 @@ def estimate_alignment(
     keys1, desc1 = sift.detectAndCompute(first8, None)
     keys2, desc2 = sift.detectAndCompute(second8, None)
     if desc1 is None or desc2 is None or len(keys1) < 12 or len(keys2) < 12:
-        return _NO_ALIGNMENT
+        return None
     # Lowe's ratio test: keep matches clearly better than the second-best candidate.
     candidates = cv2.BFMatcher(cv2.NORM_L2).knnMatch(desc1, desc2, k=2)
     matches = [pair[0] for pair in candidates if len(pair) == 2 and pair[0].distance < 0.8 * pair[1].distance]
     if len(matches) < 12:
-        return _NO_ALIGNMENT
+        return None
     centre = np.array([(first.shape[1] - 1) / 2.0, (first.shape[0] - 1) / 2.0])
     # Keypoints of the scaled copy, back in full-resolution pixel coordinates.
     points1 = (np.array([keys1[m.queryIdx].pt for m in matches]) + 0.5) / scale - 0.5 - centre
     points2 = (np.array([keys2[m.trainIdx].pt for m in matches]) + 0.5) / scale - 0.5 - centre
+    return points1, points2
 
-    # Rows: y2 - y1 = sin(θ) x1 + (scale - 1) y1 + shift_across (small rotation and magnification
-    # change), fitted with outlier trimming. Features within a few dozen rows cannot tell a
-    # magnification (a 48-row strip once got 0.981 ± 0.005 and a 20 µm ramp): it is then left at 1.
-    fit_scale = float(np.std(points1[:, 1])) >= _MIN_ROW_SPREAD_PX
-    design = np.column_stack(
-        [points1[:, 0], points1[:, 1] if fit_scale else np.zeros(len(points1)), np.ones(len(points1))]
-    )
-    across = points2[:, 1] - points1[:, 1]
-    inliers = np.abs(across - np.median(across)) < 3.0
+
+def _trimmed_row_fit(design: np.ndarray, across_px: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Least-squares coefficients of the features' row differences `across_px` (K,) on `design`
+    (K, 3), trimmed of outliers over five rounds, with the residuals (K,, px) and the inliers
+    (K,, bool); None when fewer than 8 features stay inliers."""
+    inliers = np.abs(across_px - np.median(across_px)) < 3.0
     for _ in range(5):
         if inliers.sum() < 8:
-            return _NO_ALIGNMENT
-        coef, *_ = np.linalg.lstsq(design[inliers], across[inliers], rcond=None)
-        residual = across - design @ coef
+            return None
+        coef, *_ = np.linalg.lstsq(design[inliers], across_px[inliers], rcond=None)
+        residual = across_px - design @ coef
         residual_scale = max(1.4826 * np.median(np.abs(residual[inliers])), 0.3)
         inliers = np.abs(residual) < 3.0 * residual_scale
-    sin_rotation, scale_change, shift_across = coef
-    dof = max(int(inliers.sum()) - 2 - fit_scale, 1)
-    covariance = (
-        np.linalg.pinv(design[inliers].T @ design[inliers]) * float(residual[inliers] @ residual[inliers]) / dof
-    )
-    scale_sigma = float(np.sqrt(covariance[1, 1])) if fit_scale else float("nan")
-    magnification = 1.0 + scale_change
-    rotation = np.arcsin(np.clip(sin_rotation / magnification, -1.0, 1.0))
-    rotated_x = magnification * (np.cos(rotation) * points1[:, 0] - np.sin(rotation) * points1[:, 1])
-    parallax = (points2[:, 0] - rotated_x)[inliers]
+    return coef, residual, inliers
+
+
+def _scale_sigma(design: np.ndarray, residual_px: np.ndarray, inliers: np.ndarray, *, fit_scale: bool) -> float:
+    """One-sigma uncertainty of the row fit's scale coefficient (`design` column 1) from its
+    residuals over the inliers; NaN when the scale was not fitted."""
+    if not fit_scale:
+        return float("nan")
+    dof = max(int(inliers.sum()) - 3, 1)  # rotation, scale and shift fitted
+    normal = design[inliers].T @ design[inliers]
+    covariance = np.linalg.pinv(normal) * float(residual_px[inliers] @ residual_px[inliers]) / dof
+    return float(np.sqrt(covariance[1, 1]))
+
+
+def _parallax_median_and_spread_px(parallax_px: np.ndarray) -> tuple[float, float]:
+    """Median of the features' parallaxes (K,, px) and how far their 2nd and 98th percentiles
+    reach from it (px, NaN with fewer than _MIN_SPREAD_FEATURES), far outliers left out."""
     # Mismatched features can claim absurd parallaxes; far outliers would inflate the search range.
-    spread = max(1.4826 * np.median(np.abs(parallax - np.median(parallax))), 1.0)
-    parallax = parallax[np.abs(parallax - np.median(parallax)) < 8.0 * spread]
-    low, median, high = np.percentile(parallax, [2, 50, 98])
+    spread = max(1.4826 * np.median(np.abs(parallax_px - np.median(parallax_px))), 1.0)
+    parallax_px = parallax_px[np.abs(parallax_px - np.median(parallax_px)) < 8.0 * spread]
+    low, median, high = np.percentile(parallax_px, [2, 50, 98])
     # A few dozen features sample the parallax too thinly to bound it: on a cleavage surface 8
     # features on two facets gave ±2 px where the heights span −16 to +41 px.
-    spread_px = float(max(median - low, high - median)) if len(parallax) >= _MIN_SPREAD_FEATURES else float("nan")
-    return Alignment(
-        parallax_direction_deg=_parallax_direction_deg(points1[inliers], points2[inliers]),
-        shift_parallel_px=float(median),
-        shift_across_px=float(shift_across),
-        rotation_deg=float(np.degrees(rotation)),
-        residual_vertical_parallax_px=float(np.sqrt(np.mean(residual[inliers] ** 2))),
-        parallax_spread_px=spread_px,
-        matched_features=int(inliers.sum()),
-        scale=float(magnification),
-        scale_sigma=scale_sigma,
-    )
+    spread_px = float(max(median - low, high - median)) if len(parallax_px) >= _MIN_SPREAD_FEATURES else float("nan")
+    return float(median), spread_px
 
 
 def _parallax_direction_deg(points1: np.ndarray, points2: np.ndarray) -> float:

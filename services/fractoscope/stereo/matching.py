@@ -84,11 +84,22 @@ def match_disparity(
         )
         for top, start, stop, bottom in bounds
     )
-    disparity = np.empty(left.shape, np.float32)
-    confidence = np.empty(left.shape, np.float32)
-    sigma_px = np.empty(left.shape, np.float32)
     report(0.0, f"matching {len(bounds)} strip{'s' if len(bounds) > 1 else ''}")
-    for index, ((_, start, stop, _), strip) in enumerate(zip(bounds, (strip_matcher or match_strips)(tasks))):
+    return _stitched(left.shape, bounds, (strip_matcher or match_strips)(tasks), report)
+
+
+def _stitched(
+    shape: tuple[int, int],
+    bounds: list[tuple[int, int, int, int]],
+    strips: Iterable[DisparityResult],
+    report: ProgressCallback,
+) -> DisparityResult:
+    """One result of `shape` (rows, cols), float32, from the `strips` matched on `bounds` (see
+    strip_bounds), each giving its rows start:stop; progress is reported as each strip arrives."""
+    disparity = np.empty(shape, np.float32)
+    confidence = np.empty(shape, np.float32)
+    sigma_px = np.empty(shape, np.float32)
+    for index, ((_, start, stop, _), strip) in enumerate(zip(bounds, strips)):
         for out, values in zip(
             (disparity, confidence, sigma_px), (strip.disparity_px, strip.confidence, strip.sigma_px)
         ):

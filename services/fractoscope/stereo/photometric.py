@@ -26,11 +26,9 @@ add the short ones. A tridiagonal system per row.
 
 Used only where the shading does tell slopes: when, averaged over 4 px, the slopes the
 brightness alone tells (the model linearized about a flat surface, so independent of the
-stereo's) correlate with the stereo's by at least `MIN_AGREEMENT`. On the synthetic surfaces
-(2 % noise, ±5° and 0/10°) they do by 0.94-0.95 (dimples), 0.96 (self-affine) and 0.89-0.91 (the
-overview); on synthetic cleavage by 0.14 and -0.08 (its facets are flat between their walls) and
-on the real pollen pairs by 0.09 (±3°) and 0.11 (±6°; edge contrast, not the secant law, shapes
-their shading), and there nothing changes.
+stereo's) correlate with the stereo's by at least `MIN_AGREEMENT`; elsewhere (flat facets, or
+shading shaped by edge contrast rather than the secant law) nothing changes. Measured agreements:
+docs/matching-notes.md.
 
 Convention: disparity d at left pixel (row, col) means it matches right pixel (row, col + d).
 """

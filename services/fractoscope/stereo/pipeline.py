@@ -136,10 +136,7 @@ def compute_series_height_map(
     sigma_um = geometry.height_sigma_um(
         z_um, matched.sigmas, tilt_deg=tilts, pixel_size_um=pixel_size, tilt_uncertainty_deg=tilt_uncertainty
     )
-    confidence = (
-        matched.confidences[0] if len(matched.confidences) == 1 else np.nanmax(np.stack(matched.confidences), axis=0)
-    )
-    z_um, sigma_um, confidence = _on_stored_grid(rectified, images[0], z_um, sigma_um, confidence)
+    z_um, sigma_um, confidence = _on_stored_grid(rectified, images[0], z_um, sigma_um, matched.best_confidence())
     axis_estimated = _estimated_tilt_axis_deg(matched.placements, tilt_axis_deg, warnings)
     report = _report(
         tilts=tilts,
@@ -153,8 +150,7 @@ def compute_series_height_map(
         calibration=calibration,
         tilt_uncertainty=tilt_uncertainty,
     )
-    report.update(sources, parameters=_parameters_used(options))
-    report["elapsed_s"] = time.perf_counter() - started
+    report.update(sources, parameters=_parameters_used(options), elapsed_s=time.perf_counter() - started)
     report["method"] = MatchingMethod(options.method).value
     report_progress(1.0, "done")
     return HeightMapResult(z_um, sigma_um, np.nan_to_num(confidence).astype(np.float32), report)
@@ -242,6 +238,10 @@ class _MatchedViews:
     strip_count: int
     photometric_agreement: list[float]
     photometric_slopes_used: list[bool]
+
+    def best_confidence(self) -> np.ndarray:
+        """The highest peak ZNCC any view reached at each pixel (rows, cols)."""
+        return self.confidences[0] if len(self.confidences) == 1 else np.nanmax(np.stack(self.confidences), axis=0)
 
 
 def _match_views(views, options: MatchingOptions, strip_matcher, report_progress) -> _MatchedViews:

@@ -7,11 +7,8 @@ than the refinement's ±1 px data term can walk back, and now and then it settle
 on a wrong disparity. Semi-global matching sums pixel costs along eight (here five) image paths
 with a penalty on every disparity change, so it places steps where the pixels put them and keeps
 facets whole; it is noisy on weak texture, which its speckle filter masks. Its disparities are
-therefore where the default matcher starts (`tgv_zncc`): on four synthetic cleavage surfaces at
-±5° the RMS height error drops from 1.6-6.9 % of the range (3.5 % on average) to 1.4-2.3 %
-(1.8 %), and at 0/10° from 4.8 % to 4.7 % on average; dimples measure 0.02-0.06 points better,
-self-affine surfaces and the real pollen pair as before. At half resolution (a quarter of the
-time) cleavage measured as well, but dimples at 0/10° up to 0.15 points worse.
+therefore where the default matcher starts (`tgv_zncc`), at full resolution (measurements:
+docs/matching-notes.md).
 
 Convention: disparity d at left pixel (row, col) means it matches right pixel (row, col + d).
 

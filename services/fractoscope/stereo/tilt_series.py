@@ -127,53 +127,85 @@ def estimate_tilts(
     if views < 3:
         raise ValueError("tilt angles are observable from three or more views only")
     others = [view for view in range(views) if view != reference]
-    known = np.all(np.isfinite(disparities_px[others]), axis=0)
-    if known.sum() < MIN_CALIBRATION_POINTS:
-        raise TooFewPointsError(
-            f"only {known.sum()} points are matched in every view; at least {MIN_CALIBRATION_POINTS} are needed"
-        )
+    known = _matched_in_every_view(disparities_px, others)
     x_mean = float(x_px[known].mean())
     d_mean = disparities_px[:, known].mean(axis=1)
     x = x_px[known] - x_mean
     d = disparities_px[:, known] - d_mean[:, None]
 
-    def with_others(values) -> np.ndarray:
-        tilts = nominal.copy()
-        tilts[others] = values
-        return tilts
-
     def residuals_of(disparities, values):
-        tilts = with_others(values)
+        tilts = _with_others(nominal, others, values)
         z, _ = heights_px(x, disparities, tilts, reference=reference)
         a, b = coefficients(tilts, reference=reference)
         return np.concatenate([disparities[view] - x * a[view] - z * b[view] for view in others])
 
     fit = least_squares(lambda values: residuals_of(d, values), nominal[others], method="lm")
-    tilts = with_others(fit.x)
-    # Variable projection: the heights are solved inside, so the Jacobian covers the tilts alone.
-    dof = max(fit.fun.size - fit.x.size - x.size, 1)
-    variance = float(fit.fun @ fit.fun) / dof
+    tilts = _with_others(nominal, others, fit.x)
+    labels = None if cluster is None else np.unique(np.asarray(cluster)[known], return_inverse=True)[1]
     sigma_deg = np.zeros(views)
-    try:
-        if cluster is None:
-            sigma_deg[others] = np.sqrt(np.clip(np.diag(np.linalg.inv(fit.jac.T @ fit.jac)) * variance, 0, None))
-        else:
-            labels = np.unique(np.asarray(cluster)[known], return_inverse=True)[1]
-            sigma_deg[others] = _jackknife_sigma(fit.jac, fit.fun, np.tile(labels, len(others)))
-    except np.linalg.LinAlgError:
-        sigma_deg[others] = np.inf
+    sigma_deg[others] = _fit_sigma_deg(fit.jac, fit.fun, heights=x.size, labels=labels)
     if magnification_sigma is not None:
-        # Residuals are linear in the disparities: one Gauss-Newton step gives each view's effect.
-        from_magnification = np.zeros(len(others))
-        for view in others:
-            scaled = d.copy()
-            scaled[view] += magnification_sigma[view] * x
-            step, *_ = np.linalg.lstsq(fit.jac, residuals_of(scaled, fit.x) - fit.fun, rcond=None)
-            from_magnification += step**2
-        sigma_deg[others] = np.hypot(sigma_deg[others], np.sqrt(from_magnification))
+        from_magnification = _magnification_sigma_deg(
+            fit.jac, fit.fun, lambda scaled: residuals_of(scaled, fit.x), x, d, magnification_sigma, others
+        )
+        sigma_deg[others] = np.hypot(sigma_deg[others], from_magnification)
     offsets = d_mean - x_mean * coefficients(tilts, reference=reference)[0]
     offsets[reference] = 0.0
     return TiltEstimate(tilts, sigma_deg, offsets, float(np.sqrt(np.mean(fit.fun**2))))
+
+
+def _matched_in_every_view(disparities_px: np.ndarray, others: list[int]) -> np.ndarray:
+    """Mask (M,) of the points whose disparities (N, M) are finite in every view of `others`;
+    TooFewPointsError when fewer than MIN_CALIBRATION_POINTS are."""
+    known = np.all(np.isfinite(disparities_px[others]), axis=0)
+    if known.sum() < MIN_CALIBRATION_POINTS:
+        raise TooFewPointsError(
+            f"only {known.sum()} points are matched in every view; at least {MIN_CALIBRATION_POINTS} are needed"
+        )
+    return known
+
+
+def _with_others(nominal_deg: np.ndarray, others: list[int], values_deg) -> np.ndarray:
+    """The tilts (deg, (N,)): `values_deg` for the views `others`, the nominal one elsewhere."""
+    tilts = nominal_deg.copy()
+    tilts[others] = values_deg
+    return tilts
+
+
+def _fit_sigma_deg(
+    jacobian: np.ndarray, residuals: np.ndarray, *, heights: int, labels: np.ndarray | None
+) -> np.ndarray:
+    """The tilt fit's own one-sigma uncertainties (deg, (P,)) from its `jacobian` (R, P) and
+    `residuals` (R,), R = P·M: taking the points for independent, or given `labels` (M,) int
+    0..G-1 (a block per point, the same in every view) by the blocks' jackknife. `heights`: how
+    many heights the fit solved inside. inf where the tilts are not determined."""
+    try:
+        if labels is not None:
+            return _jackknife_sigma(jacobian, residuals, np.tile(labels, jacobian.shape[1]))
+        # Variable projection: the heights are solved inside, so the Jacobian covers the tilts alone.
+        dof = max(residuals.size - jacobian.shape[1] - heights, 1)
+        variance = float(residuals @ residuals) / dof
+        return np.sqrt(np.clip(np.diag(np.linalg.inv(jacobian.T @ jacobian)) * variance, 0, None))
+    except np.linalg.LinAlgError:
+        return np.full(jacobian.shape[1], np.inf)
+
+
+def _magnification_sigma_deg(
+    jacobian: np.ndarray, residuals: np.ndarray, residuals_at, x_px, disparities_px, magnification_sigma, others
+) -> np.ndarray:
+    """One-sigma tilt errors (deg, (len(others),)) that the views' relative magnification
+    uncertainties `magnification_sigma` (N,) cause, each view's adding ε·x to its row of
+    `disparities_px` (N, M; points at `x_px` (M,), both centred). `residuals_at` gives the fit's
+    residuals (R,) at the fitted tilts for other disparities; `jacobian` (R, P) and `residuals`
+    are the fit's."""
+    # Residuals are linear in the disparities: one Gauss-Newton step gives each view's effect.
+    from_magnification = np.zeros(len(others))
+    for view in others:
+        scaled = disparities_px.copy()
+        scaled[view] += magnification_sigma[view] * x_px
+        step, *_ = np.linalg.lstsq(jacobian, residuals_at(scaled) - residuals, rcond=None)
+        from_magnification += step**2
+    return np.sqrt(from_magnification)
 
 
 def _jackknife_sigma(jacobian: np.ndarray, residuals: np.ndarray, labels: np.ndarray) -> np.ndarray:

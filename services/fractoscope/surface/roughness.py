@@ -181,13 +181,73 @@ def analyse(
     ``features=False`` leaves out Spd and Spc (NaN); ``timings``, if given, receives each step's
     wall-clock seconds (STEPS; the steps after the filters run two at a time, so theirs overlap).
     Raises InvalidInputError naming what is wrong."""
+    z = _checked_heights(z_um)
+    if chain.levelled_on_region != (levelling_region is not None):
+        chain = SurfaceChain(**{**chain.__dict__, "levelled_on_region": levelling_region is not None})
+    step = _Stopwatch(timings)
+    surface, form_parameters = _scale_limited(z, pixel_size_um, chain, levelling_region, step)
+    # The steps below are independent but for the uncertainty, which needs the parameters: two
+    # threads run them, each its compiled loops on one thread. The parameters are submitted first
+    # (the longest first) and the areal PSD after the uncertainty, so that the two threads finish
+    # about together.
+    with _step_threads() as pool:
+        futures = _submit_parameters(pool, step, surface, pixel_size_um, chain, features)
+        parameters = {}
+        for name in ("height and hybrid parameters", "spatial parameters", "functional parameters"):
+            parameters |= futures[name].result()
+        parameters |= futures["feature parameters"].result()
+        parameters = {name: parameters[name] for name in areal_parameters.UNITS}
+        uncertain = pool.submit(
+            step.timed,
+            "uncertainty",
+            lambda: _uncertainty(surface.z_um, sigma_um, pixel_size_um, parameters, tilt_rel_uncertainty, chain),
+        )
+        psd = pool.submit(
+            step.timed, "areal PSD", lambda: scaling.radial_psd(surface.sf_um, pixel_size_um=pixel_size_um)
+        )
+        hurst = futures["Hurst exponents"].result()
+        q, c = psd.result()
+        try:
+            u = uncertain.result()
+        except ValueError as error:
+            raise InvalidInputError("sigma_um", str(error)) from None
+    return SurfaceAnalysis(
+        chain=chain,
+        pixel_size_um=float(pixel_size_um),
+        parameters=parameters,
+        uncertainty=u,
+        tilt_rel_uncertainty=tilt_rel_uncertainty,
+        hurst=hurst,
+        psd_q_per_um=q,
+        psd_um4=c,
+        form_parameters=form_parameters,
+    )
+
+
+def _uncertainty(sl_um, sigma_um, pixel_size_um: float, parameters: dict, tilt_rel_uncertainty, chain: SurfaceChain):
+    """The parameters' uncertainty (uncertainty.areal_uncertainty) on the S-L surface, None
+    without a matching sigma."""
+    if sigma_um is None:
+        return None
+    return uncertainty.areal_uncertainty(
+        sl_um,
+        sigma_um,
+        pixel_size_um=pixel_size_um,
+        parameters={k: v for k, v in parameters.items() if np.isfinite(v)},
+        tilt_rel_uncertainty=tilt_rel_uncertainty or 0.0,
+        correlation_px=chain.window_px,
+    )
+
+
+def _checked_heights(z_um: np.ndarray) -> np.ndarray:
+    """The heights as float64, or InvalidInputError naming `region` when too few or too scattered
+    to analyse: slopes, spectra and correlations need neighbours, which scattered points lack."""
     z = np.asarray(z_um, dtype=np.float64)
     if z.ndim != 2 or min(z.shape) < 16:
         raise InvalidInputError("region", f"needs at least 16 x 16 points, got {z.shape}")
     known = np.isfinite(z)
     if np.count_nonzero(known) < 64:
         raise InvalidInputError("region", "holds fewer than 64 measured points")
-    # Slopes, spectra and correlations need neighbours: scattered points have none.
     neighbours = (np.count_nonzero(known[:, 1:] & known[:, :-1]), np.count_nonzero(known[1:] & known[:-1]))
     if min(neighbours) < 64:
         raise InvalidInputError(
@@ -195,9 +255,12 @@ def analyse(
             f"its measured points are scattered: {neighbours[0]} pairs of neighbours along x, {neighbours[1]} along "
             "y, fewer than 64",
         )
-    if chain.levelled_on_region != (levelling_region is not None):
-        chain = SurfaceChain(**{**chain.__dict__, "levelled_on_region": levelling_region is not None})
-    step = _Stopwatch(timings)
+    return z
+
+
+def _scale_limited(z: np.ndarray, pixel_size_um: float, chain: SurfaceChain, levelling_region, step):
+    """The form removed and the S- and L-filters applied: (iso_filters' surface, the form's
+    parameters); InvalidInputError names the chain's setting at fault."""
     with step("form removal"):
         if chain.form == "none":
             residual, form_parameters = z, {}
@@ -223,76 +286,31 @@ def analyse(
             raise InvalidInputError(
                 "s_filter_um" if str(error).startswith("lambda_s") else "l_filter_um", str(error)
             ) from None
+    return surface, form_parameters
+
+
+def _submit_parameters(pool, step, surface, pixel_size_um: float, chain: SurfaceChain, features: bool) -> dict:
+    """The parameter families and the Hurst fits submitted to `pool`, the longest first: their
+    futures by step name."""
     sl = surface.z_um
     max_lag_px = None
     if chain.lambda_c_um:  # past lambda_c the S-L surface holds no correlation to resolve
         max_lag_px = max(1, min(min(sl.shape) // 2, int(np.ceil(chain.lambda_c_um / pixel_size_um))))
     nan = float("nan")
-    # The steps below are independent but for the uncertainty, which needs the parameters: two
-    # threads run them, each its compiled loops on one thread. The parameters are submitted first
-    # (the longest first) and the areal PSD after the uncertainty, so that the two threads finish
-    # about together.
-    with _step_threads() as pool:
-        pending = {
-            "feature parameters": (lambda: areal_parameters.feature_parameters(sl, pixel_size_um=pixel_size_um))
-            if features
-            else (lambda: {"Spd": nan, "Spc": nan}),
-            "spatial parameters": lambda: areal_parameters.spatial_parameters(
-                sl, pixel_size_um=pixel_size_um, max_lag_px=max_lag_px
-            ),
-            "height and hybrid parameters": lambda: (
-                areal_parameters.height_parameters(sl)
-                | areal_parameters.hybrid_parameters(sl, pixel_size_um=pixel_size_um)
-            ),
-            "functional parameters": lambda: areal_parameters.functional_parameters(sl),
-            "Hurst exponents": lambda: _hurst(surface.sf_um, pixel_size_um, chain),
-        }
-        futures = {name: pool.submit(step.timed, name, task) for name, task in pending.items()}
-        parameters = {}
-        for name in (
-            "height and hybrid parameters",
-            "spatial parameters",
-            "functional parameters",
-            "feature parameters",
-        ):
-            parameters |= futures[name].result()
-        parameters = {name: parameters[name] for name in areal_parameters.UNITS}
-        uncertain = pool.submit(
-            step.timed,
-            "uncertainty",
-            lambda: (
-                None
-                if sigma_um is None
-                else uncertainty.areal_uncertainty(
-                    sl,
-                    sigma_um,
-                    pixel_size_um=pixel_size_um,
-                    parameters={k: v for k, v in parameters.items() if np.isfinite(v)},
-                    tilt_rel_uncertainty=tilt_rel_uncertainty or 0.0,
-                    correlation_px=chain.window_px,
-                )
-            ),
-        )
-        psd = pool.submit(
-            step.timed, "areal PSD", lambda: scaling.radial_psd(surface.sf_um, pixel_size_um=pixel_size_um)
-        )
-        hurst = futures["Hurst exponents"].result()
-        q, c = psd.result()
-        try:
-            u = uncertain.result()
-        except ValueError as error:
-            raise InvalidInputError("sigma_um", str(error)) from None
-    return SurfaceAnalysis(
-        chain=chain,
-        pixel_size_um=float(pixel_size_um),
-        parameters=parameters,
-        uncertainty=u,
-        tilt_rel_uncertainty=tilt_rel_uncertainty,
-        hurst=hurst,
-        psd_q_per_um=q,
-        psd_um4=c,
-        form_parameters=form_parameters,
-    )
+    pending = {
+        "feature parameters": (lambda: areal_parameters.feature_parameters(sl, pixel_size_um=pixel_size_um))
+        if features
+        else (lambda: {"Spd": nan, "Spc": nan}),
+        "spatial parameters": lambda: areal_parameters.spatial_parameters(
+            sl, pixel_size_um=pixel_size_um, max_lag_px=max_lag_px
+        ),
+        "height and hybrid parameters": lambda: (
+            areal_parameters.height_parameters(sl) | areal_parameters.hybrid_parameters(sl, pixel_size_um=pixel_size_um)
+        ),
+        "functional parameters": lambda: areal_parameters.functional_parameters(sl),
+        "Hurst exponents": lambda: _hurst(surface.sf_um, pixel_size_um, chain),
+    }
+    return {name: pool.submit(step.timed, name, task) for name, task in pending.items()}
 
 
 STEPS = (

@@ -70,6 +70,38 @@ def areal_uncertainty(
     """Uncertainty of ``parameters`` (areal_parameters' dict for this ``z_um``, (rows, cols) µm) from
     the per-pixel height sigma ``sigma_um`` ((rows, cols) µm, or one value for all) and the tilt's
     relative standard uncertainty ``tilt_rel_uncertainty`` (0.01 for 1 %)."""
+    z, sigma, mean_variance, highest, lowest = _checked_inputs(
+        z_um, sigma_um, pixel_size_um, parameters, tilt_rel_uncertainty, correlation_px
+    )
+    width = max(1, int(round(correlation_px)))
+    block = _block_px(width)
+    n, mean, _, _ = _kernels.finite_height_summary(z)
+    u_noise = _extremes_noise(z.shape, sigma, highest, lowest, correlation_px)
+    sdr_scale_derivative = 0.0
+    for name, sums in _block_sums(z, sigma, mean, n, pixel_size_um, set(parameters), block):
+        if name == "Sdr scale":
+            sdr_scale_derivative = sums
+        else:
+            u_noise[name] = _propagated(sums, block, width)
+    u_tilt = _tilt_part(parameters, tilt_rel_uncertainty, sdr_scale_derivative)
+    if monte_carlo_samples > 0:
+        u_noise |= _monte_carlo_noise(z, sigma, pixel_size_um, parameters, correlation_px, monte_carlo_samples, seed)
+    u_noise = {name: u_noise.get(name, float("nan")) for name in parameters}
+    u_total = {name: float(np.hypot(u_tilt[name], u_noise[name])) for name in parameters}
+    bias, corrected = _noise_bias(parameters, mean_variance)
+    return ArealUncertainty(u_total=u_total, u_tilt=u_tilt, u_noise=u_noise, noise_bias=bias, corrected=corrected)
+
+
+def _checked_inputs(
+    z_um: np.ndarray,
+    sigma_um: np.ndarray | float,
+    pixel_size_um: float,
+    parameters: dict[str, float],
+    tilt_rel_uncertainty: float,
+    correlation_px: float,
+) -> tuple[np.ndarray, np.ndarray, float, int, int]:
+    """`areal_uncertainty`'s arguments checked: (z (rows, cols) float64 µm, sigma broadcast to it µm,
+    mean sigma² where z is known µm², flat indices of the highest and the lowest known height)."""
     z = np.ascontiguousarray(z_um, dtype=np.float64)
     if z.ndim != 2:
         raise ValueError("z_um must be a (rows, cols) array")
@@ -86,18 +118,14 @@ def areal_uncertainty(
     unknown = sorted(set(parameters) - set(areal_parameters.UNITS))
     if unknown:
         raise ValueError(f"parameters: not areal parameters: {', '.join(unknown)}")
+    return z, sigma, mean_variance, highest, lowest
 
-    wanted = set(parameters)
-    width = max(1, int(round(correlation_px)))
-    block = _block_px(width)
-    n, mean, _, _ = _kernels.finite_height_summary(z)
-    u_noise = _extremes_noise(z.shape, sigma, highest, lowest, correlation_px)
-    sdr_scale_derivative = 0.0
-    for name, sums in _block_sums(z, sigma, mean, n, pixel_size_um, wanted, block):
-        if name == "Sdr scale":
-            sdr_scale_derivative = sums
-        else:
-            u_noise[name] = _propagated(sums, block, width)
+
+def _tilt_part(
+    parameters: dict[str, float], tilt_rel_uncertainty: float, sdr_scale_derivative: float
+) -> dict[str, float]:
+    """u_tilt of each parameter: |P| u_rel for those that scale with the heights, |d Sdr / d ln(s)|
+    u_rel for Sdr (heights scaled by s), 0 for the shape, lateral and ratio parameters."""
     u_tilt = {}
     for name, value in parameters.items():
         if name == "Sdr":
@@ -106,20 +134,36 @@ def areal_uncertainty(
             u_tilt[name] = abs(value) * tilt_rel_uncertainty
         else:
             u_tilt[name] = 0.0
-    if monte_carlo_samples > 0:
-        wanted = [name for name in NOT_DIFFERENTIABLE if name in parameters]
-        if wanted:
-            u_noise |= monte_carlo_uncertainty(
-                lambda h: _spatial_and_features(h, pixel_size_um, wanted),
-                z,
-                sigma,
-                correlation_px=correlation_px,
-                samples=monte_carlo_samples,
-                seed=seed,
-            )
-    u_noise = {name: u_noise.get(name, float("nan")) for name in parameters}
-    u_total = {name: float(np.hypot(u_tilt[name], u_noise[name])) for name in parameters}
+    return u_tilt
 
+
+def _monte_carlo_noise(
+    z: np.ndarray,
+    sigma: np.ndarray,
+    pixel_size_um: float,
+    parameters: dict[str, float],
+    correlation_px: float,
+    samples: int,
+    seed: int,
+) -> dict[str, float]:
+    """Noise parts by paired Monte-Carlo draws for those of ``parameters`` that have no derivative
+    (NOT_DIFFERENTIABLE; none of them: {})."""
+    wanted = [name for name in NOT_DIFFERENTIABLE if name in parameters]
+    if not wanted:
+        return {}
+    return monte_carlo_uncertainty(
+        lambda h: _spatial_and_features(h, pixel_size_um, wanted),
+        z,
+        sigma,
+        correlation_px=correlation_px,
+        samples=samples,
+        seed=seed,
+    )
+
+
+def _noise_bias(parameters: dict[str, float], mean_variance: float) -> tuple[dict[str, float], dict[str, float]]:
+    """(noise_bias, corrected) for Sa and Sq, when Sq is given: Sq² = Sq_true² + mean(sigma²)
+    (``mean_variance``, µm²), and Sa shrinks by the same factor."""
     bias, corrected = {}, {}
     if "Sq" in parameters:
         sq = parameters["Sq"]
@@ -128,7 +172,7 @@ def areal_uncertainty(
             if name in parameters:
                 bias[name] = float(parameters[name] * (1.0 - true_fraction))
                 corrected[name] = float(parameters[name] - bias[name])
-    return ArealUncertainty(u_total=u_total, u_tilt=u_tilt, u_noise=u_noise, noise_bias=bias, corrected=corrected)
+    return bias, corrected
 
 
 def correlated_noise(sigma_um: np.ndarray, *, correlation_px: float, rng: np.random.Generator) -> np.ndarray:

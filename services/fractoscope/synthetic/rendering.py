@@ -211,20 +211,11 @@ def render_multiscale_specimen(
         material=coarse_material,
     )
     fine_canvas = (roi_shape[0] + 2 * margin, roi_shape[1] + 2 * margin)
-    # Fine canvas pixel (a, b) sits at coarse canvas (centre + (a - mid) / zoom) for both axes.
     centre_col, centre_row = roi_centre_px[0] + margin, roi_centre_px[1] + margin
-    rows_f, cols_f = np.indices(fine_canvas, dtype=np.float32)
-    map_col = centre_col + (cols_f - (fine_canvas[1] - 1) / 2) / zoom
-    map_row = centre_row + (rows_f - (fine_canvas[0] - 1) / 2) / zoom
-    upsampled = cv2.remap(
-        coarse_um.astype(np.float32), map_col, map_row, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT
-    )
+    upsampled, fine_material = _zoomed_in((coarse_um, coarse_material), fine_canvas, (centre_col, centre_row), zoom)
     # The self-affine spectrum continued below 4 overview pixels: RMS scales as wavelength^H.
     detail = self_affine_surface(
         fine_canvas, hurst=0.8, rms_um=rms_um * (4.0 / max(canvas)) ** 0.8, seed=seed + 1, max_wavelength_px=4.0 * zoom
-    )
-    fine_material = cv2.remap(
-        coarse_material.astype(np.float32), map_col, map_row, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT
     )
     fine_material += self_affine_surface(
         fine_canvas, hurst=0.3, rms_um=0.05, seed=seed + 3, max_wavelength_px=2.0 * zoom
@@ -246,6 +237,21 @@ def render_multiscale_specimen(
     return MultiscaleSpecimen(
         overview, roi, pixel_size_um, pixel_size_um / zoom, (float(origin_col), float(origin_row)), tilt_deg
     )
+
+
+def _zoomed_in(
+    coarse: tuple[np.ndarray, ...], fine_shape: tuple[int, int], centre_px: tuple[float, float], zoom: int
+) -> list[np.ndarray]:
+    """Each `coarse` canvas (rows, cols) resampled (bicubic, mirrored at the edges, float32) onto a
+    canvas of `fine_shape` (rows, cols) `zoom` times finer, centred on its `centre_px` (col, row)."""
+    # Fine canvas pixel (a, b) sits at coarse canvas (centre + (a - mid) / zoom) for both axes.
+    rows_f, cols_f = np.indices(fine_shape, dtype=np.float32)
+    map_col = centre_px[0] + (cols_f - (fine_shape[1] - 1) / 2) / zoom
+    map_row = centre_px[1] + (rows_f - (fine_shape[0] - 1) / 2) / zoom
+    return [
+        cv2.remap(values.astype(np.float32), map_col, map_row, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+        for values in coarse
+    ]
 
 
 def render_tilt_series(

@@ -6,7 +6,7 @@
   (the gzip one has its own) and 304 when If-None-Match holds it (weak comparison, RFC 9110).
 - `/viewer/` the web viewer (the installed clients/web package, see WEB_ROOT) and `/vendor/` the
   three.js and 3DTilesRendererJS modules it imports (that package's node_modules).
-- `/api/` the HTTP/JSON API (services.tiles.api, described at `/api/openapi.json`), which the
+- `/api/` the HTTP/JSON API (tiles.api, described at `/api/openapi.json`), which the
   viewer uses too.
 """
 

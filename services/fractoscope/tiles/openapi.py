@@ -158,6 +158,12 @@ def _specimen_get(operation_id: str, summary: str, parameters: list, ok: dict, *
 
 
 def _paths() -> dict:
+    """Every path of the API with its operations."""
+    return _specimen_paths() | _specimen_area_paths() | _upload_paths() | _job_paths()
+
+
+def _specimen_paths() -> dict:
+    """Specimens, their roughness and profiles."""
     point = {"type": "string", "pattern": _POINT}
     return {
         "/api/specimens": {
@@ -202,6 +208,12 @@ def _paths() -> dict:
             _json_ok("The profile.", "Profile"),
             analysis=True,
         ),
+    }
+
+
+def _specimen_area_paths() -> dict:
+    """Heights, zoom, exports and reports of a specimen area."""
+    return {
         "/api/specimens/{specimen_id}/heights": _specimen_get(
             "getHeightStatistics",
             "Mean, median, standard deviation and extremes of the measured heights in a region.",
@@ -245,6 +257,12 @@ def _paths() -> dict:
             _file_ok("The report.", ["text/html; charset=utf-8", "application/pdf"]),
             analysis=True,
         ),
+    }
+
+
+def _upload_paths() -> dict:
+    """Height maps sent for export, and uploads."""
+    return {
         "/api/exports": {
             "post": {
                 "operationId": "exportHeightMap",
@@ -286,6 +304,12 @@ def _paths() -> dict:
                 ),
             }
         },
+    }
+
+
+def _job_paths() -> dict:
+    """Reconstruction jobs."""
+    return {
         "/api/jobs": {
             "post": {
                 "operationId": "submitJob",
@@ -339,6 +363,12 @@ def _paths() -> dict:
 
 
 def _schemas() -> dict:
+    """The components schemas the paths refer to."""
+    return _specimen_schemas() | _query_schemas() | _form_schemas() | _job_schemas()
+
+
+def _specimen_schemas() -> dict:
+    """Errors, specimens and roughness."""
     number_or_null = {"type": ["number", "null"]}
     return {
         "Error": {
@@ -391,6 +421,13 @@ def _schemas() -> dict:
                 "psd": {"type": "object", "properties": {"q_per_um": {"type": "array"}, "c_um4": {"type": "array"}}},
             },
         },
+    }
+
+
+def _query_schemas() -> dict:
+    """Profiles, height statistics and zoom."""
+    number_or_null = {"type": ["number", "null"]}
+    return {
         "Profile": {
             "type": "object",
             "required": ["distance_um", "z_um", "source", "parameters"],
@@ -442,6 +479,12 @@ def _schemas() -> dict:
                 }
             },
         },
+    }
+
+
+def _form_schemas() -> dict:
+    """The multipart forms of exports and uploads."""
+    return {
         "ExportForm": {
             "type": "object",
             "required": ["height_map", "format"],
@@ -480,6 +523,12 @@ def _schemas() -> dict:
                 },
             },
         },
+    }
+
+
+def _job_schemas() -> dict:
+    """Uploads and reconstruction jobs."""
+    return {
         "Upload": {
             "type": "object",
             "required": ["upload_id", "specimen_id", "rois"],

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import tempfile
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Protocol
 
@@ -66,6 +68,114 @@ class LocalMeshing(Protocol):
     ) -> tuple[list[EncodedTile], FilterReport]: ...
 
 
+# One ROI's heights for a build: its ComputeHeightMap request, the build's job, the progress callback.
+MeasureHeights = Callable[[matching_pb2.ComputeHeightMapRequest, Job, ProgressCallback], MeasuredHeights]
+# One tile's GLB for a build: its BuildMesh request (one level), the build's job.
+MeshTile = Callable[[meshing_pb2.BuildMeshRequest, Job], bytes]
+
+
+class BuildMatching(Protocol):
+    """How builds match their ROIs, chosen at start-up: in this process or on a matching service."""
+
+    def peak_bytes_here(self, request: matching_pb2.ComputeHeightMapRequest) -> int:
+        """The estimated peak memory of matching `request` in this process (0: it is matched elsewhere)."""
+
+    def connected(self) -> contextlib.AbstractContextManager[MeasureHeights]:
+        """Matching for the length of one build."""
+
+
+class BuildMeshing(Protocol):
+    """How builds mesh their tiles, chosen at start-up: in this process or on a meshing service."""
+
+    def connected(self) -> contextlib.AbstractContextManager[MeshTile]:
+        """Meshing for the length of one build."""
+
+
+class _InProcessMatching:
+    """The matching service of this process."""
+
+    def __init__(self, local: LocalMatching):
+        self._local = local
+
+    def peak_bytes_here(self, request: matching_pb2.ComputeHeightMapRequest) -> int:
+        return self._local.peak_bytes(request)
+
+    def connected(self) -> contextlib.AbstractContextManager[MeasureHeights]:
+        return contextlib.nullcontext(self._measure)
+
+    def _measure(
+        self, request: matching_pb2.ComputeHeightMapRequest, job: Job, progress: ProgressCallback
+    ) -> MeasuredHeights:
+        result, texture = self._local.height_map(request, job, progress)
+        return MeasuredHeights(result.z_um, texture, result.report["pixel_size_um"], result.report, result.sigma_um)
+
+
+class _RemoteMatching:
+    """The matching service at `address`, over a channel opened for each build (which reads
+    FRACTO_TOKEN then); each call gets the deadline the build's callers still wait, at most
+    `call_timeout_s`, and is cancelled with the build."""
+
+    def __init__(self, address: str, call_timeout_s: float):
+        self._address, self._call_timeout_s = address, call_timeout_s
+
+    def peak_bytes_here(self, request: matching_pb2.ComputeHeightMapRequest) -> int:
+        return 0
+
+    @contextlib.contextmanager
+    def connected(self) -> Iterator[MeasureHeights]:
+        with open_channel(self._address) as channel:
+            yield functools.partial(self._measure, matching_pb2_grpc.MatchingServiceStub(channel))
+
+    def _measure(
+        self,
+        matching: matching_pb2_grpc.MatchingServiceStub,
+        request: matching_pb2.ComputeHeightMapRequest,
+        job: Job,
+        progress: ProgressCallback,
+    ) -> MeasuredHeights:
+        with _calling("matching", self._address):
+            call = matching.ComputeHeightMap(request, timeout=job.time_remaining_s(at_most_s=self._call_timeout_s))
+            job.on_cancel(call.cancel)
+            heights = calls.read_height_map(call, progress)
+        return MeasuredHeights(heights.z_um, heights.texture, heights.pixel_size_um, heights.report, heights.sigma_um)
+
+
+class _InProcessMeshing:
+    """The meshing service of this process."""
+
+    def __init__(self, local: LocalMeshing):
+        self._local = local
+
+    def connected(self) -> contextlib.AbstractContextManager[MeshTile]:
+        return contextlib.nullcontext(self._mesh)
+
+    def _mesh(self, request: meshing_pb2.BuildMeshRequest, job: Job) -> bytes:
+        tiles, _ = self._local.mesh(request, silent)
+        return tiles[0].glb
+
+
+class _RemoteMeshing:
+    """The meshing service at `address`, over a channel per build (as _RemoteMatching); each call
+    gets the deadline the build's callers still wait, at most `call_timeout_s`."""
+
+    def __init__(self, address: str, call_timeout_s: float):
+        self._address, self._call_timeout_s = address, call_timeout_s
+
+    @contextlib.contextmanager
+    def connected(self) -> Iterator[MeshTile]:
+        with open_channel(self._address) as channel:
+            yield functools.partial(self._mesh, meshing_pb2_grpc.MeshingServiceStub(channel))
+
+    def _mesh(
+        self, meshing: meshing_pb2_grpc.MeshingServiceStub, request: meshing_pb2.BuildMeshRequest, job: Job
+    ) -> bytes:
+        with _calling("meshing", self._address):
+            tiles, _ = calls.read_mesh(
+                meshing.BuildMesh(request, timeout=job.time_remaining_s(at_most_s=self._call_timeout_s)), None
+            )
+        return tiles[0].glb
+
+
 class TileServicer(tiles_pb2_grpc.TileServiceServicer):
     """Thin wrappers over reconstruction, the specimen store and the analysis modules.
 
@@ -101,10 +211,18 @@ class TileServicer(tiles_pb2_grpc.TileServiceServicer):
             )
         self.store = store
         self._builds, self._memory = builds, memory
-        self._local_matching, self._local_meshing = local_matching, local_meshing
         self.matching_address = matching_address
         self.meshing_address = meshing_address
-        self.call_timeout_s = call_timeout_s
+        self._matching: BuildMatching = (
+            _InProcessMatching(local_matching)
+            if matching_address is None
+            else _RemoteMatching(matching_address, call_timeout_s)
+        )
+        self._meshing: BuildMeshing = (
+            _InProcessMeshing(local_meshing)
+            if meshing_address is None
+            else _RemoteMeshing(meshing_address, call_timeout_s)
+        )
         self._tile_responses: BoundedCache[bytes] = BoundedCache(tile_response_cache_bytes, size=len)
 
     @abort_on_error
@@ -137,10 +255,9 @@ class TileServicer(tiles_pb2_grpc.TileServiceServicer):
     ) -> int:
         """A reconstruction's estimated peak memory (see budget); InvalidInputError names the ROI."""
         matched_here = []
-        if self._local_matching is not None:
-            for index, height_request in enumerate(height_requests):
-                with rpc_tiles.in_roi(index):
-                    matched_here.append(self._local_matching.peak_bytes(height_request))
+        for index, height_request in enumerate(height_requests):
+            with rpc_tiles.in_roi(index):
+                matched_here.append(self._matching.peak_bytes_here(height_request))
         return budget.specimen_bytes(shapes, matched_here=matched_here)
 
     def _reconstruct(
@@ -155,60 +272,18 @@ class TileServicer(tiles_pb2_grpc.TileServiceServicer):
         if stored is not None:
             return stored
         indices = {spec.id: index for index, spec in enumerate(request.rois)}
-        with contextlib.ExitStack() as channels:
-            matching = meshing = None
-            if self._local_matching is None:
-                matching = matching_pb2_grpc.MatchingServiceStub(
-                    channels.enter_context(open_channel(self.matching_address))
-                )
-            if self._local_meshing is None:
-                meshing = meshing_pb2_grpc.MeshingServiceStub(
-                    channels.enter_context(open_channel(self.meshing_address))
-                )
+        with self._matching.connected() as measure_heights, self._meshing.connected() as mesh:
 
             def measure(roi: RoiRequest, progress: ProgressCallback) -> MeasuredHeights:
                 index = indices[roi.id]
                 with rpc_tiles.in_roi(index):
-                    if matching is None:
-                        result, texture = self._local_matching.height_map(height_requests[index], job, progress)
-                        return MeasuredHeights(
-                            result.z_um, texture, result.report["pixel_size_um"], result.report, result.sigma_um
-                        )
-                    with _calling("matching", self.matching_address):
-                        call = matching.ComputeHeightMap(
-                            height_requests[index], timeout=job.time_remaining_s(at_most_s=self.call_timeout_s)
-                        )
-                        job.on_cancel(call.cancel)
-                        heights = calls.read_height_map(call, progress)
-                    return MeasuredHeights(
-                        heights.z_um, heights.texture, heights.pixel_size_um, heights.report, heights.sigma_um
-                    )
-
-            def mesh_tile(tile: TileSamples) -> bytes:
-                mesh_request = calls.mesh_request(
-                    tile.z_um,
-                    tile.texture,
-                    pixel_size_um=tile.cell_um,
-                    origin_um=tile.origin_um,
-                    level_count=1,
-                    max_slope=tile.max_slope or 0.0,
-                    sigma_um=np.full(tile.z_um.shape, tile.noise_um, np.float32),
-                )
-                if meshing is None:
-                    tiles, _ = self._local_meshing.mesh(mesh_request, silent)
-                    return tiles[0].glb
-                with _calling("meshing", self.meshing_address):
-                    tiles, _ = calls.read_mesh(
-                        meshing.BuildMesh(mesh_request, timeout=job.time_remaining_s(at_most_s=self.call_timeout_s)),
-                        None,
-                    )
-                return tiles[0].glb
+                    return measure_heights(height_requests[index], job, progress)
 
             return reconstruct_specimen(
                 request.specimen_id,
                 rois,
                 measure=measure,
-                mesh_tile=mesh_tile,
+                mesh_tile=lambda tile: mesh(_mesh_request(tile), job),
                 store=self.store,
                 request_id=request.request_id,
                 progress=job.progress,
@@ -339,6 +414,19 @@ class SerializedGetTile(grpc.ServerInterceptor):
         if handler_call_details.method == GET_TILE_METHOD:
             return self._handler
         return continuation(handler_call_details)
+
+
+def _mesh_request(tile: TileSamples) -> meshing_pb2.BuildMeshRequest:
+    """BuildMesh of one tile of a specimen, at one level, its heights' uncertainty the tile's noise."""
+    return calls.mesh_request(
+        tile.z_um,
+        tile.texture,
+        pixel_size_um=tile.cell_um,
+        origin_um=tile.origin_um,
+        level_count=1,
+        max_slope=tile.max_slope or 0.0,
+        sigma_um=np.full(tile.z_um.shape, tile.noise_um, np.float32),
+    )
 
 
 @contextlib.contextmanager

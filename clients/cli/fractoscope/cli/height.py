@@ -24,7 +24,7 @@ from fractoscope.cli.common import (
 from fractoscope.client import FractoscopeClient, HeightMap
 
 if TYPE_CHECKING:
-    from fractoscope.formats.calibration import Calibration
+    from fractoscope.surface.datum import Datum
 
 
 def add_parsers(commands) -> None:
@@ -144,9 +144,9 @@ def compute_height(client: FractoscopeClient, args, quiet: bool) -> HeightMap:
 
 
 def command_height(args) -> int:
+    from fractoscope.formats.calibration import Calibration
     from fractoscope.formats.height_npz import write_height_npz
     from fractoscope.stereo import geometry
-    from fractoscope.surface import datum
 
     inputs = tuple(Path(image) for image in args.images if Path(image).is_file())
     out = output_file(args.output, "-o", suffixes=(".npz",), inputs=inputs)
@@ -163,20 +163,14 @@ def command_height(args) -> int:
             report["tilt_deg"], tilt_uncertainty_deg=report["tilt_uncertainty_deg"]
         ),
     )
-    levelled = None
-    if args.level is not None:
-        try:
-            z_um, levelled = datum.level_heights(result.z_um, pixel_size_um=result.pixel_size_um, level=args.level)
-        except ValueError as error:
-            raise UsageError(f"--level: {error}") from None
-        result = HeightMap(z_um, result.sigma_um, result.confidence, result.texture, result.pixel_size_um, report)
+    result, levelled = _levelled(result, args.level)
     write_height_npz(
         out,
         z_um=result.z_um,
         sigma_um=result.sigma_um,
         confidence=result.confidence,
         local_sigma_um=local_sigma_um,
-        calibration=calibration_of(result, args),
+        calibration=Calibration.from_report(report),
         record={
             "tilt_axis_deg": report["tilt_axis_deg"],
             "max_slope": geometry.max_measurable_slope(report["tilt_deg"]),
@@ -196,38 +190,39 @@ def command_height(args) -> int:
     if args.json:
         print_json(summary)
     else:
-        print(
-            f"wrote {out}: {result.z_um.shape[1]}x{result.z_um.shape[0]} px, heights {summary['z_min_um']:.3f} to "
-            f"{summary['z_max_um']:.3f} µm, {100 * summary['valid_fraction']:.1f} % valid, median sigma "
-            f"{summary['median_sigma_um']:.3f} µm"
-        )
-        if args.calibrate_tilt:
-            report = result.report
-            estimated = ", ".join(f"{t:+.3f} ± {s:.3f}" for t, s in zip(report["tilt_deg"], report["tilt_sigma_deg"]))
-            nominal = ", ".join(f"{t:+.2f}" for t in report["tilt_deg_nominal"])
-            print(f"tilts estimated {estimated} ° (nominal {nominal}; residual {report['tilt_residual_px']:.3f} px)")
+        _print_summary(summary, result.z_um.shape, with_tilts=args.calibrate_tilt)
     return 0
 
 
-def calibration_of(result: HeightMap, args) -> Calibration:
-    """What the heights were computed with, and where each value came from."""
-    from fractoscope.formats.calibration import Calibration
+def _levelled(
+    result: HeightMap, level: str | tuple[float, float, float, float] | None
+) -> tuple[HeightMap, Datum | None]:
+    """The heights with height zero at `level` (see level_choice; None: as measured), and the
+    datum they were levelled to."""
+    from fractoscope.surface import datum
 
-    report = result.report
-    given = "argument" if args.tilt is not None else "metadata"
-    views = len(report["tilt_deg"])
-    if args.calibrate_tilt:
-        sources = [given] + ["tilt_calibration"] * (views - 1)
-        sigmas = report["tilt_sigma_deg"]
-    else:
-        sources, sigmas = [given] * views, [report["tilt_uncertainty_deg"]] * views
-    return Calibration(
-        tilt_deg=report["tilt_deg"],
-        tilt_source=sources,
-        tilt_sigma_deg=sigmas,
-        pixel_size_um=result.pixel_size_um,
-        pixel_size_source="argument" if args.pixel_size_um is not None else "metadata",
+    if level is None:
+        return result, None
+    try:
+        z_um, plane = datum.level_heights(result.z_um, pixel_size_um=result.pixel_size_um, level=level)
+    except ValueError as error:
+        raise UsageError(f"--level: {error}") from None
+    levelled = HeightMap(z_um, result.sigma_um, result.confidence, result.texture, result.pixel_size_um, result.report)
+    return levelled, plane
+
+
+def _print_summary(summary: dict, shape: tuple[int, ...], *, with_tilts: bool) -> None:
+    """The summary of a height map of `shape` written, as text, with the estimated tilts when asked."""
+    print(
+        f"wrote {summary['output']}: {shape[1]}x{shape[0]} px, heights {summary['z_min_um']:.3f} to "
+        f"{summary['z_max_um']:.3f} µm, {100 * summary['valid_fraction']:.1f} % valid, median sigma "
+        f"{summary['median_sigma_um']:.3f} µm"
     )
+    if with_tilts:
+        report = summary["report"]
+        estimated = ", ".join(f"{t:+.3f} ± {s:.3f}" for t, s in zip(report["tilt_deg"], report["tilt_sigma_deg"]))
+        nominal = ", ".join(f"{t:+.2f}" for t in report["tilt_deg_nominal"])
+        print(f"tilts estimated {estimated} ° (nominal {nominal}; residual {report['tilt_residual_px']:.3f} px)")
 
 
 def matching_parameters(args) -> dict:

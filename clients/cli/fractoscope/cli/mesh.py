@@ -4,6 +4,7 @@ reads back), written as level_L/ROW_COL.glb."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from fractoscope.cli.common import (
     SERVER_HELP,
@@ -16,6 +17,14 @@ from fractoscope.cli.common import (
     progress_bar,
 )
 from fractoscope.v1 import meshing_pb2
+
+if TYPE_CHECKING:
+    import numpy as np
+
+_METHODS = {
+    "vertex-clustering": meshing_pb2.SIMPLIFICATION_METHOD_VERTEX_CLUSTERING,
+    "quadric": meshing_pb2.SIMPLIFICATION_METHOD_QUADRIC,
+}
 
 
 def add_parsers(commands) -> None:
@@ -47,40 +56,25 @@ def add_parsers(commands) -> None:
 
 def command_mesh(args) -> int:
     from fractoscope.formats.height_npz import read_height_npz
-    from fractoscope.sem.image import read_sem_image
 
     out = output_folder(args.output, "-o")
     heights = read_height_npz(existing_file(args.heights), field=args.heights)
-    z_um = heights.z_um
     pixel_size_um = args.pixel_size_um if args.pixel_size_um is not None else heights.pixel_size_um
     if pixel_size_um is None:
         raise UsageError(
             f"{args.heights} records no calibration (written before fracto height stored it): give --pixel-size-um P"
         )
-    texture = None
-    if args.texture:
-        image = read_sem_image(existing_file(args.texture).read_bytes(), field=args.texture)
-        texture = image.pixels
-        if texture.shape != z_um.shape:
-            raise UsageError(
-                f"texture {args.texture} is {texture.shape[1]}x{texture.shape[0]}, heights are "
-                f"{z_um.shape[1]}x{z_um.shape[0]}"
-            )
-    method = (
-        meshing_pb2.SIMPLIFICATION_METHOD_QUADRIC
-        if args.method == "quadric"
-        else meshing_pb2.SIMPLIFICATION_METHOD_VERTEX_CLUSTERING
-    )
+    texture = _texture_of(args.texture, heights.z_um.shape) if args.texture else None
     max_slope = (heights.max_slope or 0.0) if args.walls else 0.0
     with (
         connected(args.server) as client,
         progress_bar("meshing", enabled=not args.json and err.is_terminal) as advance,
     ):
         tiles, report = client.build_mesh(
-            z_um,
+            heights.z_um,
             texture,
             pixel_size_um=pixel_size_um,
-            method=method,
+            method=_METHODS[args.method],
             level_count=args.levels,
             on_progress=advance,
             plain_glb=args.plain_glb,
@@ -88,36 +82,57 @@ def command_mesh(args) -> int:
             sigma_um=heights.local_sigma_um if max_slope else None,
         )
     write_tiles(tiles, out)
-    levels = sorted({tile.level for tile in tiles})
     summary = {
         "output": args.output,
         "pixel_size_um": pixel_size_um,
         "max_slope": max_slope or None,
         "filter": report,
-        "levels": [
-            {
-                "level": level,
-                "tiles": sum(1 for t in tiles if t.level == level),
-                "triangles": sum(t.triangle_count for t in tiles if t.level == level),
-                "wall_triangles": sum(t.wall_triangle_count for t in tiles if t.level == level),
-                "geometric_error_m": max(t.geometric_error_m for t in tiles if t.level == level),
-            }
-            for level in levels
-        ],
+        "levels": _level_rows(tiles),
     }
     if args.json:
         print_json(summary)
     else:
-        print(
-            f"wrote {len(tiles)} GLB tiles in {len(levels)} levels to {args.output} ({pixel_size_um:g} µm/px"
-            + (f"; walls steeper than {max_slope:.1f} set apart)" if max_slope else ")")
-        )
-        for row in summary["levels"]:
-            print(
-                f"  level {row['level']}: {row['tiles']} tiles, {row['triangles']} triangles "
-                f"({row['wall_triangles']} walls), geometric error {row['geometric_error_m'] * 1e6:.3f} µm"
-            )
+        _print_summary(summary, tile_count=len(tiles))
     return 0
+
+
+def _texture_of(path: str, shape: tuple[int, ...]) -> np.ndarray:
+    """The grey pixels of the SEM image at `path`, which must have the heights' `shape`."""
+    from fractoscope.sem.image import read_sem_image
+
+    texture = read_sem_image(existing_file(path).read_bytes(), field=path).pixels
+    if texture.shape != shape:
+        raise UsageError(f"texture {path} is {texture.shape[1]}x{texture.shape[0]}, heights are {shape[1]}x{shape[0]}")
+    return texture
+
+
+def _level_rows(tiles) -> list[dict]:
+    """Per level of detail, finest first: its tiles, triangles, walls and largest geometric error."""
+    return [
+        {
+            "level": level,
+            "tiles": sum(1 for t in tiles if t.level == level),
+            "triangles": sum(t.triangle_count for t in tiles if t.level == level),
+            "wall_triangles": sum(t.wall_triangle_count for t in tiles if t.level == level),
+            "geometric_error_m": max(t.geometric_error_m for t in tiles if t.level == level),
+        }
+        for level in sorted({tile.level for tile in tiles})
+    ]
+
+
+def _print_summary(summary: dict, *, tile_count: int) -> None:
+    """The summary of `tile_count` tiles written, as text."""
+    max_slope = summary["max_slope"]
+    print(
+        f"wrote {tile_count} GLB tiles in {len(summary['levels'])} levels to {summary['output']} "
+        f"({summary['pixel_size_um']:g} µm/px"
+        + (f"; walls steeper than {max_slope:.1f} set apart)" if max_slope else ")")
+    )
+    for row in summary["levels"]:
+        print(
+            f"  level {row['level']}: {row['tiles']} tiles, {row['triangles']} triangles "
+            f"({row['wall_triangles']} walls), geometric error {row['geometric_error_m'] * 1e6:.3f} µm"
+        )
 
 
 def write_tiles(tiles, directory: Path) -> None:

@@ -119,7 +119,7 @@ def _roi(entry, index: int, read_image: Callable[[str, str], bytes]) -> tiles_pb
             raise InvalidInputError(f"{where}.center_um", 'must be [x, y] in µm or "auto"')
         spec.center_um.CopyFrom(common_pb2.PointUm(x_um=float(centre[0]), y_um=float(centre[1])))
     if "level" in entry:
-        # Its value is checked where it is used (rpc.tiles.roi_request), whose errors name it too.
+        # Its value is checked where it is used (tiles.messages.roi_request), whose errors name it too.
         if not isinstance(entry["level"], str) or entry.get("parent"):
             raise InvalidInputError(f"{where}.level", 'must be "plane" or "substrate", and is for the overview only')
         spec.level = entry["level"]

@@ -198,7 +198,7 @@ _PROFILE_FIELDS = {
 
 def values_to_roughness_response(values: dict) -> tiles_pb2.GetRoughnessResponse:
     """The legacy scalars (Sa ... Sdr by ISO name, the Hurst fields) and the height-height curve
-    of a roughness result into a response; the rest is filled by its builder (rpc.tiles)."""
+    of a roughness result into a response; the rest is filled by its builder (tiles.messages)."""
     response = tiles_pb2.GetRoughnessResponse(**{_ROUGHNESS_FIELDS[name]: values[name] for name in _ROUGHNESS_FIELDS})
     for name in _HURST_FIELDS:
         setattr(response, name, values[name])
