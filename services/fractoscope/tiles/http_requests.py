@@ -178,7 +178,7 @@ async def form_parts(reader):
 
 async def read_chunk(part) -> bytes:
     try:
-        return await part.readread_chunk(CHUNK_BYTES)
+        return await part.read_chunk(CHUNK_BYTES)
     except (HttpProcessingError, ValueError, AssertionError, LookupError) as error:
         raise InvalidInputError(part.name or "body", f"is not valid multipart/form-data: {first_line(error)}") from None
 
