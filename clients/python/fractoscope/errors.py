@@ -28,6 +28,15 @@ class NotFoundError(FractoscopeError, LookupError):
         self.field = field
 
 
+class AlreadyExistsError(FractoscopeError):
+    """What a request would create exists already, made from other content (a request id reused
+    for a different build); `field` names the request input at fault (e.g. ``request_id``)."""
+
+    def __init__(self, message: str, field: str | None = None):
+        super().__init__(message)
+        self.field = field
+
+
 class CancelledError(FractoscopeError):
     """The caller went away; long computations stop at their next progress report."""
 
@@ -84,6 +93,7 @@ OUTCOMES = {
 _ERROR_CODES: tuple[tuple[type[Exception], str], ...] = (
     (InvalidInputError, "INVALID_ARGUMENT"),
     (NotFoundError, "NOT_FOUND"),
+    (AlreadyExistsError, "ALREADY_EXISTS"),
     (UnauthenticatedError, "UNAUTHENTICATED"),
     (ResourceExhaustedError, "RESOURCE_EXHAUSTED"),
     (UnavailableError, "UNAVAILABLE"),

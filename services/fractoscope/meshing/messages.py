@@ -75,6 +75,8 @@ def height_map_arrays(height_map: common_pb2.HeightMap, *, field: str = "height_
         sigma_um = wire.raster_to_array(height_map.sigma_um, field=f"{field}.sigma_um")
         if sigma_um.shape != z_um.shape:
             _invalid(f"{field}.sigma_um", f"shape {sigma_um.shape} differs from z_um's {z_um.shape}")
+        if np.any(sigma_um < 0):
+            _invalid(f"{field}.sigma_um", f"must be >= 0 µm (NaN where unknown), got {np.nanmin(sigma_um)}")
     return z_um, texture, pixel_size_um, sigma_um
 
 

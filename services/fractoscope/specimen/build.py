@@ -101,9 +101,11 @@ def reconstruct_specimen(
     mesh_tile: TileMesher,
     store: SpecimenStore,
     request_id: str = "",
+    request_digest: str = "",
     progress: ProgressCallback | None = None,
 ) -> Specimen:
-    """Builds and stores a specimen; returns it as stored. Errors name the ROI by its index in
+    """Builds and stores a specimen, with the id and the content digest of the request it builds
+    (see Specimen.request_digest); returns it as stored. Errors name the ROI by its index in
     `rois` (`rois[1].center_um`)."""
     report = progress or silent
     validate_id(specimen_id, field="specimen_id")
@@ -129,7 +131,13 @@ def reconstruct_specimen(
             entry.views = write_roi_views(staging, roi.id, roi.images)
         (staging / "tileset.json").write_text(json.dumps(tileset_json(layout, records)))
         write_description(
-            staging, specimen_id=specimen_id, request_id=request_id, rois=entries, layout=layout, tiles=records
+            staging,
+            specimen_id=specimen_id,
+            request_id=request_id,
+            request_digest=request_digest,
+            rois=entries,
+            layout=layout,
+            tiles=records,
         )
     report(1.0, "stored")
     return store.load(specimen_id)

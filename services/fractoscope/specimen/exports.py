@@ -82,6 +82,10 @@ def export_height_map(
         raise _invalid(error, heights_field="height_map.z_um") from None
     if sigma_um is not None and np.shape(sigma_um) != z_um.shape:
         raise InvalidInputError("height_map.sigma_um", f"shape {np.shape(sigma_um)} differs from z_um's {z_um.shape}")
+    if sigma_um is not None and np.any(np.asarray(sigma_um) < 0):
+        raise InvalidInputError(
+            "height_map.sigma_um", f"must be >= 0 µm (NaN where unknown), got {np.nanmin(sigma_um)}"
+        )
     if export_pixel_size_um is not None and not math.isclose(export_pixel_size_um, pixel_size_um, rel_tol=1e-9):
         queries.positive_input(export_pixel_size_um, "pixel_size_um")
         if export_pixel_size_um < pixel_size_um or min(z_um.shape) < export_pixel_size_um / pixel_size_um:

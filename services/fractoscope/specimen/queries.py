@@ -106,10 +106,7 @@ def profile_along(
         cell_um = specimen.finest_pixel_size_um(
             (points[:, 0].min(), points[:, 1].min(), points[:, 0].max(), points[:, 1].max())
         )
-    spacing_um = positive_input(spacing_um, "spacing_um") if spacing_um else cell_um
-    length_um = float(np.hypot(*np.diff(points, axis=0).T).sum())
-    if np.floor(length_um / spacing_um) + 1 > MAX_PROFILE_SAMPLES:  # samples at both ends
-        raise InvalidInputError("spacing_um", f"gives more than {MAX_PROFILE_SAMPLES} samples; use a larger spacing")
+    spacing_um = _profile_spacing(points, positive_input(spacing_um, "spacing_um") if spacing_um else None, cell_um)
     form = _form(chain.form)
     lambdas = [
         _cutoff(value, field)
@@ -133,6 +130,33 @@ def profile_along(
     r_um[regular] = made.r_um
     parameters = profile_parameters.profile_parameters(made.r_um, spacing_um=spacing_um)
     return SpecimenProfile(distances, z_um, samples.source, sources, parameters, made, r_um)
+
+
+def _profile_spacing(points: np.ndarray, spacing_um: float | None, cell_um: float) -> float:
+    """The spacing of a profile's samples, µm: `spacing_um` if given, else the pixel size `cell_um`.
+    Too many samples (MAX_PROFILE_SAMPLES, the vertices among them) blame the spacing only where
+    a given one is finer than the default and the default would do; else the points (too many,
+    too far apart: a line of 1e308 µm, or one far beyond the specimen)."""
+    with np.errstate(over="ignore"):  # coordinates of ±1e308 make a line of infinite length, refused below
+        length_um = float(np.hypot(*np.diff(points, axis=0).T).sum())
+
+    def sample_count(spacing: float) -> float:
+        return np.floor(length_um / spacing) + 1 + len(points)  # both ends and every vertex
+
+    chosen_um = spacing_um or cell_um
+    if sample_count(chosen_um) <= MAX_PROFILE_SAMPLES:
+        return chosen_um
+    if spacing_um is not None and sample_count(cell_um) <= MAX_PROFILE_SAMPLES:
+        raise InvalidInputError(
+            "spacing_um",
+            f"{spacing_um:g} µm gives more than {MAX_PROFILE_SAMPLES} samples along the {length_um:g} µm line; "
+            f"use a larger spacing (default: {cell_um:g} µm)",
+        )
+    raise InvalidInputError(
+        "points",
+        f"{len(points)} points making a line of {length_um:g} µm give more than {MAX_PROFILE_SAMPLES} samples "
+        f"{chosen_um:g} µm apart; give a shorter line of fewer points",
+    )
 
 
 def _roughness_profile(

@@ -3,7 +3,12 @@
 A specimen is written in a staging folder, fsynced, and renamed into place (the stored one first
 renamed aside as its retired twin, then removed), so readers see the old one or the new one
 complete, never half of one. A process killed between the two renames leaves the retired copy
-and no specimen; `recover`, at the next start, renames it back.
+and no specimen; `recover`, at the next start, renames it back. A deleted specimen is renamed
+aside as a deleted copy, then removed; `recover` removes what a killed process left of that.
+
+Exports and reports are written in scratch folders under `DATA/tmp` (`scratch_folder`), not the
+system's temporary folder: on the data volume, sized for them, and cleared of the folders of
+killed processes when a store of that data is made.
 """
 
 from __future__ import annotations
@@ -14,6 +19,7 @@ import math
 import os
 import re
 import shutil
+import tempfile
 import threading
 import uuid
 from collections.abc import Iterator
@@ -23,13 +29,17 @@ from pathlib import Path
 
 import numpy as np
 
-from fractoscope.errors import InvalidInputError, NotFoundError
+from fractoscope.errors import AlreadyExistsError, InvalidInputError, NotFoundError
 from fractoscope.specimen.fusion import FusedSurface, PlacedRoi, footprint_um, overlaps
 from fractoscope.specimen.quadtree import QuadtreeLayout, TileKey, TileRecord
 
 _ID = re.compile(r"[A-Za-z0-9_-]{1,64}")
 # Folders of unfinished writes: `{prefix}{id}-{token}`, the token shared by a write's two.
 _STAGING, _RETIRED = ".staging-", ".retired-"
+# Folders of a deletion under way: `{prefix}{id}-{token}`, never restored.
+_DELETED = ".deleted-"
+# Scratch folders: `{purpose}-{pid}.{start}-{random}`, named after the process that made them.
+_SCRATCH_NAME = re.compile(r"[a-z-]+-(?P<pid>[0-9]+)\.(?P<start>[0-9]+)-[a-z0-9_]+")
 
 
 def validate_id(value: str, *, field: str) -> str:
@@ -75,6 +85,8 @@ class Specimen:
         self.version = version
         self.id: str = description["id"]
         self.request_id: str = description.get("request_id", "")
+        # What identifies the content of the request that built it ("" for specimens built before it was kept).
+        self.request_digest: str = description.get("request_digest", "")
         self.rois = [
             RoiEntry(**{**roi, "origin_um": tuple(roi["origin_um"]), "shape": tuple(roi["shape"])})
             for roi in description["rois"]
@@ -112,7 +124,7 @@ class Specimen:
     def surface(self) -> FusedSurface:
         placed = []
         for roi in self.rois:
-            with np.load(self.directory / "rois" / f"{roi.id}.npz") as arrays:
+            with self._stored_file(), np.load(self.directory / "rois" / f"{roi.id}.npz") as arrays:
                 sigma_um = (
                     arrays["sigma_um"] if "sigma_um" in arrays else None
                 )  # specimens built before it was kept have none
@@ -131,7 +143,8 @@ class Specimen:
 
     @cached_property
     def tileset_bytes(self) -> bytes:
-        return (self.directory / "tileset.json").read_bytes()
+        with self._stored_file():
+            return (self.directory / "tileset.json").read_bytes()
 
     def tile_record(self, uri: str) -> TileRecord:
         try:
@@ -147,11 +160,25 @@ class Specimen:
         views = self.roi(roi_id).views
         if not 0 <= index < len(views):
             raise NotFoundError(f"ROI {roi_id!r} of specimen {self.id!r} keeps no view {index}")
-        return (self.directory / views[index]["file"]).read_bytes()
+        with self._stored_file():
+            return (self.directory / views[index]["file"]).read_bytes()
 
     def tile_bytes(self, uri: str) -> bytes:
         """The GLB of a tile named as in tileset.json."""
-        return (self.directory / self.tile_record(uri).key.uri).read_bytes()
+        record = self.tile_record(uri)
+        with self._stored_file():
+            return (self.directory / record.key.uri).read_bytes()
+
+    @contextlib.contextmanager
+    def _stored_file(self) -> Iterator[None]:
+        """A file of this specimen gone since it was loaded: the specimen was deleted or rebuilt
+        meanwhile, which is NotFoundError as for an unknown one (loading it again finds a rebuild)."""
+        try:
+            yield
+        except FileNotFoundError:
+            raise NotFoundError(
+                f"specimen {self.id!r} was deleted or rebuilt while it was read; load it again", field="specimen_id"
+            ) from None
 
 
 class SpecimenStore:
@@ -162,9 +189,11 @@ class SpecimenStore:
     def __init__(self, root: Path):
         self.root = Path(root) / "specimens"
         self.root.mkdir(parents=True, exist_ok=True)
+        self.scratch_root = Path(root) / "tmp"  # exports' and reports' scratch folders (scratch_folder)
         self._cache: dict[str, tuple[int, Specimen]] = {}
         self._lock = threading.Lock()
         self._commit_lock = threading.Lock()
+        _remove_abandoned_scratch(self.scratch_root)
 
     def recover(self) -> tuple[list[str], int]:
         """Undoes what writes of a killed process left; only the one writer may call this, when it
@@ -180,8 +209,8 @@ class SpecimenStore:
             else:
                 shutil.rmtree(retired, ignore_errors=True)
                 removed += 1
-        for staging in self.root.glob(f"{_STAGING}*"):
-            shutil.rmtree(staging, ignore_errors=True)
+        for leftover in [*self.root.glob(f"{_STAGING}*"), *self.root.glob(f"{_DELETED}*")]:
+            shutil.rmtree(leftover, ignore_errors=True)
             removed += 1
         _sync_folder(self.root)
         return restored, removed
@@ -192,6 +221,27 @@ class SpecimenStore:
             for p in self.root.iterdir()
             if p.is_dir() and _ID.fullmatch(p.name) and (p / "specimen.json").is_file()
         )
+
+    def built_by(self, specimen_id: str, request_id: str, digest: str) -> Specimen | None:
+        """The stored specimen that a request with `request_id` and content `digest` (a digest of
+        the request without its id) built, if any; AlreadyExistsError naming request_id when that
+        id built it from other content. A request without an id built nothing."""
+        if not request_id:
+            return None
+        try:
+            existing = self.load(specimen_id)
+        except NotFoundError:
+            return None
+        if existing.request_id != request_id:
+            return None
+        # A specimen built before digests were kept has none: its content cannot be compared.
+        if existing.request_digest and existing.request_digest != digest:
+            raise AlreadyExistsError(
+                f"request_id {request_id!r} built specimen {specimen_id!r} from other content; give this request a "
+                "new request_id",
+                field="request_id",
+            )
+        return existing
 
     def load(self, specimen_id: str) -> Specimen:
         validate_id(specimen_id, field="specimen_id")
@@ -230,6 +280,58 @@ class SpecimenStore:
         finally:
             shutil.rmtree(staging, ignore_errors=True)
 
+    def delete(self, specimen_id: str) -> None:
+        """Removes a stored specimen: renamed aside at once, so readers see it whole or not at all
+        (one that still holds it gets NotFoundError for files it had not read), then its files;
+        NotFoundError naming `specimen_id` when there is none."""
+        validate_id(specimen_id, field="specimen_id")
+        target, deleted = self.root / specimen_id, self.root / f"{_DELETED}{specimen_id}-{uuid.uuid4().hex}"
+        with self._commit_lock:  # not between the two renames of a build of that id
+            if not (target / "specimen.json").is_file():
+                raise NotFoundError(f"no specimen {specimen_id!r}", field="specimen_id")
+            target.rename(deleted)
+            _sync_folder(self.root)
+        with self._lock:
+            self._cache.pop(specimen_id, None)
+        shutil.rmtree(deleted, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def scratch_folder(root: Path, purpose: str) -> Iterator[Path]:
+    """A new folder under `root` (SpecimenStore.scratch_root) for one export's or report's files,
+    removed on exit. Its name carries `purpose` (lower-case letters and '-') and this process's
+    identity, so that a store made by another process removes it only once this one has gone."""
+    root.mkdir(parents=True, exist_ok=True)
+    folder = Path(tempfile.mkdtemp(prefix=f"{purpose}-{_process_identity(os.getpid())}-", dir=root))
+    try:
+        yield folder
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+def _remove_abandoned_scratch(root: Path) -> None:
+    """Removes the scratch folders under `root` of processes that no longer run (killed mid-export);
+    those of running processes stay, this one's included: several servers of one process, or
+    processes of one host, may share a data directory. (Processes of separate PID namespaces, e.g.
+    containers, must not share one: each would take the other's processes for gone.)"""
+    if not root.is_dir():
+        return
+    for folder in root.iterdir():
+        named = _SCRATCH_NAME.fullmatch(folder.name)
+        if named and _process_identity(int(named["pid"])) != f"{named['pid']}.{named['start']}":
+            shutil.rmtree(folder, ignore_errors=True)
+
+
+def _process_identity(pid: int) -> str | None:
+    """`{pid}.{start}` of a running process, its start time (clock ticks after boot, field 22 of
+    /proc/PID/stat) telling it apart from a later process given the same pid, as a restarted
+    container's server is; None when no process has that pid."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    return f"{pid}.{stat.rpartition(')')[2].split()[19]}"
+
 
 def _sync_tree(folder: Path) -> None:
     """Flushes every file and folder under `folder` (and itself) to disk, deepest first."""
@@ -260,11 +362,14 @@ def write_description(
     rois: list[RoiEntry],
     layout: QuadtreeLayout,
     tiles: dict[TileKey, TileRecord],
+    request_digest: str = "",
 ) -> None:
-    """specimen.json: everything about a specimen except arrays and tiles' bytes."""
+    """specimen.json: everything about a specimen except arrays and tiles' bytes; `request_digest`
+    identifies the content of the request that built it (see Specimen.request_digest)."""
     description = {
         "id": specimen_id,
         "request_id": request_id,
+        "request_digest": request_digest,
         "rois": [asdict(roi) for roi in rois],
         "layout": {"origin_um": list(layout.origin_um), "size_um": layout.size_um},
         "tiles": [record.to_json() for _, record in sorted(tiles.items())],

@@ -3,14 +3,17 @@
 profiles, zoom, exports and the measurement report.
 
 Every error is JSON, {"error": message, "field": the input at fault or null}, with a 4xx status
-for anything the caller can fix. Tokens and scopes are gRPC's (see auth): read tokens query,
-write tokens compute (uploads and builds); they are checked before a request's body is read.
+for anything the caller can fix, 507 when the disk is full, and 500 naming only the exception's
+class for what was not foreseen (its traceback goes to the log). Tokens and scopes are gRPC's
+(see auth): read tokens query, write tokens also upload, build and delete (uploads and
+specimens); they are checked before a request's body is read.
 Builds run as ReconstructSpecimen calls on this server's own gRPC endpoint with the submitter's
 token, so they follow the same path, limits and scopes as any gRPC build.
 """
 
 from __future__ import annotations
 
+import logging
 import re
 from dataclasses import dataclass
 from http import HTTPStatus
@@ -37,7 +40,9 @@ from fractoscope.tiles.http_json import (
     file_response,
     json_error,
     json_response,
+    no_content,
     off_loop,
+    unexpected_response,
 )
 from fractoscope.tiles.http_requests import (
     CHAIN_PARAMETERS,
@@ -55,12 +60,15 @@ from fractoscope.tiles.http_requests import (
 )
 from fractoscope.tiles.messages import (
     profile_response,
+    request_digest,
     roughness_response,
     specimen_message,
     tile_message,
 )
 from fractoscope.tiles.uploads import DEFAULT_MAX_UPLOAD_BYTES, Uploads
 from fractoscope.v1 import tiles_pb2
+
+_log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -75,6 +83,7 @@ _ROUTES = [
     _Route("GET", re.compile(r"/api/openapi\.json"), "openapi", ""),
     _Route("GET", re.compile(r"/api/specimens"), "list_specimens", READ),
     _Route("GET", re.compile(r"/api/specimens/(?P<specimen_id>[^/]+)"), "get_specimen", READ),
+    _Route("DELETE", re.compile(r"/api/specimens/(?P<specimen_id>[^/]+)"), "delete_specimen", WRITE),
     _Route("GET", re.compile(r"/api/specimens/(?P<specimen_id>[^/]+)/roughness"), "roughness", READ),
     _Route("GET", re.compile(r"/api/specimens/(?P<specimen_id>[^/]+)/profile"), "profile", READ),
     _Route("GET", re.compile(r"/api/specimens/(?P<specimen_id>[^/]+)/heights"), "heights", READ),
@@ -83,6 +92,7 @@ _ROUTES = [
     _Route("GET", re.compile(r"/api/specimens/(?P<specimen_id>[^/]+)/report"), "report", READ),
     _Route("POST", re.compile(r"/api/exports"), "export_height_map", READ),
     _Route("POST", re.compile(r"/api/uploads"), "upload", WRITE),
+    _Route("DELETE", re.compile(r"/api/uploads/(?P<upload_id>[^/]+)"), "delete_upload", WRITE),
     _Route("POST", re.compile(r"/api/jobs"), "submit_job", WRITE),
     _Route("GET", re.compile(r"/api/jobs/(?P<job_id>[^/]+)"), "get_job", READ),
 ]
@@ -120,6 +130,11 @@ class JsonApi:
             return json_error(error.status, error.message, error.field, **error.headers)
         except FractoscopeError as error:
             return failure_response(error)
+        except Exception as error:  # not raised on purpose: JSON all the same, the traceback in our log only
+            if request.writer.output_size:  # a file half sent: aiohttp's closing the connection tells the client
+                raise
+            _log.error("%s %r failed", request.method, request.path, exc_info=error)
+            return unexpected_response(error)
 
     def _authorize(self, request: web.Request, access: str) -> Grant | None:
         """The caller's grant, checked against the scope the route needs before anything is read."""
@@ -149,6 +164,11 @@ class JsonApi:
         query_parameters(request, set())
         return json_response(await off_loop(lambda: _summary(self._specimen(match))))
 
+    async def delete_specimen(self, request, match, grant):
+        query_parameters(request, set())
+        await off_loop(self.store.delete, match["specimen_id"])
+        return no_content()
+
     async def roughness(self, request, match, grant):
         query = query_parameters(request, {"roi", "region", *CHAIN_PARAMETERS})
         area, chain = area_of(query), chain_request(query)
@@ -168,9 +188,14 @@ class JsonApi:
         chain = chain_request(query)
 
         def answer():
-            found = queries.profile_along(
-                self._specimen(match), points, spacing_um=spacing_um, magnification=magnification, chain=chain
-            )
+            try:
+                found = queries.profile_along(
+                    self._specimen(match), points, spacing_um=spacing_um, magnification=magnification, chain=chain
+                )
+            except InvalidInputError as error:  # the line's points are the query's from and to
+                if error.field.split("[")[0] != "points":
+                    raise
+                raise InvalidInputError("to" if error.field == "points[1]" else "from", error.message) from None
             names = found.sources + [""]
             response = profile_response(found)
             return {
@@ -218,7 +243,7 @@ class JsonApi:
             exported = exports.export_area(self._specimen(match), directory, **area, **options)
             return exported.path, MEDIA_TYPES[exported.file_format]
 
-        return await file_response(request, self.analyses.run, write)
+        return await file_response(request, self.analyses.run, write, scratch_root=self.store.scratch_root)
 
     async def export_height_map(self, request, match, grant):
         query_parameters(request, set())
@@ -229,14 +254,16 @@ class JsonApi:
             limit_bytes=self.uploads.max_bytes,
         )
         options = export_options(form)
-        z_um, sigma_um, stored = npz_height_map(form.get("height_map"))
-        if stored is not None:
-            map_pixel_size_um = validate_pixel_size_um(stored, field="height_map.pixel_size_um")
-        else:
-            map_pixel_size_um = validate_pixel_size_um(number(form, "map_pixel_size_um"), field="map_pixel_size_um")
         export_pixel_size_um = options.pop("pixel_size_um")
 
         def write(directory: Path) -> tuple[Path, str]:
+            # Decoded here, on the analysis threads: a map near the pixel limit takes seconds and
+            # gigabytes, which neither the event loop nor requests queued behind it should wait on or hold.
+            z_um, sigma_um, stored = npz_height_map(form.get("height_map"))
+            if stored is not None:
+                map_pixel_size_um = validate_pixel_size_um(stored, field="height_map.pixel_size_um")
+            else:
+                map_pixel_size_um = validate_pixel_size_um(number(form, "map_pixel_size_um"), field="map_pixel_size_um")
             exported = exports.export_height_map(
                 directory,
                 z_um,
@@ -247,7 +274,7 @@ class JsonApi:
             )
             return exported.path, MEDIA_TYPES[exported.file_format]
 
-        return await file_response(request, self.analyses.run, write)
+        return await file_response(request, self.analyses.run, write, scratch_root=self.store.scratch_root)
 
     async def report(self, request, match, grant):
         query = query_parameters(request, {"format", "roi", "region"})
@@ -258,7 +285,7 @@ class JsonApi:
             path = report.write_report(self._specimen(match), directory, file_format=file_format, **area)
             return path, report.MEDIA_TYPES[file_format]
 
-        return await file_response(request, self.analyses.run, write)
+        return await file_response(request, self.analyses.run, write, scratch_root=self.store.scratch_root)
 
     async def upload(self, request, match, grant):
         query_parameters(request, set())
@@ -268,6 +295,11 @@ class JsonApi:
             status=HTTPStatus.CREATED,
             Location=f"/api/uploads/{upload_id}",
         )
+
+    async def delete_upload(self, request, match, grant):
+        query_parameters(request, set())
+        await off_loop(self.uploads.delete, match["upload_id"])
+        return no_content()
 
     async def submit_job(self, request, match, grant):
         query_parameters(request, set())
@@ -298,6 +330,9 @@ class JsonApi:
                 "content-type",
             )
         specimen_id, rois = await off_loop(self.uploads.load, upload_id)
+        if request_id:  # a reused id is refused now, not in a job that fails later
+            build = tiles_pb2.ReconstructSpecimenRequest(specimen_id=specimen_id, rois=rois)
+            await off_loop(self.store.built_by, specimen_id, request_id, request_digest(build))
         token = (
             (request.headers.get("Authorization") or "").removeprefix("Bearer ").strip()
             or request.query.get("token")

@@ -15,6 +15,7 @@ from __future__ import annotations
 import asyncio
 import gzip
 import hashlib
+import logging
 import os
 import re
 import sys
@@ -23,6 +24,8 @@ from http import HTTPStatus
 from pathlib import Path
 
 from aiohttp import web
+from aiohttp.http_exceptions import HttpProcessingError
+from aiohttp.log import server_logger
 
 from fractoscope.errors import FractoscopeError, NotFoundError
 from fractoscope.runtime.auth import TokenTable
@@ -92,8 +95,8 @@ class _TileApp:
                 status=HTTPStatus.NO_CONTENT,
                 headers={
                     **_CORS,
-                    "Access-Control-Allow-Methods": "GET, HEAD, POST, OPTIONS",
-                    "Access-Control-Allow-Headers": "*",
+                    "Access-Control-Allow-Methods": "GET, HEAD, POST, DELETE, OPTIONS",
+                    "Access-Control-Allow-Headers": "Authorization, Content-Type",  # `*` is not Authorization
                 },
             )
         if len(request.raw_path) > MAX_TARGET_BYTES:
@@ -205,10 +208,40 @@ def _plain(status: HTTPStatus, text: str, **headers: str) -> web.Response:
     )
 
 
+# Credentials in a log line: a header's value to the end of its line, a bearer token, a query's token.
+_CREDENTIALS = re.compile(r"(?i)(authorization[ \t]*[:=][ \t]*)[^\r\n]*|(bearer[ \t]+)\S+|([?&;]token=)[^&\s]*")
+
+
+def _redacted(text: str) -> str:
+    return _CREDENTIALS.sub(lambda found: (found[1] or found[2] or found[3]) + "[redacted]", text)
+
+
+class _CredentialFilter(logging.Filter):
+    """aiohttp's server log without credentials: a request its parser refuses (anyone's input) is
+    logged at DEBUG without a traceback, not at ERROR with one whose message quotes the refused line,
+    Authorization header and all; every record's message and traceback are redacted."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        error = record.exc_info[1] if record.exc_info else None
+        if isinstance(error, HttpProcessingError):
+            record.msg, record.args = f"{record.getMessage()}: {error.message}", None
+            record.levelno, record.levelname, record.exc_info, record.exc_text = logging.DEBUG, "DEBUG", None, None
+        record.msg, record.args = _redacted(record.getMessage()), None
+        if record.exc_info:  # formatted now, redacted, in place of the exception a handler would format
+            record.exc_text = _redacted(logging.Formatter().formatException(record.exc_info))
+            record.exc_info = None
+        # The logger's level was checked at the record's first level; a downgraded one is checked again.
+        return record.levelno > logging.DEBUG or server_logger.isEnabledFor(logging.DEBUG)
+
+
+_CREDENTIAL_FILTER = _CredentialFilter()
+
+
 class HttpTileServer:
     """The HTTP endpoint, served by aiohttp from an event loop on its own daemon thread."""
 
     def __init__(self, store: SpecimenStore, host: str, port: int, tokens: TokenTable, api: JsonApi):
+        server_logger.addFilter(_CREDENTIAL_FILTER)  # once per process: the same filter is not added twice
         self._loop = asyncio.new_event_loop()
         self._api = api
         app = _TileApp(store, tokens, api)

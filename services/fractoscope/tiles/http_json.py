@@ -4,8 +4,8 @@ or null}, with the status errors.OUTCOMES gives a failure), and files streamed o
 from __future__ import annotations
 
 import asyncio
+import errno
 import math
-import shutil
 import tempfile
 from collections.abc import Callable
 from http import HTTPStatus
@@ -15,6 +15,7 @@ from aiohttp import web
 
 from fractoscope import strict_json
 from fractoscope.errors import FractoscopeError, outcome_of
+from fractoscope.specimen.store import scratch_folder
 
 JSON_TYPE = "application/json"
 
@@ -47,6 +48,18 @@ def failure_response(error: FractoscopeError) -> web.Response:
     return json_error(HTTPStatus(outcome_of(error).http_status), str(error), getattr(error, "field", None), **headers)
 
 
+def unexpected_response(error: Exception) -> web.Response:
+    """An exception not raised on purpose, named by its class only (its message is for the log):
+    507 when the disk or the quota is full, else 500."""
+    if isinstance(error, OSError) and error.errno in (errno.ENOSPC, errno.EDQUOT):
+        return json_error(HTTPStatus.INSUFFICIENT_STORAGE, "the server's disk is full; retry later", None)
+    return json_error(HTTPStatus.INTERNAL_SERVER_ERROR, f"internal error ({type(error).__name__})", None)
+
+
+def no_content() -> web.Response:
+    return web.Response(status=HTTPStatus.NO_CONTENT, headers={**CORS_HEADERS, "Cache-Control": "no-store"})
+
+
 def json_response(value, *, status: HTTPStatus = HTTPStatus.OK, **headers: str) -> web.Response:
     body = strict_json.dumps(value).encode()
     return web.Response(
@@ -61,12 +74,14 @@ def json_error(status: HTTPStatus, message: str, field: str | None, **headers: s
     return json_response({"error": message, "field": field}, status=status, **headers)
 
 
-async def file_response(request: web.Request, run, write: Callable[[Path], tuple[Path, str]]) -> web.StreamResponse:
+async def file_response(
+    request: web.Request, run, write: Callable[[Path], tuple[Path, str]], *, scratch_root: Path | None = None
+) -> web.StreamResponse:
     """A file written by `write(directory)` (on threads by `await run(function, *args)`, into a
-    temporary folder) and streamed out in chunks, so memory stays bounded; the folder goes once it
-    is sent."""
-    directory = Path(tempfile.mkdtemp(prefix="fractoscope-http-"))
-    try:
+    scratch folder under `scratch_root`: SpecimenStore.scratch_root, whose leftovers of killed
+    processes a store's start removes; None: the system's temporary folder) and streamed out in
+    chunks, so memory stays bounded; the folder goes once it is sent."""
+    with scratch_folder(scratch_root or Path(tempfile.gettempdir()), "fractoscope-http") as directory:
         path, media_type = await run(write, directory)
         response = web.StreamResponse(
             headers={
@@ -84,5 +99,3 @@ async def file_response(request: web.Request, run, write: Callable[[Path], tuple
                     await response.write(chunk)
         await response.write_eof()
         return response
-    finally:
-        shutil.rmtree(directory, ignore_errors=True)

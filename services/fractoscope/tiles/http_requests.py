@@ -5,16 +5,21 @@ from __future__ import annotations
 
 import io
 import json
+import lzma
 import math
+import zipfile
+import zlib
 from http import HTTPStatus
 
 import numpy as np
 from aiohttp import web
 from aiohttp.http_exceptions import HttpProcessingError
+from numpy.lib import format as npy_format
 
 from fractoscope.errors import InvalidInputError
 from fractoscope.formats.exports import MEDIA_TYPES
 from fractoscope.rpc import wire
+from fractoscope.sem import image as sem_image
 from fractoscope.specimen import queries
 from fractoscope.tiles.http_json import CHUNK_BYTES, ApiError
 
@@ -132,7 +137,7 @@ async def json_body(request: web.Request, *, limit_bytes: int) -> dict:
         raise ApiError(HTTPStatus.REQUEST_ENTITY_TOO_LARGE, f"a JSON body of at most {limit_bytes} bytes", "body")
     try:
         body = json.loads(raw)
-    except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as error:
+    except (ValueError, RecursionError) as error:  # ValueError: bad JSON, bad UTF-8, integers of > 4300 digits
         raise InvalidInputError("body", f"is not JSON: {error}") from None
     if not isinstance(body, dict):
         raise InvalidInputError("body", "must be a JSON object")
@@ -209,21 +214,76 @@ async def multipart_reader(request: web.Request, *, limit_bytes: int):
         raise InvalidInputError("body", f"is not multipart/form-data: {error}") from None
 
 
+# What reading a damaged or foreign zip archive or .npy array may raise.
+_UNREADABLE_NPZ = (
+    OSError,
+    ValueError,
+    KeyError,
+    TypeError,
+    EOFError,
+    RuntimeError,  # an encrypted member
+    NotImplementedError,  # a compression method zipfile lacks
+    zipfile.BadZipFile,
+    zlib.error,
+    lzma.LZMAError,
+)
+# The arrays of a height map's npz that are read (the others, such as its record, are not).
+_HEIGHT_MAP_ARRAYS = ("z_um", "sigma_um", "pixel_size_um")
+_NPY_HEADER_READERS = {(1, 0): npy_format.read_array_header_1_0, (2, 0): npy_format.read_array_header_2_0}
+
+
 def npz_height_map(content: bytes | None) -> tuple[np.ndarray, np.ndarray | None, float | None]:
-    """z_um (and sigma_um, pixel_size_um if stored) of an uploaded npz, as `fracto height` writes it."""
+    """z_um (and sigma_um, pixel_size_um if stored) of an uploaded npz, as `fracto height` writes it;
+    its arrays are checked from their headers before any is read (see _check_npz_headers)."""
     if not content:
         raise InvalidInputError("height_map", "is required: an .npz with z_um (as fracto height writes it)")
     if not content.startswith(b"PK"):  # npz files are zip archives; np.load would try a pickle
         raise InvalidInputError(
             "height_map", "is not an npz file (a zip archive with z_um, as fracto height writes it)"
         )
+    _check_npz_headers(content)
     try:
         with np.load(io.BytesIO(content), allow_pickle=False) as arrays:
             z_um = np.asarray(arrays["z_um"])
             sigma_um = np.asarray(arrays["sigma_um"]) if "sigma_um" in arrays.files else None
             stored = float(arrays["pixel_size_um"]) if "pixel_size_um" in arrays.files else None
-    except (OSError, ValueError, KeyError, TypeError, EOFError) as error:
-        raise InvalidInputError("height_map", f"is not an npz with z_um: {error}") from None
-    if z_um.dtype.kind not in "fiu" or (sigma_um is not None and sigma_um.dtype.kind not in "fiu"):
-        raise InvalidInputError("height_map", "z_um and sigma_um must be real numbers")
+    except _UNREADABLE_NPZ as error:
+        raise InvalidInputError("height_map", f"is not an npz with z_um: {first_line(error)}") from None
     return z_um, sigma_um, stored
+
+
+def _check_npz_headers(content: bytes) -> None:
+    """Refuses, from the .npy headers alone, an npz that np.load would allocate too much for (an
+    array of more values than an image may have pixels, sem.image.MAX_IMAGE_PIXELS: 413; a header
+    may declare any shape in a few bytes) or that is not a height map (400)."""
+    limit = sem_image.MAX_IMAGE_PIXELS
+    headers = _npy_headers(content)
+    for name, shape, dtype in headers:
+        if math.prod(shape) > limit:
+            raise ApiError(
+                HTTPStatus.REQUEST_ENTITY_TOO_LARGE,
+                f"height_map's {name} array is {'x'.join(map(str, shape))}, more than the {limit} pixels an image "
+                "may have (FRACTO_MAX_IMAGE_PIXELS)",
+                "height_map",
+            )
+        if name in _HEIGHT_MAP_ARRAYS and dtype.kind not in "fiu":
+            raise InvalidInputError("height_map", f"its {name} array holds {dtype}, not real numbers")
+    if "z_um" not in {name for name, _, _ in headers}:
+        raise InvalidInputError("height_map", "holds no z_um array (as fracto height writes it)")
+
+
+def _npy_headers(content: bytes) -> list[tuple[str, tuple[int, ...], np.dtype]]:
+    """Each member of a zip archive as (name without .npy, shape, dtype), read from its .npy header only."""
+    headers = []
+    try:
+        with zipfile.ZipFile(io.BytesIO(content)) as archive:
+            for info in archive.infolist():
+                with archive.open(info) as member:
+                    version = npy_format.read_magic(member)
+                    if version not in _NPY_HEADER_READERS:
+                        raise ValueError(f"{info.filename} is a .npy file of version {version}, not 1.0 or 2.0")
+                    shape, _, dtype = _NPY_HEADER_READERS[version](member)
+                headers.append((info.filename.removesuffix(".npy"), shape, dtype))
+    except _UNREADABLE_NPZ as error:
+        raise InvalidInputError("height_map", f"is not an npz of .npy arrays: {first_line(error)}") from None
+    return headers

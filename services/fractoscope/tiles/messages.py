@@ -4,6 +4,7 @@ their tiles, ROI specs, checked regions, and the analysis chain's requests and r
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import math
 from collections.abc import Iterator, Sequence
 from pathlib import Path
@@ -13,14 +14,16 @@ from fractoscope.formats.calibration import Calibration
 from fractoscope.matching import messages as rpc_matching
 from fractoscope.rpc import calls, wire
 from fractoscope.rpc.calls import CHUNK_BYTES
+from fractoscope.rpc.limits import MAX_ROIS
 from fractoscope.sem.image import nominal_magnification
 from fractoscope.specimen import exports
 from fractoscope.specimen.build import RoiRequest, ordered_rois
 from fractoscope.specimen.exports import ExportedFile
+from fractoscope.specimen.fusion import footprint_um, overlaps
 from fractoscope.specimen.quadtree import TileRecord
 from fractoscope.specimen.queries import ChainRequest, SpecimenProfile, checked_region
 from fractoscope.specimen.store import Specimen, SpecimenStore
-from fractoscope.stereo.geometry import validate_pixel_size_um
+from fractoscope.stereo.geometry import validate_pixel_size_um, validate_tilts
 from fractoscope.surface.areal_parameters import UNITS
 from fractoscope.surface.datum import LEVELS
 from fractoscope.surface.roughness import SurfaceAnalysis, SurfaceChain
@@ -96,8 +99,10 @@ def checked_rois(
     specs: Sequence[tiles_pb2.RoiSpec], request_id: str = ""
 ) -> tuple[list[RoiRequest], list[matching_pb2.ComputeHeightMapRequest], list[tuple[int, int]]]:
     """A reconstruction's ROIs, their height-map requests and their first images' (rows, cols),
-    all checked before any work: placements, parents, images and matching parameters
-    (InvalidInputError names `rois[index]`'s field)."""
+    all checked before any work: their number, placements, parents, images, given tilts and
+    matching parameters (InvalidInputError names `rois[index]`'s field)."""
+    if len(specs) > MAX_ROIS:
+        raise InvalidInputError("rois", f"at most {MAX_ROIS} ROIs make one specimen, got {len(specs)}")
     rois = [roi_request(spec, index) for index, spec in enumerate(specs)]
     ordered_rois(rois)
     height_requests = [roi_height_map_request(spec, request_id) for spec in specs]
@@ -105,7 +110,41 @@ def checked_rois(
     for index, request in enumerate(height_requests):
         with in_roi(index):
             shapes.append(rpc_matching.checked_height_map_request(request)[0])
+            _validate_given_tilts(request)
     return rois, height_requests, shapes
+
+
+def _validate_given_tilts(request: matching_pb2.ComputeHeightMapRequest) -> None:
+    """The tilts a height-map request gives, checked as the matching pipeline checks them against the
+    first view's (a tilt left to an image's metadata is known once the image is read)."""
+    given = [item.tilt_deg if item.HasField("tilt_deg") else None for item in request.images]
+    for index in range(1, len(given)):
+        if given[0] is not None and given[index] is not None:
+            validate_tilts((given[0], given[index]), field=f"images[{index}].tilt_deg")
+
+
+def check_child_centres(
+    specs: Sequence[tiles_pb2.RoiSpec], shapes: Sequence[tuple[int, int]], pixel_sizes_um: Sequence[float]
+) -> None:
+    """Refuses a given centre that puts an ROI (of its first image's (rows, cols) `shapes[i]` and
+    pixels of `pixel_sizes_um[i]`) wholly outside its parent: the build places it there and then
+    refuses it for want of overlap (registration.align_heights). Errors name `rois[i].center_um`."""
+    index_of = {spec.id: index for index, spec in enumerate(specs)}
+    for index, spec in enumerate(specs):
+        if not (spec.parent and spec.HasField("center_um")):
+            continue
+        parent = index_of[spec.parent]
+        rows, cols = shapes[index]
+        half_um = ((cols - 1) / 2 * pixel_sizes_um[index], (rows - 1) / 2 * pixel_sizes_um[index])
+        origin_um = (spec.center_um.x_um - half_um[0], spec.center_um.y_um - half_um[1])
+        # Both in the parent's frame: its pixel (0, 0) at the origin.
+        parent_um = footprint_um((0.0, 0.0), shapes[parent], pixel_sizes_um[parent])
+        if not overlaps(footprint_um(origin_um, shapes[index], pixel_sizes_um[index]), parent_um):
+            raise InvalidInputError(
+                f"rois[{index}].center_um",
+                f"places ROI {spec.id!r} outside its parent {spec.parent!r}, which spans "
+                f"{parent_um[2]:.6g} x {parent_um[3]:.6g} µm from its first pixel's centre",
+            )
 
 
 def roi_height_map_request(spec: tiles_pb2.RoiSpec, request_id: str) -> matching_pb2.ComputeHeightMapRequest:
@@ -326,3 +365,16 @@ def export_grid(exported: ExportedFile) -> tiles_pb2.ExportGrid:
         pixel_size_um=exported.pixel_size_um,
         origin_um=common_pb2.PointUm(x_um=exported.origin_um[0], y_um=exported.origin_um[1]),
     )
+
+
+def request_digest(request: tiles_pb2.ReconstructSpecimenRequest) -> str:
+    """What identifies a build request's content: the SHA-256 (hex) of the request serialized
+    deterministically with its request_id cleared. It is fed the specimen id, then one ROI at a
+    time (the same bytes: a message's encoding is its fields' in turn, a repeated field's its
+    elements'), so a request of hundreds of MB of images is never copied whole."""
+    digest = hashlib.sha256(
+        tiles_pb2.ReconstructSpecimenRequest(specimen_id=request.specimen_id).SerializeToString(deterministic=True)
+    )
+    for roi in request.rois:
+        digest.update(tiles_pb2.ReconstructSpecimenRequest(rois=[roi]).SerializeToString(deterministic=True))
+    return digest.hexdigest()

@@ -16,6 +16,7 @@ _ERRORS = {
     "403": "The token may only read.",
     "404": "The specimen, ROI, upload or job does not exist; `field` names what named it.",
     "414": "The request target (path and query) is too long; `field` is `url`.",
+    "507": "The server's disk is full.",
 }
 
 
@@ -31,13 +32,18 @@ def _query(name: str, description: str, schema: dict, *, required: bool = False)
     return {"name": name, "in": "query", "required": required, "description": description, "schema": schema}
 
 
-_SPECIMEN_ID = {
-    "name": "specimen_id",
-    "in": "path",
-    "required": True,
-    "description": "Specimen id.",
-    "schema": {"type": "string", "pattern": _ID},
-}
+def _path_id(name: str, description: str, pattern: str) -> dict:
+    return {
+        "name": name,
+        "in": "path",
+        "required": True,
+        "description": description,
+        "schema": {"type": "string", "pattern": pattern},
+    }
+
+
+_SPECIMEN_ID = _path_id("specimen_id", "Specimen id.", _ID)
+_UPLOAD_ID = _path_id("upload_id", "Upload id.", "^[0-9a-f]{32}$")
 _ROI = _query("roi", "ROI id (default: the overview ROI).", {"type": "string", "pattern": _ID})
 _AREA_REGION = _query(
     "region",
@@ -157,6 +163,18 @@ def _specimen_get(operation_id: str, summary: str, parameters: list, ok: dict, *
     }
 
 
+def _delete(operation_id: str, summary: str, parameter: dict) -> dict:
+    """A DELETE of the resource `parameter` names: write scope, 204 or 404."""
+    return {
+        "delete": {
+            "operationId": operation_id,
+            "summary": summary,
+            "parameters": [parameter],
+            "responses": {"204": {"description": "Deleted."}} | _error_responses("400", "401", "403", "404"),
+        }
+    }
+
+
 def _paths() -> dict:
     """Every path of the API with its operations."""
     return _specimen_paths() | _specimen_area_paths() | _upload_paths() | _job_paths()
@@ -178,7 +196,8 @@ def _specimen_paths() -> dict:
             "One specimen: its ROIs, their placement, calibration and matching report.",
             [],
             _json_ok("The specimen.", "Specimen"),
-        ),
+        )
+        | _delete("deleteSpecimen", "Deletes a stored specimen, its tiles included.", _SPECIMEN_ID),
         "/api/specimens/{specimen_id}/roughness": _specimen_get(
             "getRoughness",
             "The ISO 25178 chain (form removal, S- and L-filters): every ISO 25178-2 parameter with its "
@@ -276,7 +295,10 @@ def _upload_paths() -> dict:
                     "400",
                     "401",
                     "404",
-                    **{"413": "The body is too large.", "415": "The body is not multipart/form-data."},
+                    **{
+                        "413": "The body is too large, or the map has more pixels than an image may have.",
+                        "415": "The body is not multipart/form-data.",
+                    },
                     **_BUSY,
                 ),
             }
@@ -300,10 +322,12 @@ def _upload_paths() -> dict:
                     "400",
                     "401",
                     "403",
+                    "507",
                     **{"413": "The upload is too large.", "415": "The body is not multipart/form-data."},
                 ),
             }
         },
+        "/api/uploads/{upload_id}": _delete("deleteUpload", "Deletes a stored upload.", _UPLOAD_ID),
     }
 
 
@@ -334,6 +358,7 @@ def _job_paths() -> dict:
                     "401",
                     "403",
                     "404",
+                    "507",
                     **{
                         "413": "The body is too large.",
                         "415": "Neither JSON nor multipart/form-data.",
@@ -347,15 +372,7 @@ def _job_paths() -> dict:
             "get": {
                 "operationId": "getJob",
                 "summary": "A build's state and progress, and its specimen once it succeeded.",
-                "parameters": [
-                    {
-                        "name": "job_id",
-                        "in": "path",
-                        "required": True,
-                        "description": "Job id.",
-                        "schema": {"type": "string", "pattern": "^[0-9a-f]{32}$"},
-                    }
-                ],
+                "parameters": [_path_id("job_id", "Job id.", "^[0-9a-f]{32}$")],
                 "responses": _json_ok("The job.", "Job") | _error_responses("400", "401", "404"),
             }
         },

@@ -5,9 +5,8 @@ from __future__ import annotations
 import contextlib
 import functools
 import logging
-import tempfile
+import threading
 from collections.abc import Callable, Iterator
-from pathlib import Path
 from typing import Protocol
 
 import grpc
@@ -15,8 +14,8 @@ import numpy as np
 
 from fractoscope import report
 from fractoscope.errors import (
+    AlreadyExistsError,
     InvalidInputError,
-    NotFoundError,
     error_of_code,
 )
 from fractoscope.formats.exports import MEDIA_TYPES
@@ -32,7 +31,7 @@ from fractoscope.specimen import quadtree
 from fractoscope.specimen import queries as specimen_queries
 from fractoscope.specimen.build import MeasuredHeights, RoiRequest, reconstruct_specimen
 from fractoscope.specimen.quadtree import TileSamples
-from fractoscope.specimen.store import Specimen, SpecimenStore, validate_id
+from fractoscope.specimen.store import Specimen, SpecimenStore, scratch_folder, validate_id
 from fractoscope.stereo.pipeline import HeightMapResult
 from fractoscope.surface.filtering import FilterReport
 from fractoscope.tiles import messages as rpc_tiles
@@ -176,12 +175,46 @@ class _RemoteMeshing:
         return tiles[0].glb
 
 
+class _BuildClaims:
+    """The content (request_digest) each request id of a specimen is being built from, claimed
+    while calls follow its build or its work runs: a concurrent request with that id and other
+    content is refused instead of joining the build. A request without an id claims nothing."""
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self._held: dict[tuple[str, str], tuple[str, int]] = {}  # (specimen_id, request_id): (digest, claims)
+
+    @contextlib.contextmanager
+    def claimed(self, specimen_id: str, request_id: str, digest: str) -> Iterator[None]:
+        if not request_id:
+            yield
+            return
+        key = (specimen_id, request_id)
+        with self._lock:
+            held, count = self._held.get(key, (digest, 0))
+            if held != digest:
+                raise AlreadyExistsError(
+                    f"request_id {request_id!r} names a build of specimen {specimen_id!r} under way with other "
+                    "content; give this request a new request_id",
+                    field="request_id",
+                )
+            self._held[key] = (digest, count + 1)
+        try:
+            yield
+        finally:
+            with self._lock:
+                held, count = self._held.pop(key)
+                if count > 1:
+                    self._held[key] = (held, count - 1)
+
+
 class TileServicer(tiles_pb2_grpc.TileServiceServicer):
     """Thin wrappers over reconstruction, the specimen store and the analysis modules.
 
     Reconstructions are `builds` jobs (see jobs), checked against the memory budget first.
-    Concurrent calls with one request id follow one job. Matching and meshing run in this process
-    when it serves them (`local_matching`, `local_meshing`), else on the services at
+    Concurrent calls with one request id follow one job; a request id already used for other
+    content (request_digest), stored or under way, is refused (AlreadyExistsError). Matching and
+    meshing run in this process when it serves them (`local_matching`, `local_meshing`), else on the services at
     `matching_address` and `meshing_address` (gRPC targets; a `dns:///` name of several replicas
     is balanced round-robin), each call with the deadline the build's callers still wait, at most
     `call_timeout_s`, and cancelled with the build.
@@ -224,11 +257,13 @@ class TileServicer(tiles_pb2_grpc.TileServiceServicer):
             else _RemoteMeshing(meshing_address, call_timeout_s)
         )
         self._tile_responses: BoundedCache[bytes] = BoundedCache(tile_response_cache_bytes, size=len)
+        self._claims = _BuildClaims()
 
     @abort_on_error
     def ReconstructSpecimen(self, request, context):
         specimen_id = validate_id(request.specimen_id, field="specimen_id")
-        stored = self._stored(specimen_id, request.request_id)
+        digest = rpc_tiles.request_digest(request) if request.request_id else ""
+        stored = self._stored(specimen_id, request.request_id, digest)
         if stored is None:
             rois, height_requests, shapes = rpc_tiles.checked_rois(
                 request.rois, request.request_id
@@ -239,14 +274,15 @@ class TileServicer(tiles_pb2_grpc.TileServiceServicer):
                 estimate, f"specimen {specimen_id!r} ({len(rois)} ROIs, the largest of {cols} x {rows} pixels)"
             )
             key = (specimen_id, request.request_id) if request.request_id else None
-            for event in self._builds.follow(
-                context, lambda job: self._reconstruct(request, rois, height_requests, job), key=key
-            ):
-                if isinstance(event, common_pb2.Progress):
-                    yield tiles_pb2.ReconstructSpecimenResponse(progress=event)
-                else:
-                    stored = event
-                    _log.info("specimen built", extra={"request_id": request.request_id})
+            with self._claims.claimed(specimen_id, request.request_id, digest):
+                for event in self._builds.follow(
+                    context, lambda job: self._reconstruct(request, digest, rois, height_requests, job), key=key
+                ):
+                    if isinstance(event, common_pb2.Progress):
+                        yield tiles_pb2.ReconstructSpecimenResponse(progress=event)
+                    else:
+                        stored = event
+                        _log.info("specimen built", extra={"request_id": request.request_id})
         if stored is not None:
             yield tiles_pb2.ReconstructSpecimenResponse(specimen=rpc_tiles.specimen_message(stored))
 
@@ -263,16 +299,22 @@ class TileServicer(tiles_pb2_grpc.TileServiceServicer):
     def _reconstruct(
         self,
         request: tiles_pb2.ReconstructSpecimenRequest,
+        digest: str,
         rois: list[RoiRequest],
         height_requests: list[matching_pb2.ComputeHeightMapRequest],
         job: Job,
     ) -> Specimen:
-        """Builds the specimen, unless an earlier job of its request id stored it meanwhile."""
-        stored = self._stored(request.specimen_id, request.request_id)
+        """Builds the specimen, unless an earlier job of its request id stored it meanwhile; its
+        content stays claimed until the build ends, even if every call following it has gone."""
+        stored = self._stored(request.specimen_id, request.request_id, digest)
         if stored is not None:
             return stored
         indices = {spec.id: index for index, spec in enumerate(request.rois)}
-        with self._matching.connected() as measure_heights, self._meshing.connected() as mesh:
+        with (
+            self._claims.claimed(request.specimen_id, request.request_id, digest),
+            self._matching.connected() as measure_heights,
+            self._meshing.connected() as mesh,
+        ):
 
             def measure(roi: RoiRequest, progress: ProgressCallback) -> MeasuredHeights:
                 index = indices[roi.id]
@@ -286,6 +328,7 @@ class TileServicer(tiles_pb2_grpc.TileServiceServicer):
                 mesh_tile=lambda tile: mesh(_mesh_request(tile), job),
                 store=self.store,
                 request_id=request.request_id,
+                request_digest=digest,
                 progress=job.progress,
             )
 
@@ -368,8 +411,8 @@ class TileServicer(tiles_pb2_grpc.TileServiceServicer):
 
     @abort_on_error
     def Export(self, request, context):
-        with tempfile.TemporaryDirectory(prefix="fractoscope-export-") as directory:
-            exported = rpc_tiles.export(request, Path(directory), self.store)
+        with scratch_folder(self.store.scratch_root, "export") as directory:
+            exported = rpc_tiles.export(request, directory, self.store)
             first = tiles_pb2.ExportResponse(grid=rpc_tiles.export_grid(exported))
             media_type = MEDIA_TYPES[exported.file_format]
             yield from rpc_tiles.streamed_file(
@@ -380,23 +423,18 @@ class TileServicer(tiles_pb2_grpc.TileServiceServicer):
     def GetReport(self, request, context):
         file_format = wire.report_format_name(request.format)
         area = rpc_tiles.area_of(request.area, "area")
-        with tempfile.TemporaryDirectory(prefix="fractoscope-report-") as directory:
+        with scratch_folder(self.store.scratch_root, "report") as directory:
             path = report.write_report(
-                self.store.load(request.area.specimen_id), Path(directory), file_format=file_format, **area
+                self.store.load(request.area.specimen_id), directory, file_format=file_format, **area
             )
             yield from rpc_tiles.streamed_file(
                 tiles_pb2.GetReportResponse(), path, file_name=path.name, media_type=report.MEDIA_TYPES[file_format]
             )
 
-    def _stored(self, specimen_id: str, request_id: str) -> Specimen | None:
-        """The stored specimen that a request with `request_id` built, if any."""
-        if not request_id:
-            return None
-        try:
-            existing = self.store.load(specimen_id)
-        except NotFoundError:
-            return None
-        return existing if existing.request_id == request_id else None
+    def _stored(self, specimen_id: str, request_id: str, digest: str) -> Specimen | None:
+        """The stored specimen that a request with `request_id` and content `digest` built, if any
+        (SpecimenStore.built_by)."""
+        return self.store.built_by(specimen_id, request_id, digest)
 
 
 class SerializedGetTile(grpc.ServerInterceptor):

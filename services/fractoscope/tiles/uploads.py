@@ -1,9 +1,13 @@
-"""Uploads of the HTTP API: a manifest and its images, kept until a build takes them."""
+"""Uploads of the HTTP API: a manifest and its images, checked at receipt as the build will check
+them, kept until a build takes them, they are deleted or they expire."""
 
 from __future__ import annotations
 
+import contextlib
+import os
 import re
 import shutil
+import time
 import uuid
 from http import HTTPStatus
 from pathlib import Path
@@ -11,43 +15,66 @@ from pathlib import Path
 from aiohttp import web
 
 from fractoscope.errors import InvalidInputError, NotFoundError
+from fractoscope.rpc.limits import MAX_REQUEST_ID_CHARS
 from fractoscope.rpc.manifest import manifest_field, parse_manifest
+from fractoscope.sem.image import read_sem_image
 from fractoscope.specimen.store import validate_id
+from fractoscope.stereo.geometry import validate_pixel_size_um, validate_tilts
 from fractoscope.tiles.http_json import ApiError, off_loop
 from fractoscope.tiles.http_requests import form_parts, multipart_reader, read_chunk
-from fractoscope.tiles.messages import (
-    checked_rois,
-)
+from fractoscope.tiles.messages import check_child_centres, checked_rois
 from fractoscope.v1 import tiles_pb2
 
 _FILE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,127}")
-
+_UPLOAD_ID = re.compile(r"[0-9a-f]{32}")
 
 DEFAULT_MAX_UPLOAD_BYTES = 512 * 1024 * 1024
+# Long enough to submit a build the next day; short enough that abandoned uploads do not fill the disk.
+DEFAULT_MAX_AGE_S = 24 * 3600.0
 
 
 class Uploads:
     """Uploaded manifests and their images under `root/{upload_id}/`, each written in a staging
-    folder and renamed into place once complete and valid: never half of one."""
+    folder and renamed into place once complete and valid: never half of one. Uploads older than
+    `max_age_s` (default FRACTO_UPLOAD_MAX_AGE_S, else DEFAULT_MAX_AGE_S) are removed at start and
+    whenever an upload is received; until then they are not found."""
 
-    def __init__(self, root: Path, max_bytes: int):
+    def __init__(self, root: Path, max_bytes: int, *, max_age_s: float | None = None):
         self.root = Path(root)
         self.max_bytes = max_bytes
+        if max_age_s is None:
+            max_age_s = float(os.environ.get("FRACTO_UPLOAD_MAX_AGE_S", DEFAULT_MAX_AGE_S))
+        self.max_age_s = max_age_s
         self.root.mkdir(parents=True, exist_ok=True)
         for leftover in self.root.glob(".staging-*"):
             shutil.rmtree(leftover, ignore_errors=True)
+        self.sweep()
+
+    def sweep(self) -> None:
+        """Removes the uploads older than max_age_s."""
+        for directory in self.root.iterdir():
+            if _UPLOAD_ID.fullmatch(directory.name) and self._expired(directory):
+                shutil.rmtree(directory, ignore_errors=True)
+
+    def _expired(self, directory: Path) -> bool:
+        """Whether an upload is older than max_age_s: its folder last changed when it was stored."""
+        try:
+            return directory.stat().st_mtime < time.time() - self.max_age_s
+        except FileNotFoundError:  # removed meanwhile: gone is as good as expired
+            return True
 
     async def receive(self, request: web.Request) -> tuple[str, str, list[tiles_pb2.RoiSpec]]:
         """Stores a multipart upload (a `manifest` part, `images` parts with the file names the
         manifest gives, optionally `request_id`); returns its id and the manifest's specimen id
         and ROIs."""
         reader = await multipart_reader(request, limit_bytes=self.max_bytes)
+        await off_loop(self.sweep)
         upload_id = uuid.uuid4().hex
         staging = self.root / f".staging-{upload_id}"
         staging.mkdir()
         try:
             await self._receive_parts(reader, staging)
-            specimen_id, rois = await off_loop(self._parse, staging)
+            specimen_id, rois = await off_loop(self._check, staging)
             staging.rename(self.root / upload_id)
         finally:
             shutil.rmtree(staging, ignore_errors=True)
@@ -71,6 +98,9 @@ class Uploads:
                 raise InvalidInputError(name or "body", "is not a part of an upload (manifest, request_id, images)")
             if target.exists():
                 raise InvalidInputError(label, "is given more than once")
+            if name == "request_id":
+                target.write_text(await _request_id(part), encoding="utf-8")
+                continue
             with open(target, "wb") as out:
                 while chunk := await read_chunk(part):
                     total += len(chunk)
@@ -83,7 +113,21 @@ class Uploads:
         if "manifest" not in fields:
             raise InvalidInputError("manifest", "is required: the specimen manifest (JSON)")
 
-    def _parse(self, directory: Path) -> tuple[str, list[tiles_pb2.RoiSpec]]:
+    def _check(self, directory: Path) -> tuple[str, list[tiles_pb2.RoiSpec]]:
+        """A received upload checked whole: its manifest and images as the build will check them,
+        and no image part the manifest does not name."""
+        specimen_id, rois, shapes = self._parse(directory)
+        named = {item.image.filename for roi in rois for item in roi.images}
+        for name in sorted(path.name for path in (directory / "images").iterdir()):
+            if name not in named:
+                raise InvalidInputError(f"images[{name!r}]", "is not an image the manifest names")
+        with _as_manifest_entries():
+            _check_images(rois, shapes)
+        return specimen_id, rois
+
+    def _parse(self, directory: Path) -> tuple[str, list[tiles_pb2.RoiSpec], list[tuple[int, int]]]:
+        """The specimen id, the ROIs and their images' (rows, cols) of a stored manifest, checked."""
+
         def read_image(name: str, field_name: str) -> bytes:
             path = directory / "images" / name
             if not _FILE_NAME.fullmatch(name) or not path.is_file():
@@ -93,23 +137,95 @@ class Uploads:
             return path.read_bytes()
 
         specimen_id, rois = parse_manifest(
-            (directory / "manifest.field").read_bytes(), read_image, source="the uploaded manifest"
+            (directory / "manifest.field").read_bytes(),
+            read_image,
+            source="the uploaded manifest",
+            max_image_bytes=self.max_bytes,  # the build sends them all in one request
         )
         validate_id(specimen_id, field="manifest.specimen")
-        try:  # what the build would refuse, refused before a job is accepted
-            checked_rois(rois)
-        except InvalidInputError as error:  # named as the manifest names it
-            raise InvalidInputError(manifest_field(error.field), error.message) from None
-        return specimen_id, rois
+        with _as_manifest_entries():  # what the build would refuse, refused before a job is accepted
+            _, _, shapes = checked_rois(rois)
+        return specimen_id, rois, shapes
 
     def load(self, upload_id: str) -> tuple[str, list[tiles_pb2.RoiSpec]]:
-        if not re.fullmatch(r"[0-9a-f]{32}", upload_id or ""):
+        specimen_id, rois, _ = self._parse(self._directory(upload_id))
+        return specimen_id, rois
+
+    def delete(self, upload_id: str) -> None:
+        """Removes an upload (NotFoundError naming upload_id when there is none)."""
+        directory = self._directory(upload_id)
+        # Renamed first, so that a build loading it meanwhile finds all of it or nothing; a leftover
+        # of a failed removal is a staging folder, removed at start.
+        doomed = self.root / f".staging-deleted-{upload_id}"
+        try:
+            directory.rename(doomed)
+        except FileNotFoundError:  # deleted or expired meanwhile
+            raise NotFoundError(f"no upload {upload_id!r}", field="upload_id") from None
+        shutil.rmtree(doomed, ignore_errors=True)
+
+    def _directory(self, upload_id: str) -> Path:
+        if not _UPLOAD_ID.fullmatch(upload_id or ""):
             raise InvalidInputError("upload_id", "is not an upload id (32 hexadecimal digits)")
         directory = self.root / upload_id
-        if not directory.is_dir():
+        if not directory.is_dir() or self._expired(directory):
             raise NotFoundError(f"no upload {upload_id!r}", field="upload_id")
-        return self._parse(directory)
+        return directory
 
     def field(self, upload_id: str, name: str) -> str:
         path = self.root / upload_id / f"{name}.field"
-        return path.read_text(errors="replace")[:128] if path.is_file() else ""
+        return path.read_text(encoding="utf-8") if path.is_file() else ""
+
+
+async def _request_id(part) -> str:
+    """The `request_id` part's text, held to what gRPC takes: UTF-8 of at most MAX_REQUEST_ID_CHARS."""
+    content = bytearray()
+    while (chunk := await read_chunk(part)) and len(content) <= 4 * MAX_REQUEST_ID_CHARS:
+        content += chunk  # read no further than any such text can take (UTF-8: 4 bytes a character at most)
+    try:
+        text = content.decode("utf-8")
+    except UnicodeDecodeError:
+        text = None
+    if text is None or len(text) > MAX_REQUEST_ID_CHARS:
+        raise InvalidInputError("request_id", f"must be UTF-8 text of at most {MAX_REQUEST_ID_CHARS} characters")
+    return text
+
+
+@contextlib.contextmanager
+def _as_manifest_entries():
+    """Errors about a ReconstructSpecimen request's fields, named as the manifest's entries."""
+    try:
+        yield
+    except InvalidInputError as error:
+        raise InvalidInputError(manifest_field(error.field), error.message) from None
+
+
+def _check_images(rois: list[tiles_pb2.RoiSpec], shapes: list[tuple[int, int]]) -> None:
+    """Decodes each image once, so that a file the build could not read is refused now, and checks
+    what the build takes from them: each ROI's tilts and pixel size, given or from its files'
+    metadata, and where given centres put the ROIs (errors name the request's fields)."""
+    metadata: dict[str, tuple[float | None, float | None]] = {}  # file name: (tilt_deg, pixel_size_um)
+    for index, roi in enumerate(rois):
+        for side, item in enumerate(roi.images):
+            if item.image.filename not in metadata:
+                image = read_sem_image(item.image.content, field=f"rois[{index}].images[{side}].image")
+                metadata[item.image.filename] = (image.tilt_deg, image.pixel_size_um)
+    pixel_sizes_um = []
+    for index, roi in enumerate(rois):
+        # As the matching pipeline resolves them: a value given over the file's.
+        tilts = [
+            item.tilt_deg if item.HasField("tilt_deg") else metadata[item.image.filename][0] for item in roi.images
+        ]
+        if None in tilts:
+            raise InvalidInputError(
+                f"rois[{index}].images[{tilts.index(None)}].tilt_deg",
+                "no tilt given and the image file carries no stage tilt metadata",
+            )
+        validate_tilts(tuple(tilts), field=f"rois[{index}].images[1].tilt_deg")
+        given = roi.pixel_size_um if roi.HasField("pixel_size_um") else None
+        pixel_size_um = given if given is not None else metadata[roi.images[0].image.filename][1]
+        if pixel_size_um is None:
+            raise InvalidInputError(
+                f"rois[{index}].pixel_size_um", "no pixel size given and the image file carries no calibration"
+            )
+        pixel_sizes_um.append(validate_pixel_size_um(pixel_size_um, field=f"rois[{index}].pixel_size_um"))
+    check_child_centres(rois, shapes, pixel_sizes_um)

@@ -7,6 +7,8 @@ from conftest import fracture_pair, tiff_bytes
 
 from fractoscope.client.manifest import load_manifest
 from fractoscope.errors import InvalidInputError
+from fractoscope.rpc.limits import MAX_ROIS
+from fractoscope.rpc.manifest import parse_manifest
 
 
 def _write(tmp_path, **roi):
@@ -70,3 +72,84 @@ def test_a_manifest_that_is_not_one_is_named(tmp_path, content):
     with pytest.raises(InvalidInputError) as error:
         load_manifest(path)
     assert error.value.field == "manifest" and "\n" not in str(error.value)
+
+
+def _manifest(rois: list[dict]) -> str:
+    return json.dumps({"specimen": "s", "rois": rois})
+
+
+def _pair_roi(index: int, **keys) -> dict:
+    return {"id": f"r{index}", "left": "l.tif", "right": "r.tif", **keys}
+
+
+def test_each_file_is_read_once_and_only_after_the_whole_manifest_is_checked():
+    """Once every ROI read both its images before the next entry was looked at: 3,000 ROIs naming
+    two files took a server from 0.4 to 2.5 GB before a bad entry or the ROI count was seen."""
+    reads = []
+
+    def read_image(name: str, field: str) -> bytes:
+        reads.append(name)
+        return name.encode()
+
+    rois = [_pair_roi(index) for index in range(3)]
+    with pytest.raises(InvalidInputError) as error:
+        parse_manifest(_manifest([*rois, _pair_roi(3, tilt_deg=[5])]), read_image)
+    assert error.value.field == "manifest.rois[3].tilt_deg" and reads == []
+    with pytest.raises(InvalidInputError) as error:
+        parse_manifest(_manifest([_pair_roi(index) for index in range(MAX_ROIS + 1)]), read_image)
+    assert error.value.field == "manifest.rois" and str(MAX_ROIS) in error.value.message and reads == []
+    _, specs = parse_manifest(_manifest(rois), read_image)
+    assert sorted(reads) == ["l.tif", "r.tif"]
+    assert [image.image.content for spec in specs for image in spec.images] == [b"l.tif", b"r.tif"] * 3
+
+
+def test_images_counted_per_roi_are_bounded():
+    """Each ROI's message carries its own copy of its images: the bound counts them so."""
+    with pytest.raises(InvalidInputError) as error:
+        parse_manifest(_manifest([_pair_roi(0), _pair_roi(1)]), lambda name, field: b"x" * 100, max_image_bytes=399)
+    assert error.value.field == "manifest.rois"
+    _, specs = parse_manifest(_manifest([_pair_roi(0), _pair_roi(1)]), lambda n, f: b"x" * 100, max_image_bytes=400)
+    assert len(specs) == 2
+
+
+HUGE = "1" + "0" * 400  # a valid JSON integer beyond any double
+
+
+@pytest.mark.parametrize(
+    "roi_json, field",
+    [
+        (f'"pixel_size_um": {HUGE}', "manifest.rois[0].pixel_size_um"),
+        (f'"magnification": {HUGE}', "manifest.rois[0].magnification"),
+        (f'"tilt_axis_deg": -{HUGE}', "manifest.rois[0].tilt_axis_deg"),
+        (f'"tilt_deg": [-5, {HUGE}]', "manifest.rois[0].tilt_deg"),
+        (f'"center_um": [{HUGE}, 0]', "manifest.rois[0].center_um"),
+        (f'"matching": {{"min_confidence": {HUGE}}}', "manifest.rois[0].matching"),
+        ('"tilt_deg": [-5, 5], "tilt_deg": [5, -5]', "manifest.rois[0].tilt_deg"),
+        ('"matching": {"window_px": 21, "window_px": 31}', "manifest.rois[0].matching.window_px"),
+    ],
+)
+def test_numbers_beyond_a_double_and_repeated_keys_are_named(roi_json, field):
+    """Once an OverflowError (float() of a 400-digit integer: HTTP 500), or the last of two values
+    kept unseen."""
+    text = '{"specimen": "s", "rois": [{"id": "o", "left": "l.tif", "right": "r.tif", ' + roi_json + "}]}"
+    with pytest.raises(InvalidInputError) as error:
+        parse_manifest(text, lambda name, field: b"")
+    assert error.value.field == field and "\n" not in str(error.value)
+
+
+@pytest.mark.parametrize(
+    "text, field",
+    [
+        (
+            '{"specimen": "s", "rois": [{"id": "o", "left": "l", "right": "r", "magnification": 1' + "0" * 5000 + "}]}",
+            "manifest",
+        ),
+        ('{"specimen": "s", "specimen": "t", "rois": []}', "manifest.specimen"),
+    ],
+    ids=["an integer of 5,001 digits", "a repeated specimen"],
+)
+def test_a_manifest_json_cannot_hold_is_named(text, field):
+    """Integers of more than 4,300 digits: json.loads raises ValueError (once HTTP 500)."""
+    with pytest.raises(InvalidInputError) as error:
+        parse_manifest(text, lambda name, field: b"")
+    assert error.value.field == field and "\n" not in str(error.value)

@@ -417,7 +417,12 @@ def test_every_operation_answers_bad_input_with_a_json_4xx_naming_the_field(api,
         )
         def fuzz(case):
             check(case, operation)
-            if mode is GenerationMode.POSITIVE and "specimen_id" in (case.path_parameters or {}):
+            # The example specimen stands in for a generated id, but is not deleted: later operations query it.
+            if (
+                mode is GenerationMode.POSITIVE
+                and "specimen_id" in (case.path_parameters or {})
+                and case.method.upper() != "DELETE"
+            ):
                 case.path_parameters["specimen_id"] = "synthetic"
                 check(case, operation)
 

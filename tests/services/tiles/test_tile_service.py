@@ -17,6 +17,7 @@ from scipy import ndimage
 
 from fractoscope import synthetic
 from fractoscope.client import ClientError, FractoscopeClient
+from fractoscope.client.manifest import load_manifest
 from fractoscope.rpc import wire
 from fractoscope.server.main import create_server
 from fractoscope.specimen.store import SpecimenStore
@@ -212,10 +213,13 @@ def test_stream_view_sends_coarse_tiles_first(built):
 
 
 def test_repeated_request_id_returns_the_stored_specimen(built):
+    """The same request again (same id, same content) gets the stored build, untouched; other
+    content under that id is refused (tests/services/tiles/test_request_hardening.py)."""
     _, client, data, summary = built
     description = data / "specimens" / "synthetic" / "specimen.json"
     before = description.stat().st_mtime_ns
-    again = client.reconstruct_specimen("synthetic", [], request_id="first")
+    specimen_id, rois = load_manifest(data.parent / "input" / "manifest.json")
+    again = client.reconstruct_specimen(specimen_id, rois, request_id="first")
     assert again == summary
     assert description.stat().st_mtime_ns == before
 
