@@ -35,7 +35,8 @@ from fractoscope import synthetic
 from fractoscope.sem.image import SemImage
 from fractoscope.stereo import tilt_series
 from fractoscope.stereo.disparity import MatchingMethod
-from fractoscope.stereo.pipeline import MatchingOptions, compute_height_map, compute_series_height_map
+from fractoscope.stereo.inputs import MatchingOptions
+from fractoscope.stereo.pipeline import compute_height_map, compute_series_height_map
 
 SIZE_PX = 640
 MARGIN_PX = 64

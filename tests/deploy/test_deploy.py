@@ -23,7 +23,8 @@ from fractoscope.sem.image import read_sem_image
 from fractoscope.server.config import SERVICE_NAMES, build_parser
 from fractoscope.server.main import create_server
 from fractoscope.specimen.tileset import content_uris
-from fractoscope.stereo.pipeline import MatchingOptions, compute_series_height_map
+from fractoscope.stereo.inputs import MatchingOptions
+from fractoscope.stereo.pipeline import compute_series_height_map
 from fractoscope.synthetic.examples import write_multiscale_specimen
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 from importlib import metadata
 
 from fractoscope.formats._validate import require_positive
-from fractoscope.stereo.pipeline import ARGUMENT, METADATA, TILT_CALIBRATION
+from fractoscope.stereo.inputs import ARGUMENT, METADATA, TILT_CALIBRATION
 
 SOURCES = (METADATA, ARGUMENT, TILT_CALIBRATION)
 """Where a calibration value came from: the SEM file's metadata, the caller's argument, or the

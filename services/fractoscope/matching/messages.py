@@ -13,14 +13,8 @@ from fractoscope.errors import InvalidInputError
 from fractoscope.rpc import wire
 from fractoscope.sem import image as sem_image
 from fractoscope.stereo.disparity import DisparityResult, MatchingMethod, StripTask
-from fractoscope.stereo.pipeline import (
-    DEFAULT_TILT_AXIS_DEG,
-    HeightMapResult,
-    MatchingOptions,
-    validate_options,
-    validate_same_size,
-    validate_tilt_axis_deg,
-)
+from fractoscope.stereo.inputs import MatchingOptions, validate_options, validate_same_size, validate_tilt_axis_deg
+from fractoscope.stereo.pipeline import DEFAULT_TILT_AXIS_DEG, HeightMapResult
 from fractoscope.v1 import matching_pb2
 
 _METHODS = {

@@ -29,7 +29,7 @@ from fractoscope.specimen.store import (
 )
 from fractoscope.specimen.tileset import tileset_json
 from fractoscope.stereo import geometry
-from fractoscope.stereo.pipeline import MatchingOptions
+from fractoscope.stereo.inputs import MatchingOptions
 from fractoscope.surface import datum, filtering
 
 

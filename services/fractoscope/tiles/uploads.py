@@ -11,6 +11,7 @@ import time
 import uuid
 from http import HTTPStatus
 from pathlib import Path
+from typing import NamedTuple
 
 from aiohttp import web
 
@@ -19,10 +20,10 @@ from fractoscope.rpc.limits import MAX_REQUEST_ID_CHARS
 from fractoscope.rpc.manifest import manifest_field, parse_manifest
 from fractoscope.sem.image import read_sem_image
 from fractoscope.specimen.store import validate_id
-from fractoscope.stereo.geometry import validate_pixel_size_um, validate_tilts
+from fractoscope.stereo.inputs import resolve_calibration
 from fractoscope.tiles.http_json import ApiError, off_loop
 from fractoscope.tiles.http_requests import form_parts, multipart_reader, read_chunk
-from fractoscope.tiles.messages import check_child_centres, checked_rois
+from fractoscope.tiles.messages import check_child_centres, checked_rois, in_roi
 from fractoscope.v1 import tiles_pb2
 
 _FILE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,127}")
@@ -199,33 +200,34 @@ def _as_manifest_entries():
         raise InvalidInputError(manifest_field(error.field), error.message) from None
 
 
+class _FileCalibration(NamedTuple):
+    """What the build reads from an image file's metadata (its pixels are not kept)."""
+
+    tilt_deg: float | None
+    pixel_size_um: float | None
+
+
 def _check_images(rois: list[tiles_pb2.RoiSpec], shapes: list[tuple[int, int]]) -> None:
     """Decodes each image once, so that a file the build could not read is refused now, and checks
-    what the build takes from them: each ROI's tilts and pixel size, given or from its files'
-    metadata, and where given centres put the ROIs (errors name the request's fields)."""
-    metadata: dict[str, tuple[float | None, float | None]] = {}  # file name: (tilt_deg, pixel_size_um)
+    what the build takes from them as the matching pipeline resolves it (each ROI's tilts and pixel
+    size, given or from its files' metadata: inputs.resolve_calibration), then where given centres
+    put the ROIs. Errors name the request's fields."""
+    files: dict[str, _FileCalibration] = {}
     for index, roi in enumerate(rois):
         for side, item in enumerate(roi.images):
-            if item.image.filename not in metadata:
+            if item.image.filename not in files:
                 image = read_sem_image(item.image.content, field=f"rois[{index}].images[{side}].image")
-                metadata[item.image.filename] = (image.tilt_deg, image.pixel_size_um)
+                files[item.image.filename] = _FileCalibration(image.tilt_deg, image.pixel_size_um)
     pixel_sizes_um = []
     for index, roi in enumerate(rois):
-        # As the matching pipeline resolves them: a value given over the file's.
-        tilts = [
-            item.tilt_deg if item.HasField("tilt_deg") else metadata[item.image.filename][0] for item in roi.images
-        ]
-        if None in tilts:
-            raise InvalidInputError(
-                f"rois[{index}].images[{tilts.index(None)}].tilt_deg",
-                "no tilt given and the image file carries no stage tilt metadata",
+        tilts = (
+            [item.tilt_deg for item in roi.images] if all(item.HasField("tilt_deg") for item in roi.images) else None
+        )
+        with in_roi(index):
+            _, pixel_size_um, _ = resolve_calibration(
+                [files[item.image.filename] for item in roi.images],
+                tilts,
+                roi.pixel_size_um if roi.HasField("pixel_size_um") else None,
             )
-        validate_tilts(tuple(tilts), field=f"rois[{index}].images[1].tilt_deg")
-        given = roi.pixel_size_um if roi.HasField("pixel_size_um") else None
-        pixel_size_um = given if given is not None else metadata[roi.images[0].image.filename][1]
-        if pixel_size_um is None:
-            raise InvalidInputError(
-                f"rois[{index}].pixel_size_um", "no pixel size given and the image file carries no calibration"
-            )
-        pixel_sizes_um.append(validate_pixel_size_um(pixel_size_um, field=f"rois[{index}].pixel_size_um"))
+        pixel_sizes_um.append(pixel_size_um)
     check_child_centres(rois, shapes, pixel_sizes_um)

@@ -13,7 +13,7 @@ from fractoscope.mesh.pipeline import MeshingOptions
 from fractoscope.meshing import messages as rpc_meshing
 from fractoscope.rpc import calls, wire
 from fractoscope.stereo.disparity import DisparityResult, MatchingMethod, StripTask
-from fractoscope.stereo.pipeline import MatchingOptions
+from fractoscope.stereo.inputs import MatchingOptions
 from fractoscope.v1 import common_pb2, matching_pb2, meshing_pb2, tiles_pb2
 
 

@@ -8,7 +8,8 @@ from fractoscope import synthetic
 from fractoscope.sem.image import SemImage
 from fractoscope.stereo import geometry
 from fractoscope.stereo.disparity import MatchingMethod
-from fractoscope.stereo.pipeline import MatchingOptions, compute_height_map
+from fractoscope.stereo.inputs import MatchingOptions
+from fractoscope.stereo.pipeline import compute_height_map
 
 pytestmark = pytest.mark.slow  # accuracy on 640² pairs: `pytest -m "not slow"` leaves it out
 

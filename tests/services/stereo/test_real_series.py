@@ -69,7 +69,8 @@ def test_the_widest_and_an_asymmetric_pair_describe_the_same_grain(pairs, pollen
 
 @pytest.fixture(scope="module")
 def calibrated(pollen_series):
-    from fractoscope.stereo.pipeline import MatchingOptions, compute_series_height_map
+    from fractoscope.stereo.inputs import MatchingOptions
+    from fractoscope.stereo.pipeline import compute_series_height_map
 
     results = {}
     for views in [(2, 3, 4), (1, 3, 5)]:

@@ -89,7 +89,8 @@ def test_three_synthetic_sem_views_with_wrong_nominal_tilts():
     """-5/0/+5 degree views of a known surface; the nominal tilts are off by up to 0.5 degree."""
     from fractoscope import synthetic
     from fractoscope.sem.image import SemImage
-    from fractoscope.stereo.pipeline import MatchingOptions, compute_series_height_map
+    from fractoscope.stereo.inputs import MatchingOptions
+    from fractoscope.stereo.pipeline import compute_series_height_map
 
     true = (-5.0, 0.0, 5.0)
     surface = synthetic.self_affine_surface((704, 704), hurst=0.8, rms_um=2.5, seed=5)
@@ -168,7 +169,8 @@ def test_a_view_that_is_not_the_area_tilted_as_stated_is_refused_by_name(third):
     from fractoscope import synthetic
     from fractoscope.errors import InvalidInputError
     from fractoscope.sem.image import SemImage
-    from fractoscope.stereo.pipeline import MatchingOptions, compute_series_height_map
+    from fractoscope.stereo.inputs import MatchingOptions
+    from fractoscope.stereo.pipeline import compute_series_height_map
 
     surface = synthetic.self_affine_surface((384, 384), hurst=0.8, rms_um=2.5, seed=5)
     images, _ = synthetic.render_tilt_series(
@@ -199,7 +201,8 @@ def test_unknown_magnification_uncertainty_keeps_sigma_and_warns(monkeypatch):
     from fractoscope import synthetic
     from fractoscope.sem.image import SemImage
     from fractoscope.stereo import alignment
-    from fractoscope.stereo.pipeline import MatchingOptions, compute_series_height_map
+    from fractoscope.stereo.inputs import MatchingOptions
+    from fractoscope.stereo.pipeline import compute_series_height_map
 
     true = (-5.0, 0.0, 5.0)
     surface = synthetic.self_affine_surface((384, 384), hurst=0.8, rms_um=2.5, seed=5)

@@ -279,8 +279,8 @@ def roughness_of_file(path: Path, chain: dict, *, pixel_size_um: float | None) -
     from fractoscope.formats.x3p import read_x3p
     from fractoscope.specimen.queries import ChainRequest, roughness_of_map
     from fractoscope.stereo import geometry
+    from fractoscope.stereo.inputs import MatchingOptions
     from fractoscope.stereo.matching import DEFAULT_WINDOW_PX
-    from fractoscope.stereo.pipeline import MatchingOptions
     from fractoscope.tiles.messages import roughness_response
 
     sigma_um, tilt_rel, origin_um = None, None, (0.0, 0.0)
