@@ -1,13 +1,15 @@
 """`make bench`: our matching methods against OpenCV StereoSGBM and per-pixel matchTemplate (the
 paper's method), side by side on one synthetic 1024² pair with a ±32 px disparity range: the
 default (TGV_ZNCC), window correlation (WINDOW_ZNCC, also with propagation at full resolution,
-an option), StereoSGBM as this benchmark always ran it (block 5, five paths) and as 3D-SEM
-configures it (benchmarks.peers); and a 4096² pair for the default's peak memory. Each method runs
-in its own process so peak RSS is its own. Matching II's targets: the default within 1.5 times
-StereoSGBM's time at half its RMS error or less, window correlation within 1.0 times; a 4096²
-pair under 3 GB.
+an option), FAST (DIS optical flow refined by window correlation), StereoSGBM as this benchmark
+always ran it (block 5, five paths) and as 3D-SEM configures it (benchmarks.peers); and a 4096²
+pair for the default's peak memory. Each method runs in its own process so peak RSS is its own.
+Matching II's targets: the default within 1.5 times StereoSGBM's time at half its RMS error or
+less, window correlation within 1.0 times; a 4096² pair under 3 GB. Matching III's: FAST within
+1.5 times StereoSGBM's time at 0.8 times its RMS error or less.
 
-Writes bench-results/matching.json and prints a table.
+Writes bench-results/matching.json and prints a table, with each method's time and RMS error as
+multiples of StereoSGBM's.
 """
 
 from __future__ import annotations
@@ -40,6 +42,7 @@ WINDOW_PX = 15
 BORDER_PX = 48
 TIMING_REPEATS = 3
 ROUNDS = 3
+TIMED_METHODS = ("fractoscope", "tgv_zncc", "window_zncc", "window_zncc_propagating", "fast", "sgbm", "sgbm_3d_sem")
 
 
 def make_pair(size_px: int, path: Path) -> None:
@@ -153,6 +156,7 @@ def run_one(method: str, pair_path: Path) -> dict:
         "tgv_zncc": _heights_from_matcher_only,
         "window_zncc": window,
         "window_zncc_propagating": functools.partial(window, propagate_at_full_resolution=True),
+        "fast": functools.partial(_heights_from_matcher_only, method=MatchingMethod.FAST),
         "sgbm": _heights_from_sgbm,
         "sgbm_3d_sem": _heights_from_3d_sem,
     }
@@ -183,6 +187,28 @@ def _in_subprocess(method: str, pair_path: Path) -> dict:
     return json.loads(output.strip().splitlines()[-1])
 
 
+def _print_table(results: dict) -> None:
+    """One row per method: time, RMS error, valid share, peak memory, and time and RMS error as
+    multiples of StereoSGBM's (on the same pair; the large pair's row has no such ratios)."""
+    sgbm = results["sgbm"]
+    print(
+        f"{'method':<32}{'seconds':>10}{'RMS µm':>10}{'RMS % range':>13}{'valid %':>9}{'peak MB':>9}"
+        f"{'× SGBM s':>10}{'× SGBM RMS':>12}"
+    )
+    for name, row in results.items():
+        if name == "summary":
+            continue
+        same_pair = row.get("size_px", sgbm["size_px"]) == sgbm["size_px"]
+        time_ratio = row["seconds"] / sgbm["seconds"] if same_pair else float("nan")
+        rms_ratio = row.get("rms_error_um", float("nan")) / sgbm["rms_error_um"] if same_pair else float("nan")
+        print(
+            f"{name:<32}{row['seconds']:>10.2f}{row.get('rms_error_um', float('nan')):>10.3f}"
+            f"{row.get('rms_error_percent_of_range', float('nan')):>13.2f}"
+            f"{100 * row.get('valid_fraction', float('nan')):>9.1f}{row.get('peak_rss_mb', float('nan')):>9.0f}"
+            f"{time_ratio:>10.2f}{rms_ratio:>12.2f}"
+        )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--out", default="bench-results")
@@ -202,7 +228,7 @@ def main() -> None:
         # fall on one of them only; each keeps its fastest round.
         results = {}
         for _ in range(ROUNDS):
-            for method in ("fractoscope", "tgv_zncc", "window_zncc", "window_zncc_propagating", "sgbm", "sgbm_3d_sem"):
+            for method in TIMED_METHODS:
                 run = _in_subprocess(method, pair_1024)
                 if method not in results or run["seconds"] < results[method]["seconds"]:
                     results[method] = run
@@ -211,8 +237,8 @@ def main() -> None:
         pair_large = Path(scratch) / "pair_large.npz"
         make_pair(args.large_px, pair_large)
         results["fractoscope_large"] = _in_subprocess("fractoscope", pair_large)
-    ours, default, window, sgbm, sgbm_3d_sem = (
-        results[name] for name in ("fractoscope", "tgv_zncc", "window_zncc", "sgbm", "sgbm_3d_sem")
+    ours, default, window, fast, sgbm, sgbm_3d_sem = (
+        results[name] for name in ("fractoscope", "tgv_zncc", "window_zncc", "fast", "sgbm", "sgbm_3d_sem")
     )
     results["summary"] = {
         "default_time_vs_sgbm": default["seconds"] / sgbm["seconds"],
@@ -221,6 +247,8 @@ def main() -> None:
         "default_rms_error_vs_sgbm_3d_sem": default["rms_error_um"] / sgbm_3d_sem["rms_error_um"],
         "window_time_vs_sgbm": window["seconds"] / sgbm["seconds"],
         "window_rms_error_vs_sgbm": window["rms_error_um"] / sgbm["rms_error_um"],
+        "fast_time_vs_sgbm": fast["seconds"] / sgbm["seconds"],
+        "fast_rms_error_vs_sgbm": fast["rms_error_um"] / sgbm["rms_error_um"],
         "pipeline_time_vs_sgbm": ours["seconds"] / sgbm["seconds"],
         "default_speed_vs_per_pixel_template_2d": results["template_2d"]["seconds"] / default["seconds"],
         "pipeline_speed_vs_per_pixel_template_row": results["template_row"]["seconds"] / ours["seconds"],
@@ -228,15 +256,7 @@ def main() -> None:
         "propagating_window_time_vs_window": results["window_zncc_propagating"]["seconds"] / window["seconds"],
     }
     (out / "matching.json").write_text(json.dumps(results, indent=2))
-    print(f"{'method':<32}{'seconds':>10}{'RMS µm':>10}{'RMS % range':>13}{'valid %':>9}{'peak MB':>9}")
-    for name, row in results.items():
-        if name == "summary":
-            continue
-        print(
-            f"{name:<32}{row['seconds']:>10.2f}{row.get('rms_error_um', float('nan')):>10.3f}"
-            f"{row.get('rms_error_percent_of_range', float('nan')):>13.2f}"
-            f"{100 * row.get('valid_fraction', float('nan')):>9.1f}{row.get('peak_rss_mb', float('nan')):>9.0f}"
-        )
+    _print_table(results)
     print(json.dumps(results["summary"], indent=2))
     print(f"written to {out / 'matching.json'}")
 

@@ -21,6 +21,7 @@ _METHODS = {
     matching_pb2.MATCHING_METHOD_UNSPECIFIED: MatchingOptions().method,
     matching_pb2.MATCHING_METHOD_TGV_ZNCC: MatchingMethod.TGV_ZNCC,
     matching_pb2.MATCHING_METHOD_WINDOW_ZNCC: MatchingMethod.WINDOW_ZNCC,
+    matching_pb2.MATCHING_METHOD_FAST: MatchingMethod.FAST,
 }
 
 
@@ -45,7 +46,9 @@ def request_fields() -> Iterator[None]:
 def method_from_message(code: int) -> MatchingMethod:
     """A MatchingMethod value (UNSPECIFIED = the default); InvalidInputError for unknown ones."""
     if code not in _METHODS:
-        raise InvalidInputError("parameters.method", f"unknown matching method {code}; known: TGV_ZNCC, WINDOW_ZNCC")
+        raise InvalidInputError(
+            "parameters.method", f"unknown matching method {code}; known: TGV_ZNCC, WINDOW_ZNCC, FAST"
+        )
     return _METHODS[code]
 
 

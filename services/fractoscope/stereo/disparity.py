@@ -28,11 +28,13 @@ class DisparityResult:
 
 
 class MatchingMethod(str, Enum):
-    """How a strip is matched: `tgv_zncc` (the default) refines `window_zncc`'s disparities by
-    TGV² over a small-window ZNCC data term; `window_zncc` is the paper's window correlation."""
+    """How a strip is matched: `tgv_zncc` (the default, accuracy first) refines `window_zncc`'s
+    disparities by TGV² over a small-window ZNCC data term; `window_zncc` is the paper's window
+    correlation; `fast` refines DIS optical flow by ZNCC residual searches (`optical_flow`)."""
 
     TGV_ZNCC = "tgv_zncc"
     WINDOW_ZNCC = "window_zncc"
+    FAST = "fast"
 
 
 @dataclass(frozen=True)

@@ -1,8 +1,8 @@
 """Dense matching of a rectified stereo pair, whatever the method: both images are freed of smooth
 shading (`local_contrast`), cut into overlapping strips of rows (`strip_bounds`, parallax runs
 along rows, so a strip is a complete stereo problem), the strips are matched here or by peers
-(`StripMatcher`) and stitched (`match_disparity`). The method that matches one strip is
-`window_zncc.match_strip`.
+(`StripMatcher`) and stitched (`match_disparity`). The method that matches one strip is the
+task's (`_METHODS`): `tgv_zncc`, `window_zncc` or `optical_flow` (FAST).
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 
 from fractoscope.progress import ProgressCallback, silent
-from fractoscope.stereo import tgv_zncc, window_zncc
+from fractoscope.stereo import optical_flow, tgv_zncc, window_zncc
 from fractoscope.stereo.disparity import DisparityResult, MatchingMethod, StripMatcher, StripTask
 
 DEFAULT_WINDOW_PX = 15
@@ -50,10 +50,10 @@ def match_disparity(
     `max_lr_difference_px`, whose window lies on a flat (textureless) patch, or that form small
     isolated islands among masked pixels. With `normalize_local_contrast` both images are first
     freed of smooth shading and evened out in contrast (see `local_contrast`). Strips are
-    matched by the window ZNCC method (`window_zncc.match_strip`): every pyramid level but the
-    finest also lets each pixel try its neighbours' disparities; `propagate_at_full_resolution`
-    does so at the finest level too, for surfaces with steps, at about 1.5 times the matching
-    time.
+    matched by `method` (`_METHODS`). The window ZNCC method (`window_zncc.match_strip`, where
+    the default starts) lets each pixel try its neighbours' disparities at every pyramid level
+    but the finest; `propagate_at_full_resolution` does so at the finest level too, for surfaces
+    with steps, at about 1.5 times the matching time.
 
     Large images are matched in overlapping strips of rows of about `strip_pixels` pixels each,
     which bounds memory; parallax runs along rows, so a strip is a complete stereo problem.
@@ -136,7 +136,11 @@ def strip_bounds(
     return bounds
 
 
-_METHODS = {MatchingMethod.TGV_ZNCC: tgv_zncc.match_strip, MatchingMethod.WINDOW_ZNCC: window_zncc.match_strip}
+_METHODS = {
+    MatchingMethod.TGV_ZNCC: tgv_zncc.match_strip,
+    MatchingMethod.WINDOW_ZNCC: window_zncc.match_strip,
+    MatchingMethod.FAST: optical_flow.match_strip,
+}
 
 
 def match_strip(task: StripTask) -> DisparityResult:

@@ -284,7 +284,7 @@ def _match_view(reference: np.ndarray, view: np.ndarray, options: MatchingOption
         )
     )
     fusion = photometric.Fusion(matched.disparity_px, matched.sigma_px, float("nan"), False)
-    if options.method is MatchingMethod.TGV_ZNCC:  # window correlation stays the paper's method
+    if options.method is MatchingMethod.TGV_ZNCC:  # window correlation stays the paper's method, FAST quick
         noise_grey = float(np.hypot(photometric.noise_sigma(reference), photometric.noise_sigma(view)))
         fusion = photometric.fused_disparity(
             reference, on_first, matched.disparity_px, matched.sigma_px, noise_grey=noise_grey

@@ -88,9 +88,9 @@ def seed_disparity(left: np.ndarray, right: np.ndarray, guide_px: np.ndarray) ->
     if min(left.shape) < _MIN_SIDE_PX or known.size == 0:
         return np.full(left.shape, np.nan, np.float32)
     low_px, high_px = np.percentile(known, [0.1, 99.9])
-    grey = [np.clip(image * _GREY_PER_UNIT + 128.0, 0.0, 255.0).astype(np.uint8) for image in (left, right)]
     return sgbm_disparity(
-        *grey,
+        grey_levels(left),
+        grey_levels(right),
         min_px=low_px - _GUIDE_MARGIN_PX,
         max_px=high_px + _GUIDE_MARGIN_PX,
         block_px=_BLOCK_PX,
@@ -98,3 +98,11 @@ def seed_disparity(left: np.ndarray, right: np.ndarray, guide_px: np.ndarray) ->
         speckle_pixels=_SPECKLE_PIXELS,
         speckle_range_px=_SPECKLE_RANGE_PX,
     )
+
+
+def grey_levels(image: np.ndarray) -> np.ndarray:
+    """A normalized image ((rows, cols) float32, zero mean and unit variance, as
+    `correlation.normalized` gives it) as the uint8 grey levels OpenCV's matchers take: ±3.2
+    standard deviations about 128, clipped. One mapping for both images of a pair, so that
+    their grey levels stay comparable."""
+    return np.clip(image * _GREY_PER_UNIT + 128.0, 0.0, 255.0).astype(np.uint8)

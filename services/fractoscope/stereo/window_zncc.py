@@ -146,6 +146,27 @@ def _coarse_to_fine(
     return refined
 
 
+def coarse_disparity(left: np.ndarray, right: np.ndarray, window_px: int, max_disparity_px: int) -> np.ndarray:
+    """`_coarse_to_fine`'s full search at its coarsest level alone (without the propagation):
+    `left` matched to `right` (normalized (rows, cols) float32 images) over ±`max_disparity_px`
+    at the pyramid level where that is a few pixels, poor matches replaced by their
+    neighbourhood's median, upsampled to (rows, cols) float32 px. A start for methods that
+    search no range themselves (`optical_flow`)."""
+    levels = _level_count(left.shape, max_disparity_px, window_px)
+    coarse_left, coarse_right = _pyramid(left, levels)[-1], _pyramid(right, levels)[-1]
+    radius = int(np.ceil(max_disparity_px / 2 ** (levels - 1))) + 1
+    found = residual_search(
+        coarse_left,
+        correlation.window_stats(coarse_left, window_px),
+        coarse_right,
+        np.zeros(coarse_left.shape, np.float32),
+        window_px,
+        radius,
+    )
+    disparity = _clean_for_upsampling(found.disparity, found.score)
+    return np.float32(2 ** (levels - 1)) * cv2.resize(disparity, left.shape[::-1], interpolation=cv2.INTER_LINEAR)
+
+
 def context_rows(strip_shape: tuple[int, int], *, window_px: int, max_disparity_px: int) -> int:
     """Rows of context a strip of `strip_shape` (rows, cols) needs on either side of the rows it
     keeps: the support of one window at the coarsest pyramid level."""

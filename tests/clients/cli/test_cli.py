@@ -67,9 +67,9 @@ def test_height_writes_the_npz_contract(pair_files, tmp_path):
     assert np.nanmedian(heights.local_sigma_um) < np.nanmedian(heights.sigma_um)  # the tilt's shared error left out
 
 
-def test_height_names_the_method_and_takes_window_correlation_on_request(pair_files, tmp_path):
+def test_height_names_the_method_and_takes_the_others_on_request(pair_files, tmp_path):
     (left, right), pair = pair_files
-    for method, expected in (("window-zncc", "window_zncc"), (None, "tgv_zncc")):
+    for method, expected in (("window-zncc", "window_zncc"), ("fast", "fast"), (None, "tgv_zncc")):
         out = tmp_path / f"{expected}.npz"
         extra = ["--method", method] if method else []
         done = _run("height", left, right, "--tilt", "-5", "5", "--pixel-size-um", "0.1", *extra, "-o", out, "--json")

@@ -9,6 +9,7 @@ from fractoscope.client.manifest import load_manifest
 from fractoscope.errors import InvalidInputError
 from fractoscope.rpc.limits import MAX_ROIS
 from fractoscope.rpc.manifest import parse_manifest
+from fractoscope.v1 import matching_pb2
 
 
 def _write(tmp_path, **roi):
@@ -39,6 +40,8 @@ def test_an_roi_carries_its_images_tilts_and_matching_parameters(tmp_path):
     assert roi.parameters.window_px == 21
     _, (plain,) = load_manifest(_write(tmp_path))
     assert not plain.HasField("parameters")
+    _, (fast,) = load_manifest(_write(tmp_path, matching={"method": "MATCHING_METHOD_FAST"}))
+    assert fast.parameters.method == matching_pb2.MATCHING_METHOD_FAST
 
 
 @pytest.mark.parametrize(

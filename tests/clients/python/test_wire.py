@@ -160,10 +160,22 @@ def test_matching_parameters_left_empty_mean_the_defaults():
     assert MatchingOptions().method == MatchingMethod.TGV_ZNCC
 
 
+def test_matching_methods_by_name_and_by_code():
+    assert wire.method_names() == ("tgv_zncc", "window_zncc", "fast")
+    assert [wire.method_code(name) for name in wire.method_names()] == [
+        matching_pb2.MATCHING_METHOD_TGV_ZNCC,
+        matching_pb2.MATCHING_METHOD_WINDOW_ZNCC,
+        matching_pb2.MATCHING_METHOD_FAST,
+    ]
+    assert {MatchingMethod(name) for name in wire.method_names()} == set(MatchingMethod)
+    fast = matching_pb2.MatchingParameters(method=matching_pb2.MATCHING_METHOD_FAST)
+    assert rpc_matching.options_from_message(fast).method == MatchingMethod.FAST
+
+
 def test_an_unknown_matching_method_names_the_field():
     with pytest.raises(InvalidInputError) as raised:
         rpc_matching.options_from_message(matching_pb2.MatchingParameters(method=7))
-    assert raised.value.field == "parameters.method"
+    assert raised.value.field == "parameters.method" and "FAST" in raised.value.message
 
 
 def test_a_strip_and_its_disparities_cross_the_wire_unchanged():

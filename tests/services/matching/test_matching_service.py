@@ -11,7 +11,8 @@ from grpc_reflection.v1alpha import reflection_pb2, reflection_pb2_grpc
 
 from fractoscope.client import ClientError
 from fractoscope.matching.peers import StripPeers
-from fractoscope.stereo.disparity import StripTask
+from fractoscope.stereo.disparity import MatchingMethod, StripTask
+from fractoscope.v1 import matching_pb2
 
 
 def test_health_and_reflection(server_address):
@@ -135,7 +136,7 @@ def test_a_strip_searched_across_its_whole_width_is_matched(peers):
 def test_a_raster_that_holds_fewer_bytes_than_it_declares_is_invalid_not_too_large(server_address):
     """65536 x 65536 declared with 64 KiB of data: the memory estimate, which trusts the declared
     size, once answered RESOURCE_EXHAUSTED (880 GiB) for what is a malformed request."""
-    from fractoscope.v1 import common_pb2, matching_pb2, matching_pb2_grpc
+    from fractoscope.v1 import common_pb2, matching_pb2_grpc
 
     raster = common_pb2.Raster(rows=65536, cols=65536, data_type=common_pb2.DATA_TYPE_UINT8, data=bytes(65536))
     request = matching_pb2.MatchStripRequest(
@@ -144,3 +145,27 @@ def test_a_raster_that_holds_fewer_bytes_than_it_declares_is_invalid_not_too_lar
     with grpc.insecure_channel(server_address) as channel, pytest.raises(grpc.RpcError) as error:
         matching_pb2_grpc.MatchingServiceStub(channel).MatchStrip(request, timeout=30)
     assert error.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "left.data" in error.value.details()
+
+
+def test_a_height_map_by_the_fast_method_names_it(client):
+    pair = fracture_pair(size_px=256)
+    result = client.compute_height_map(
+        [tiff_bytes(pair.first), tiff_bytes(pair.second)], tilt_deg=(-5, 5), pixel_size_um=0.1, method="fast"
+    )
+    assert result.report["method"] == "fast"
+    assert result.report["parameters"]["method"] == matching_pb2.MATCHING_METHOD_FAST
+    inner = inner_mask(result.z_um.shape)
+    valid = np.isfinite(result.z_um) & inner
+    np.testing.assert_array_equal(np.isfinite(result.sigma_um), np.isfinite(result.z_um))
+    assert valid[inner].mean() > 0.9  # measured 0.97
+    error = result.z_um[valid] - pair.z_seen_um[valid]
+    assert np.std(error) / np.ptp(pair.z_seen_um[inner]) < 0.05  # measured 0.035
+
+
+def test_a_strip_peer_matches_by_the_fast_method(peers):
+    pair = fracture_pair(size_px=128)
+    task = StripTask(
+        pair.first.astype(np.float32), pair.second.astype(np.float32), 15, 16, 0.3, 1.0, method=MatchingMethod.FAST
+    )
+    result, _ = peers.match_strip(task, timeout_s=120)
+    assert np.isfinite(result.disparity_px).mean() > 0.8

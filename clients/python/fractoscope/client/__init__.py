@@ -104,8 +104,8 @@ class FractoscopeClient(ChannelOwner):
         with `tilt_deg_nominal`, `tilt_sigma_deg` and `tilt_residual_px`. `normalize_local_contrast`
         (None: the server's default, on) and `propagate_at_full_resolution`: see
         MatchingParameters (against shading that changes with the tilt, and for surfaces with
-        steps). `method`: "tgv_zncc" or "window_zncc" (None: the server's default, tgv_zncc; see
-        MatchingMethod)."""
+        steps). `method`: "tgv_zncc", "window_zncc" or "fast" (None: the server's default,
+        tgv_zncc; see MatchingMethod)."""
         files = [
             (image, "") if isinstance(image, bytes) else (Path(image).read_bytes(), Path(image).name)
             for image in images
@@ -381,8 +381,10 @@ def _as_dict(message) -> dict:
 
 
 def _matching_method(name: str) -> int:
-    """ "tgv_zncc" or "window_zncc" as a MatchingMethod value; ValueError naming `method` otherwise."""
+    """A matching method's name ("tgv_zncc", "window_zncc" or "fast") as a MatchingMethod value;
+    ValueError naming `method` otherwise."""
     try:
-        return matching_pb2.MatchingMethod.Value("MATCHING_METHOD_" + name.upper())
+        return wire.method_code(name)
     except ValueError:
-        raise ValueError(f"method must be 'tgv_zncc' or 'window_zncc', got {name!r}") from None
+        known = ", ".join(repr(known) for known in wire.method_names())
+        raise ValueError(f"method must be one of {known}, got {name!r}") from None

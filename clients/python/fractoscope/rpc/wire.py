@@ -63,9 +63,22 @@ def report_to_message(report: dict) -> matching_pb2.MatchingReport:
     return matching_pb2.MatchingReport(**fields)
 
 
+_METHOD_PREFIX = "MATCHING_METHOD_"
+
+
 def method_code(method: str) -> int:
-    """The MatchingMethod enum value of a matching method's name ("tgv_zncc": MATCHING_METHOD_TGV_ZNCC)."""
-    return matching_pb2.MatchingMethod.Value(f"MATCHING_METHOD_{method.upper()}")
+    """The MatchingMethod enum value of a matching method's name ("tgv_zncc": MATCHING_METHOD_TGV_ZNCC,
+    "fast": MATCHING_METHOD_FAST); ValueError for a name the API does not know."""
+    return matching_pb2.MatchingMethod.Value(f"{_METHOD_PREFIX}{method.upper()}")
+
+
+def method_names() -> tuple[str, ...]:
+    """The matching methods' names the API knows, in the enum's order: ("tgv_zncc", "window_zncc", "fast")."""
+    return tuple(
+        name.removeprefix(_METHOD_PREFIX).lower()
+        for name in matching_pb2.MatchingMethod.keys()
+        if name != f"{_METHOD_PREFIX}UNSPECIFIED"
+    )
 
 
 def message_to_report(message: matching_pb2.MatchingReport) -> dict:
