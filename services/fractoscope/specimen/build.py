@@ -254,15 +254,27 @@ def _wall_settings(heights: MeasuredHeights, sigma_um: np.ndarray | None) -> dic
     return settings
 
 
+def given_child_origin_um(
+    center_um: tuple[float, float],
+    shape: tuple[int, int],
+    pixel_size_um: float,
+    parent_origin_um: tuple[float, float] = (0.0, 0.0),
+) -> tuple[float, float]:
+    """Where a child ROI of (rows, cols) `shape` whose centre is given at `center_um` (x, y in its
+    parent's frame: the parent's pixel (0, 0) at the origin) has its pixel (0, 0), µm, in the
+    frame where the parent's pixel (0, 0) is at `parent_origin_um`."""
+    rows, cols = shape
+    half_x_um, half_y_um = (cols - 1) / 2 * pixel_size_um, (rows - 1) / 2 * pixel_size_um
+    return parent_origin_um[0] + center_um[0] - half_x_um, parent_origin_um[1] + center_um[1] - half_y_um
+
+
 def _child_origin(
     roi: RoiRequest, parent: PlacedRoi, texture: np.ndarray, heights: MeasuredHeights
 ) -> tuple[tuple[float, float], float]:
     """Where the child's pixel (0, 0) lies in the specimen frame, µm, and the registration score."""
     rows, cols = heights.z_um.shape
     if roi.center_um is not None:
-        centre_x, centre_y = roi.center_um
-        half_x, half_y = (cols - 1) / 2 * heights.pixel_size_um, (rows - 1) / 2 * heights.pixel_size_um
-        return (parent.origin_um[0] + centre_x - half_x, parent.origin_um[1] + centre_y - half_y), 0.0
+        return given_child_origin_um(roi.center_um, (rows, cols), heights.pixel_size_um, parent.origin_um), 0.0
     image_rows = rows - int(heights.report.get("data_bar_rows", 0))
     found = registration.register_child(
         parent.texture,

@@ -125,9 +125,8 @@ class Specimen:
         placed = []
         for roi in self.rois:
             with self._stored_file(), np.load(self.directory / "rois" / f"{roi.id}.npz") as arrays:
-                sigma_um = (
-                    arrays["sigma_um"] if "sigma_um" in arrays else None
-                )  # specimens built before it was kept have none
+                # Specimens built before it was kept have none.
+                sigma_um = arrays["sigma_um"] if "sigma_um" in arrays else None
                 placed.append(
                     PlacedRoi(
                         roi.id,

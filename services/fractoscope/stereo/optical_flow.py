@@ -14,17 +14,9 @@ matcher's finest level does), which give the disparity its sub-pixel precision, 
 computed both ways for the left-right check; a rectified pair's flow runs along rows, so a flow
 that needs more than `_MAX_ACROSS_ROWS_PX` across them is no match along the row.
 
-Measured on 1024² synthetic pairs at ±5° (`benchmarks/matching.py`'s self-affine pair, ±32 px):
-0.82 times StereoSGBM's matching time (0.16 against 0.20 s) at 0.29 times its RMS height error
-(0.75 against 2.61 % of the range; window correlation: 1.0 and 0.26 times). SGBM's time grows
-with the disparity range: timed in one process (where that pair measures 1.0 times), FAST took
-1.6-1.8 times SGBM's time on the reference self-affine and dimple surfaces (disparities within
-±15 px), 0.7-0.8 times on cleavage (-41 to +58 px); RMS error 0.65, 0.28-0.34 and 0.18-0.25
-times SGBM's (seeds 1-3), but on cleavage 63-72 % of the pixels kept against SGBM's 88-90 %:
-DIS settles some facets wrongly, which the checks then mask. On the real pollen pairs
-(2048 × 1536 px) it keeps 38, 25 and 22 % at ±3, ±6 and ±9° (without the coarse start 38, 12
-and 8 %). A pair matched in strips differs slightly from the pair matched whole (DIS's coarsest
-patches reach beyond a strip's context rows; median 0.01-0.02 px), at the same accuracy.
+A pair matched in strips differs slightly from the pair matched whole: DIS's coarsest patches
+reach beyond a strip's context rows. The measurements behind the method and its constants:
+docs/matching-notes.md.
 
 Convention: disparity d at left pixel (row, col) means it matches right pixel (row, col + d).
 
@@ -41,26 +33,16 @@ from fractoscope.stereo import correlation, semi_global, window_zncc
 from fractoscope.stereo.disparity import DisparityResult, StripTask
 
 # OpenCV's PRESET_FAST (8 px patches, 16 gradient-descent and 5 variational iterations, flow at a
-# quarter of the resolution) with patches every 3 px instead of 4, measured on 1024² pairs: 0.4-2.4 %
-# more of cleavage kept and 1 % more of the benchmark's pair, for a few per cent of the time.
-# After the residual searches a finer flow gains little: PRESET_MEDIUM (half the resolution) or
-# finest scale 1 took 1.5-1.7 times as long for 0-8 % less RMS error on smooth surfaces (4-6 %
-# more of cleavage kept); PRESET_ULTRAFAST (no variational refinement) kept 0-9 % fewer pixels.
+# quarter of the resolution) with patches every 3 px instead of 4: more of stepped surfaces kept
+# for a few per cent of the time; after the residual searches a finer flow gains little.
 _PATCH_STRIDE_PX = 3
 # Two residual searches: the first moves a pixel by whole pixels where the flow is more than
-# half a pixel off (a peak at the search's edge gets no parabola), the second centres it. With
-# one, the self-affine surfaces' RMS error is 0.77-0.82 times SGBM's instead of 0.65; a third
-# gains 0-7 % for a sixth to a quarter more time.
+# half a pixel off (a peak at the search's edge gets no parabola), the second centres it.
 _REFINEMENT_PASSES = 2
-# The pair is rectified: a match more than this far across rows is a false one. On synthetic
-# cleavage (facets DIS settles wrongly) the RMS error falls from 1.7-2.3 % of the range to
-# 1.2-1.5 % for 1.4-2 % of the pixels; smooth surfaces lose none (0.5 px drops 3-4 % of them).
+# The pair is rectified: a match more than this far across rows is a false one (DIS settles some
+# cleavage facets wrongly).
 _MAX_ACROSS_ROWS_PX = 1.0
-# The refined disparities err less than the window's calibrated peak sigma says: scaled by 0.8,
-# 56-76 % of the errors on 640² and 1024² self-affine, dimple and cleavage pairs (seeds 1-3) lie
-# within one sigma, 68 % on average, 93-100 % within three. Steeper relief, whose windows see
-# foreshortening the sigma does not model, errs more: 38-50 % on 256² self-affine pairs, 43 %
-# on the benchmark's pair.
+# The refined disparities err less than the window's calibrated peak sigma says.
 _SIGMA_SCALE = 0.8
 # OpenCV's DIS fails on images less than 4 patches high or wide, and crashed (OpenCV 5.1) on
 # some 8-31 rows high: smaller strips are padded for it.

@@ -309,7 +309,7 @@ class JsonApi:
                 "this endpoint does not run builds (it has no gRPC endpoint to send them to)",
             )
         if request.content_type == "multipart/form-data":
-            upload_id, _, _ = await self.uploads.receive(request)
+            upload_id, specimen_id, rois = await self.uploads.receive(request)
             request_id = self.uploads.field(upload_id, "request_id")
         elif request.content_type == JSON_TYPE:
             body = await json_body(request, limit_bytes=64 * 1024)
@@ -323,13 +323,13 @@ class JsonApi:
                 raise InvalidInputError("upload_id", "is required (a string)")
             if not isinstance(request_id, str) or len(request_id) > MAX_REQUEST_ID_CHARS:
                 raise InvalidInputError("request_id", f"must be a string of at most {MAX_REQUEST_ID_CHARS} characters")
+            specimen_id, rois = await off_loop(self.uploads.load, upload_id)
         else:
             raise ApiError(
                 HTTPStatus.UNSUPPORTED_MEDIA_TYPE,
                 'send application/json ({"upload_id": ...}) or multipart/form-data (manifest and images)',
                 "content-type",
             )
-        specimen_id, rois = await off_loop(self.uploads.load, upload_id)
         if request_id:  # a reused id is refused now, not in a job that fails later
             build = tiles_pb2.ReconstructSpecimenRequest(specimen_id=specimen_id, rois=rois)
             await off_loop(self.store.built_by, specimen_id, request_id, request_digest(build))

@@ -6,7 +6,6 @@ from __future__ import annotations
 import asyncio
 import errno
 import math
-import tempfile
 from collections.abc import Callable
 from http import HTTPStatus
 from pathlib import Path
@@ -75,13 +74,13 @@ def json_error(status: HTTPStatus, message: str, field: str | None, **headers: s
 
 
 async def file_response(
-    request: web.Request, run, write: Callable[[Path], tuple[Path, str]], *, scratch_root: Path | None = None
+    request: web.Request, run, write: Callable[[Path], tuple[Path, str]], *, scratch_root: Path
 ) -> web.StreamResponse:
     """A file written by `write(directory)` (on threads by `await run(function, *args)`, into a
     scratch folder under `scratch_root`: SpecimenStore.scratch_root, whose leftovers of killed
-    processes a store's start removes; None: the system's temporary folder) and streamed out in
-    chunks, so memory stays bounded; the folder goes once it is sent."""
-    with scratch_folder(scratch_root or Path(tempfile.gettempdir()), "fractoscope-http") as directory:
+    processes a store's start removes) and streamed out in chunks, so memory stays bounded; the
+    folder goes once it is sent."""
+    with scratch_folder(scratch_root, "fractoscope-http") as directory:
         path, media_type = await run(write, directory)
         response = web.StreamResponse(
             headers={

@@ -17,7 +17,7 @@ from fractoscope.rpc.calls import CHUNK_BYTES
 from fractoscope.rpc.limits import MAX_ROIS
 from fractoscope.sem.image import nominal_magnification
 from fractoscope.specimen import exports
-from fractoscope.specimen.build import RoiRequest, ordered_rois
+from fractoscope.specimen.build import RoiRequest, given_child_origin_um, ordered_rois
 from fractoscope.specimen.exports import ExportedFile
 from fractoscope.specimen.fusion import footprint_um, overlaps
 from fractoscope.specimen.quadtree import TileRecord
@@ -134,10 +134,9 @@ def check_child_centres(
         if not (spec.parent and spec.HasField("center_um")):
             continue
         parent = index_of[spec.parent]
-        rows, cols = shapes[index]
-        half_um = ((cols - 1) / 2 * pixel_sizes_um[index], (rows - 1) / 2 * pixel_sizes_um[index])
-        origin_um = (spec.center_um.x_um - half_um[0], spec.center_um.y_um - half_um[1])
         # Both in the parent's frame: its pixel (0, 0) at the origin.
+        centre_um = (spec.center_um.x_um, spec.center_um.y_um)
+        origin_um = given_child_origin_um(centre_um, shapes[index], pixel_sizes_um[index])
         parent_um = footprint_um((0.0, 0.0), shapes[parent], pixel_sizes_um[parent])
         if not overlaps(footprint_um(origin_um, shapes[index], pixel_sizes_um[index]), parent_um):
             raise InvalidInputError(

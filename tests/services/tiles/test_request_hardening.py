@@ -12,7 +12,6 @@ import os
 import signal
 import subprocess
 import sys
-import tempfile
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -204,7 +203,7 @@ def test_http_files_are_written_under_the_given_scratch_root_and_removed_once_se
         (directory / "height.csv").write_text("1,2\n")
         return directory / "height.csv", "text/csv"
 
-    async def fetch(scratch_root: Path | None) -> str:
+    async def fetch(scratch_root: Path) -> str:
         async def handler(request: web.Request) -> web.StreamResponse:
             return await file_response(request, off_loop, write, scratch_root=scratch_root)
 
@@ -216,8 +215,6 @@ def test_http_files_are_written_under_the_given_scratch_root_and_removed_once_se
 
     assert asyncio.run(fetch(tmp_path / "data" / "tmp")) == "1,2\n"
     assert directories[0].parent == tmp_path / "data" / "tmp" and not directories[0].exists()
-    assert asyncio.run(fetch(None)) == "1,2\n"  # the default: the system's temporary folder
-    assert directories[1].parent == Path(tempfile.gettempdir()) and not directories[1].exists()
 
 
 # A process that makes a scratch folder, writes part of an export into it and is killed.
