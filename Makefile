@@ -97,6 +97,7 @@ test: install $(CHROMIUM) $(PDFTOPPM) $(KUBECONFORM) $(KUSTOMIZE) $(KUBE_SCHEMAS
 bench: install $(WRK) $(GHZ)
 	$(BIN)/python -m benchmarks.matching --out bench-results
 	$(BIN)/python -m benchmarks.accuracy --out bench-results
+	$(BIN)/python -m benchmarks.relief_sign --out bench-results
 	$(BIN)/python -m benchmarks.meshing --out bench-results
 	$(BIN)/python -m benchmarks.exports --out bench-results
 	$(BIN)/python -m benchmarks.surface_analysis --out bench-results

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 from dataclasses import dataclass
+from html.parser import HTMLParser
 from pathlib import Path
 
 import meshoptimizer
@@ -264,3 +265,21 @@ def validate_glbs(glbs: list[bytes], directory: Path) -> list[dict]:
         reports += [json.loads(line) for line in done.stdout.splitlines()]
     assert len(reports) == len(glbs)
     return reports
+
+
+class ReportNumbers(HTMLParser):
+    """A measurement report's HTML read back: data-name -> data-value of every number cell
+    (`values`) and the page's text pieces (`text`)."""
+
+    def __init__(self, html: str = ""):
+        super().__init__()
+        self.values, self.text = {}, []
+        self.feed(html)
+
+    def handle_starttag(self, tag, attrs):
+        attributes = dict(attrs)
+        if "data-value" in attributes:
+            self.values[attributes["data-name"]] = float(attributes["data-value"])
+
+    def handle_data(self, data):
+        self.text.append(data)

@@ -155,7 +155,7 @@ def _surface(archive: zipfile.ZipFile) -> X3pSurface:
     raw = _member(archive, link, text("Record3/DataLink/MD5ChecksumPointData"))
     dtype = np.dtype(_Z_TYPES[z_type])
     if len(raw) != rows * cols * dtype.itemsize:
-        raise InvalidInputError(link, f"{len(raw)} bytes for {rows} x {cols} points of type {z_type}")
+        raise InvalidInputError(link, f"{len(raw)} bytes for {cols} x {rows} points of type {z_type}")
     increment, offset = number("Record1/Axes/CZ/Increment", float, 1.0), number("Record1/Axes/CZ/Offset", float, 0.0)
     z_um = np.frombuffer(raw, dtype).reshape(rows, cols).astype(np.float64)
     z_um *= increment / M_PER_UM

@@ -15,6 +15,7 @@ from fractoscope.sem import image as sem_image
 from fractoscope.stereo.disparity import DisparityResult, MatchingMethod, StripTask
 from fractoscope.stereo.inputs import MatchingOptions, validate_options, validate_same_size, validate_tilt_axis_deg
 from fractoscope.stereo.pipeline import DEFAULT_TILT_AXIS_DEG, HeightMapResult
+from fractoscope.stereo.relief_sign import ReliefSignMode
 from fractoscope.v1 import matching_pb2
 
 _METHODS = {
@@ -73,7 +74,23 @@ def options_from_message(parameters: matching_pb2.MatchingParameters) -> Matchin
         ),
         propagate_at_full_resolution=parameters.propagate_at_full_resolution,
         method=method_from_message(parameters.method),
+        relief_sign=relief_sign_from_message(parameters.relief_sign),
+        detector_from_tilt_axis_deg=(
+            parameters.detector_from_tilt_axis_deg
+            if parameters.HasField("detector_from_tilt_axis_deg")
+            else defaults.detector_from_tilt_axis_deg
+        ),
     )
+
+
+def relief_sign_from_message(code: int) -> ReliefSignMode:
+    """A ReliefSignMode value (UNSPECIFIED: auto); InvalidInputError naming the field otherwise."""
+    try:
+        return ReliefSignMode(wire.relief_sign_name(code))
+    except ValueError:
+        raise InvalidInputError(
+            "parameters.relief_sign", f"unknown relief sign mode {code}; known: AUTO, NOMINAL, INVERTED"
+        ) from None
 
 
 def checked_height_map_request(

@@ -60,7 +60,10 @@ def height_map_arrays(height_map: common_pb2.HeightMap, *, field: str = "height_
     if height_map.HasField("texture"):
         texture = wire.raster_to_array(height_map.texture, field=f"{field}.texture")
         if texture.shape != z_um.shape:
-            _invalid(f"{field}.texture", f"shape {texture.shape} differs from z_um's {z_um.shape}")
+            _invalid(
+                f"{field}.texture",
+                f"{texture.shape[1]} x {texture.shape[0]} differs from z_um's {z_um.shape[1]} x {z_um.shape[0]}",
+            )
         if texture.dtype == np.uint16:
             texture = (texture.astype(np.float32) / 257.0).astype(np.uint8)
     else:
@@ -74,7 +77,10 @@ def height_map_arrays(height_map: common_pb2.HeightMap, *, field: str = "height_
     if height_map.HasField("sigma_um"):
         sigma_um = wire.raster_to_array(height_map.sigma_um, field=f"{field}.sigma_um")
         if sigma_um.shape != z_um.shape:
-            _invalid(f"{field}.sigma_um", f"shape {sigma_um.shape} differs from z_um's {z_um.shape}")
+            _invalid(
+                f"{field}.sigma_um",
+                f"{sigma_um.shape[1]} x {sigma_um.shape[0]} differs from z_um's {z_um.shape[1]} x {z_um.shape[0]}",
+            )
         if np.any(sigma_um < 0):
             _invalid(f"{field}.sigma_um", f"must be >= 0 µm (NaN where unknown), got {np.nanmin(sigma_um)}")
     return z_um, texture, pixel_size_um, sigma_um

@@ -30,6 +30,7 @@ from fractoscope.report.document import (
 from fractoscope.specimen.store import RoiEntry, Specimen
 from fractoscope.surface.areal_parameters import UNITS
 from fractoscope.surface.profile_parameters import UNITS as PROFILE_UNITS
+from fractoscope.surface.scaling import MAX_HURST_STDERR
 
 __all__ = ["MEDIA_TYPES", "ReportContent", "report_content", "write_report"]
 
@@ -86,8 +87,8 @@ def build_document(content: ReportContent) -> Document:
     else:
         document.add(
             Paragraph(
-                "The specimen was stored before its image files were kept; the reference image on the height map's "
-                "grid is the texture of the 3D tiles."
+                "No image files are kept with these heights (a height map file, or a specimen stored before they "
+                "were kept); a specimen's reference image on the height map's grid is the texture of its 3D tiles."
             )
         )
     document.add(
@@ -121,7 +122,8 @@ def _calibration(document: Document, content: ReportContent) -> None:
                 "The tilt was not calibrated: the heights use nominal stage tilts (from the file metadata or the "
                 "request), whose assumed uncertainty scales every height by ε_z = δα / tan α = "
                 f"{_percent(content.roughness.tilt_rel_uncertainty)}. Calibrating the tilts from a series of three "
-                "or more images (calibrate_tilt) removes most of it.",
+                'or more images removes most of it: a manifest ROI\'s "images" with "calibrate": true, '
+                "fracto height --calibrate-tilt, or calibrate_tilt in the API.",
                 emphasis=True,
             )
         )
@@ -135,15 +137,17 @@ def _calibration(document: Document, content: ReportContent) -> None:
                 )
             )
             continue
+        nominal = _nominal_tilts(roi, calibration)
         caption = (
-            "tilt calibrated from the images (the reference view keeps its nominal tilt: only differences are "
-            "observable)"
+            "tilt calibrated from the images, starting from the nominal tilts"
+            + (f" {', '.join(f'{tilt:+g}' for tilt in nominal)} °" if nominal else "")
+            + " (the reference view keeps its nominal tilt: only differences are observable)"
             if calibration.tilt_calibrated
             else "tilt not calibrated: sigma is the nominal tilt uncertainty"
         )
         document.add(
             Table(
-                ["ROI " + roi.id, "value", "unit", "source", "sigma (°)"],
+                ["ROI " + roi.id, "value", "unit", "source", "sigma (°)"] + (["nominal (°)"] if nominal else []),
                 _calibration_rows(roi, calibration),
                 caption=caption,
                 anchor=f"calibration-{roi.id}",
@@ -153,7 +157,9 @@ def _calibration(document: Document, content: ReportContent) -> None:
 
 def _calibration_rows(roi: RoiEntry, calibration: Calibration) -> list[list[Cell]]:
     """One ROI's calibration table: each view's tilt, the pixel size and, where recorded, the tilt
-    axis, as (quantity, value, unit, source, sigma °)."""
+    axis, as (quantity, value, unit, source, sigma °), and each view's nominal tilt (°) when the
+    tilts were calibrated."""
+    nominal = _nominal_tilts(roi, calibration)
     rows = [
         [
             Cell(f"tilt of view {index}"),
@@ -162,6 +168,7 @@ def _calibration_rows(roi: RoiEntry, calibration: Calibration) -> list[list[Cell
             Cell(source),
             Cell(number(sigma), sigma if math.isfinite(sigma) else None, f"{roi.id}.tilt_sigma_deg[{index}]"),
         ]
+        + ([Cell(f"{nominal[index]:+.4f}", nominal[index], f"{roi.id}.tilt_deg_nominal[{index}]")] if nominal else [])
         for index, (tilt, source, sigma) in enumerate(
             zip(calibration.tilt_deg, calibration.tilt_source, calibration.tilt_sigma_deg)
         )
@@ -186,7 +193,27 @@ def _calibration_rows(roi: RoiEntry, calibration: Calibration) -> list[list[Cell
                 Cell(""),
             ]
         )
-    return rows
+    sign = roi.matching.get("relief_sign")
+    if sign:
+        rows.append([Cell("relief sign"), Cell(sign), Cell(""), Cell(_relief_sign_source(roi.matching)), Cell("")])
+    return [row + [Cell("")] * (len(rows[0]) - len(row)) for row in rows]
+
+
+def _relief_sign_source(matching: dict) -> str:
+    """What told the heights' sign, from a matching report, in a few words: the images' cue with
+    the share of the image that agrees with the tilts as given, or the tilts where the images
+    could not tell it."""
+    if not matching.get("relief_sign_decided"):
+        return "tilts as given (images undecided)"
+    agreeing = 100 * (1 + matching.get("relief_sign_strength", 0.0)) / 2
+    return f"{matching.get('relief_sign_cue')}, {agreeing:.0f} % agree"
+
+
+def _nominal_tilts(roi: RoiEntry, calibration: Calibration) -> list[float]:
+    """The nominal tilts (°, one per view) a calibration of the ROI's tilts started from; [] when
+    its tilts were not calibrated (or the report does not say)."""
+    nominal = list(roi.matching.get("tilt_deg_nominal") or [])
+    return nominal if calibration.tilt_calibrated and len(nominal) == len(calibration.tilt_deg) else []
 
 
 def _roughness(document: Document, content: ReportContent) -> None:
@@ -212,12 +239,6 @@ def _roughness(document: Document, content: ReportContent) -> None:
             ]
         )
     chain = analysis.chain
-    filters = (
-        ", ".join(
-            f"{name} {value:g} µm" for name, value in (("λs", chain.lambda_s_um), ("λc", chain.lambda_c_um)) if value
-        )
-        or "no S- or L-filter"
-    )
     document.add(
         Heading("Areal parameters (ISO 25178-2)", "roughness"),
         Table(
@@ -225,8 +246,8 @@ def _roughness(document: Document, content: ReportContent) -> None:
             rows,
             anchor="roughness-table",
             caption=(
-                f"After removing the form ({chain.form}{', fitted robustly' if chain.robust_form else ''}), "
-                f"{filters}, on a grid of {content.area.pixel_size_um:.4g} µm. Standard uncertainties (k = 1): the "
+                f"After removing the form ({chain.form}{', fitted robustly' if chain.robust_form else ''}), on a "
+                f"grid of {analysis.pixel_size_um:.4g} µm. {content.filters_note}. Standard uncertainties (k = 1): the "
                 "tilt part scales every height by ε_z; the matching part propagates each point's matching sigma, "
                 f"correlated over the {content.area.window_px} px window. — : not propagated (Sal, Str, Std, Spd and "
                 "Spc have no derivative: their tilt part alone is given) or unknown."
@@ -276,12 +297,18 @@ def _scaling(document: Document, content: ReportContent, figures) -> None:
 def _scaling_table(content: ReportContent) -> Table:
     """The Hurst exponent, its fit range (µm) and the fractal dimension, as the API gives them."""
     values = content.roughness.legacy()
+    undetermined = content.roughness.hurst.fits.get("hhc", {}).get("along")
+    undetermined = bool(undetermined and undetermined.not_determinable)
     return Table(
         ["quantity", "value", "unit"],
         [
             [
                 Cell("Hurst exponent H"),
-                Cell(number(values["hurst_exponent"], 3), _finite(values["hurst_exponent"]), "hurst_exponent"),
+                Cell(
+                    "not determinable" if undetermined else number(values["hurst_exponent"], 3),
+                    _finite(values["hurst_exponent"]),
+                    "hurst_exponent",
+                ),
                 Cell("1"),
             ],
             [
@@ -320,12 +347,14 @@ def _hurst_fits_table(fits) -> Table:
                 Cell(f"{fit.direction_deg:g} ({side})"),
                 *(
                     Cell(
-                        number(value, 3 if key in ("hurst", "hurst_stderr") else 4),
+                        "not determinable"
+                        if key == "hurst" and fit.not_determinable
+                        else number(value, 3 if key in ("hurst", "hurst_stderr") else 4),
                         value if math.isfinite(value) else None,
                         f"hurst.{method}.{side}.{key}",
                     )
                     for key, value in (
-                        ("hurst", fit.hurst),
+                        ("hurst", math.nan if fit.not_determinable else fit.hurst),
                         ("hurst_stderr", fit.hurst_stderr),
                         ("fit_min_um", fit.fit_min_um),
                         ("fit_max_um", fit.fit_max_um),
@@ -337,7 +366,8 @@ def _hurst_fits_table(fits) -> Table:
         ],
         anchor="hurst-table",
         caption="Both methods along the chain's direction and across it (90° more); standard errors by "
-        "jackknife over bands of profiles. The PSD's fit range is in wavelengths (twice the lags).",
+        "jackknife over bands of profiles. The PSD's fit range is in wavelengths (twice the lags). H is not "
+        f"determinable outside (0, 1) or with a standard error above {MAX_HURST_STDERR:g} (why: below).",
     )
 
 
@@ -366,9 +396,10 @@ def _profiles(document: Document, content: ReportContent, figures) -> None:
                     iso,
                     anchor=f"profile-{profile.name}-iso",
                     caption=(
-                        "As GetProfile gives them. ISO 21920-3 chain: least-squares line, Gaussian S-filter λs = "
-                        f"{profile.lambda_s_um:.3g} µm, L-filter λc = {profile.lambda_c_um:.3g} µm (the defaults for "
-                        f"the profile's length){'; ' + profile.note if profile.note else ''}."
+                        f"As GetProfile gives them, from samples {profile.spacing_um:.4g} µm apart. ISO 21920-3 "
+                        f"chain: least-squares line, Gaussian S-filter λs = {profile.lambda_s_um:.3g} µm, L-filter λc "
+                        f"= {profile.lambda_c_um:.3g} µm (0: not applied): {profile.found.roughness.cutoffs.reason}"
+                        f"{'; ' + profile.note if profile.note else ''}."
                     ),
                 )
             )

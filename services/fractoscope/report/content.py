@@ -15,7 +15,7 @@ from fractoscope.sem.image import read_sem_image
 from fractoscope.specimen import queries
 from fractoscope.specimen.fusion import footprint_um, overlaps
 from fractoscope.specimen.store import RoiEntry, Specimen
-from fractoscope.surface import roughness, scaling
+from fractoscope.surface import iso_filters, roughness, scaling
 
 MAX_VIEW_PX = 1024  # SEM images are shown downsampled to at most this many pixels across
 
@@ -60,6 +60,11 @@ class ReportProfile:
     def lambda_c_um(self) -> float:
         return self.found.roughness.lambda_c_um if self.found.roughness else math.nan
 
+    @property
+    def spacing_um(self) -> float:
+        """The spacing of the profile's samples, µm (the data's, not a table's)."""
+        return float(np.median(np.diff(self.found.distance_um))) if len(self.found.distance_um) > 1 else math.nan
+
 
 @dataclass(frozen=True)
 class RoiCalibration:
@@ -83,6 +88,24 @@ class ReportContent:
     trustworthy_range_um: tuple[float, float] | None
     trustworthy_note: str
     profiles: list[ReportProfile]
+
+    @property
+    def filters_note(self) -> str:
+        """Which S- and L-filters the areal parameters used and why, in one sentence."""
+        chain, spacing_um = self.roughness.chain, self.roughness.pixel_size_um
+        field_um = min(self.area.z_um.shape) * self.area.pixel_size_um
+        iso = iso_filters.default_nesting_indices(pixel_size_um=spacing_um, field_um=field_um).reason
+        if chain.lambda_s_um or chain.lambda_c_um:
+            used = ", ".join(
+                f"{name} = {value:g} µm"
+                for name, value in (("λs", chain.lambda_s_um), ("λc", chain.lambda_c_um))
+                if value
+            )
+            return f"{used}, as requested (ISO 25178-3's defaults for this grid and field: {iso})"
+        return (
+            "No S- or L-filter, the API's default for areal parameters, so that they are GetRoughness's (ISO "
+            f"25178-3's nesting indices for the {spacing_um:.4g} µm grid and {field_um:.4g} µm field: {iso})"
+        )
 
     @property
     def tilt_calibrated(self) -> bool:

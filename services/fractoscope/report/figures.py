@@ -129,6 +129,9 @@ def hurst_figure(content: ReportContent) -> Figure:
         )
     if content.trustworthy_range_um is not None:
         ax.axvspan(*content.trustworthy_range_um, color="C2", alpha=0.15, label="trustworthy lags (scaling)")
+    along = content.roughness.hurst.fits.get("hhc", {}).get("along")
+    if along is not None and along.not_determinable:
+        ax.set_title(f"fit: H = {along.hurst:.3f} ± {along.hurst_stderr:.3f}, not determinable (see below)", fontsize=8)
     ax.set_xlabel("lag r (µm)")
     ax.set_ylabel("h(r) (µm)")
     for axis in (ax.xaxis, ax.yaxis):  # plain numbers ("8", not "8 × 10⁰"): a fit range often spans less than a decade
@@ -161,7 +164,8 @@ def psd_figure(content: ReportContent) -> Figure:
             "-",
             color=line.get_color(),
             linewidth=1.5,
-            label=f"fit: H = {fit.hurst:.3f} ± {fit.hurst_stderr:.2g}",
+            label=f"fit: H = {fit.hurst:.3f} ± {fit.hurst_stderr:.2g}"
+            + (" (not determinable)" if fit.not_determinable else ""),
         )
         if side == "along":
             areal_ax.axvspan(*band, color="C2", alpha=0.15, label="fitted frequencies")
@@ -192,11 +196,12 @@ def profile_figure(profile: ReportProfile) -> Figure:
     found = profile.found
     figure, ax = plt.subplots(figsize=(WIDTH_IN, 2.8), layout="constrained")
     sources = np.asarray(found.source_index)
-    for index in sorted(set(sources.tolist())):
+    for index in sorted(set(sources.tolist()) - {-1}):  # -1: no ROI, no data: no series and no legend entry
         shown = np.where(sources == index, found.z_um, np.nan)
-        name = found.sources[index] if index >= 0 else "no data"
-        ax.plot(found.distance_um, shown - np.nanmean(found.z_um), linewidth=0.9, label=f"primary, ROI {name}")
-    if profile.roughness_um is not None:
+        if np.isfinite(shown).any():
+            label = f"primary, ROI {found.sources[index]}"
+            ax.plot(found.distance_um, shown - np.nanmean(found.z_um), linewidth=0.9, label=label)
+    if profile.roughness_um is not None and np.isfinite(profile.roughness_um).any():
         ax.plot(
             found.distance_um,
             profile.roughness_um,
@@ -207,7 +212,8 @@ def profile_figure(profile: ReportProfile) -> Figure:
     ax.set_xlabel("distance (µm)")
     ax.set_ylabel("height (µm)")
     ax.set_title(f"{profile.name.capitalize()} profile", fontsize=9)
-    ax.legend(fontsize=7)
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(fontsize=7)
     ax.grid(True, alpha=0.3)
     return figure
 

@@ -1,8 +1,12 @@
-"""Reading SEM images and their calibration (stage tilt, pixel size) from TIFF and PNG files.
+"""Reading SEM images and their calibration (stage tilt, pixel size) from TIFF, PNG and JPEG files.
 
 Supported metadata: Zeiss SmartSEM (TIFF tag 34118) and FEI / Thermo Fisher (tags 34680, 34682),
-both decoded by tifffile and read by `metadata`. Pixels are returned as stored (rows, cols); an
-instrument data bar at the bottom is detected and reported, not silently kept as image content.
+both decoded by tifffile and read by `metadata`. Pixels are returned as stored (rows, cols), 8 or
+16 bits as the file holds them; colour is reduced to luminance (ITU-R BT.601 weights) and JPEG's
+lossy compression is accepted, each with a note; an instrument data bar at the bottom is detected
+and reported, not silently kept as image content. A TIFF whose directory, tags or pixel data lie
+beyond the file's end (a truncated copy) is refused before any decoding: tifffile would read what
+is there and drop the rest, the calibration among it, without a word.
 """
 
 from __future__ import annotations
@@ -10,6 +14,7 @@ from __future__ import annotations
 import io
 import logging
 import os
+import struct
 from dataclasses import dataclass
 
 import numpy as np
@@ -30,6 +35,14 @@ MAX_IMAGE_PIXELS = int(os.environ.get("FRACTO_MAX_IMAGE_PIXELS", 16384 * 16384))
 Image.MAX_IMAGE_PIXELS = max(Image.MAX_IMAGE_PIXELS or 0, MAX_IMAGE_PIXELS)
 _TIFF_MAGIC = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")
 _PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+_JPEG_MAGIC = b"\xff\xd8\xff"
+# ITU-R BT.601 luma weights of R, G, B (those of Pillow's "L" mode too).
+LUMA_WEIGHTS = (0.299, 0.587, 0.114)
+JPEG_NOTE = (
+    "a JPEG file: its lossy compression (8 x 8 pixel blocks, quantised fine texture) biases the matching "
+    "towards the block grid and smooths sub-pixel detail; give TIFF or PNG where the microscope saves them"
+)
+COLOUR_NOTE = "a colour image, reduced to its luminance 0.299 R + 0.587 G + 0.114 B (ITU-R BT.601)"
 
 
 @dataclass(frozen=True)
@@ -40,12 +53,14 @@ class SemImage:
     tilt_deg: stage tilt in degrees, None when the file does not say.
     pixel_size_um: lateral pixel size in micrometres, None when the file does not say.
     data_bar_rows: number of bottom rows that are an instrument data bar, not image.
+    notes: what the reading changed or what may bias results (JPEG, colour), each naming the file.
     """
 
     pixels: np.ndarray
     tilt_deg: float | None
     pixel_size_um: float | None
     data_bar_rows: int
+    notes: tuple[str, ...] = ()
 
     @property
     def image(self) -> np.ndarray:
@@ -58,13 +73,21 @@ _MIN_SIDE_PX = 32
 
 
 def read_sem_image(content: bytes, *, field: str = "image") -> SemImage:
-    """Decodes a TIFF or PNG file's bytes; `field` names the input in error messages."""
-    if _is_png(content, field):
-        pixels, tilt_deg, pixel_size_um, bar_rows = _read_png(content, field), None, None, None
-    else:
+    """Decodes a TIFF, PNG or JPEG file's bytes; `field` names the input in error messages and notes."""
+    kind = _file_kind(content, field)
+    if kind == "TIFF":
         pixels, tilt_deg, pixel_size_um, bar_rows = _read_tiff(content, field)
+    else:
+        pixels, tilt_deg, pixel_size_um, bar_rows = _read_with_pillow(content, field, kind), None, None, None
+    notes = [f"{field}: {JPEG_NOTE}"] if kind == "JPEG" else []
+    if pixels.ndim == 3 and pixels.shape[-1] in (3, 4):
+        pixels, coloured = _luminance(pixels)
+        notes += [f"{field}: {COLOUR_NOTE}"] if coloured else []
     if pixels.ndim != 2:
-        raise InvalidInputError(field, f"expected a grey image, got pixels of shape {pixels.shape}")
+        raise InvalidInputError(
+            field, f"expected a grey or RGB image, got pixels of shape {pixels.shape} (rows, cols, ...)"
+        )
+    pixels = _as_grey_integer(pixels, field)
     _check_size(pixels.shape, field)
     if bar_rows is not None and pixels.shape[0] - bar_rows < _MIN_SIDE_PX:
         raise InvalidInputError(
@@ -74,15 +97,19 @@ def read_sem_image(content: bytes, *, field: str = "image") -> SemImage:
         )
     if bar_rows is None:
         bar_rows = detect_data_bar_rows(pixels)
-    return SemImage(pixels, tilt_deg, pixel_size_um, bar_rows)
+    return SemImage(pixels, tilt_deg, pixel_size_um, bar_rows, tuple(notes))
 
 
 def image_shape(content: bytes, *, field: str = "image") -> tuple[int, int]:
-    """(rows, cols) that a TIFF or PNG file declares, from its header, without decoding it: for
-    estimates before any work. Errors as read_sem_image's, the pixel limit included."""
-    if _is_png(content, field):
+    """(rows, cols) that a TIFF, PNG or JPEG file declares, from its header, without decoding it:
+    for estimates before any work. Errors as read_sem_image's, the pixel limit included."""
+    kind = _file_kind(content, field)
+    if kind == "PNG":
         shape = _png_shape(content, field)
+    elif kind == "JPEG":
+        shape = _jpeg_shape(content, field)
     else:
+        _check_tiff_complete(content, field)
         try:
             with tifffile.TiffFile(io.BytesIO(content)) as tiff:
                 shape = int(tiff.pages.first.imagelength), int(tiff.pages.first.imagewidth)
@@ -94,15 +121,17 @@ def image_shape(content: bytes, *, field: str = "image") -> tuple[int, int]:
     return shape
 
 
-def _is_png(content: bytes, field: str) -> bool:
-    """True for a PNG file, False for a TIFF file; InvalidInputError for anything else."""
+def _file_kind(content: bytes, field: str) -> str:
+    """ "TIFF", "PNG" or "JPEG" by the file's magic bytes; InvalidInputError for anything else."""
     if not content:
         raise InvalidInputError(field, "the image file is empty")
     if content[:8] == _PNG_MAGIC:
-        return True
+        return "PNG"
+    if content[:3] == _JPEG_MAGIC:
+        return "JPEG"
     if content[:4] in _TIFF_MAGIC:
-        return False
-    raise InvalidInputError(field, "not a TIFF or PNG file")
+        return "TIFF"
+    raise InvalidInputError(field, "not a TIFF, PNG or JPEG file")
 
 
 def _png_shape(content: bytes, field: str) -> tuple[int, int]:
@@ -112,21 +141,31 @@ def _png_shape(content: bytes, field: str) -> tuple[int, int]:
     return int.from_bytes(content[20:24], "big"), int.from_bytes(content[16:20], "big")
 
 
-def _read_png(content: bytes, field: str) -> np.ndarray:
-    _check_size(_png_shape(content, field), field)
+def _jpeg_shape(content: bytes, field: str) -> tuple[int, int]:
+    """(rows, cols) from a JPEG's frame header, which Pillow reads without decoding the image."""
     try:
         with Image.open(io.BytesIO(content)) as picture:
-            if picture.mode in ("RGB", "RGBA", "P", "LA"):
-                picture = picture.convert("L")
-            pixels = np.asarray(picture)
-    except InvalidInputError:
-        raise
+            return picture.height, picture.width
     except Exception as exc:  # Pillow raises many types for corrupt files
-        raise InvalidInputError(field, f"unreadable PNG, corrupt or truncated ({type(exc).__name__}: {exc})") from None
-    return _as_grey_integer(pixels, field)
+        raise InvalidInputError(field, f"unreadable JPEG, corrupt or truncated ({type(exc).__name__}: {exc})") from None
+
+
+def _read_with_pillow(content: bytes, field: str, kind: str) -> np.ndarray:
+    """A PNG's or JPEG's pixels: (rows, cols) grey or (rows, cols, 3) RGB, as stored."""
+    _check_size(_png_shape(content, field) if kind == "PNG" else _jpeg_shape(content, field), field)
+    try:
+        with Image.open(io.BytesIO(content)) as picture:
+            if picture.mode in ("RGBA", "P", "LA", "CMYK", "YCbCr"):
+                picture = picture.convert("RGB")
+            return np.asarray(picture)
+    except Exception as exc:  # Pillow raises many types for corrupt files
+        raise InvalidInputError(
+            field, f"unreadable {kind}, corrupt or truncated ({type(exc).__name__}: {exc})"
+        ) from None
 
 
 def _read_tiff(content: bytes, field: str):
+    _check_tiff_complete(content, field)
     try:
         with tifffile.TiffFile(io.BytesIO(content)) as tiff:
             page = tiff.pages.first
@@ -142,15 +181,102 @@ def _read_tiff(content: bytes, field: str):
         raise
     except Exception as exc:  # tifffile and imagecodecs raise many types for corrupt files
         raise InvalidInputError(field, f"unreadable TIFF, corrupt or truncated ({type(exc).__name__}: {exc})") from None
-    pixels = _as_grey_integer(pixels, field)
+    rows = pixels.shape[0]
     if zeiss:
-        tilt_deg, pixel_size_um = zeiss_calibration(zeiss, pixels.shape)
+        tilt_deg, pixel_size_um = zeiss_calibration(zeiss, pixels.shape[:2])
         return pixels, tilt_deg, pixel_size_um, None
     if fei:
         tilt_deg, pixel_size_um, image_rows = fei_calibration(fei)
-        bar_rows = pixels.shape[0] - image_rows if image_rows and 0 < image_rows < pixels.shape[0] else None
+        bar_rows = rows - image_rows if image_rows and 0 < image_rows < rows else None
         return pixels, tilt_deg, pixel_size_um, bar_rows
     return pixels, None, None, None
+
+
+# Bytes per value of each TIFF field type (TIFF 6.0 and BigTIFF); unknown types count as 1.
+_TIFF_TYPE_BYTES = {
+    1: 1,
+    2: 1,
+    3: 2,
+    4: 4,
+    5: 8,
+    6: 1,
+    7: 1,
+    8: 2,
+    9: 4,
+    10: 8,
+    11: 4,
+    12: 8,
+    13: 4,
+    16: 8,
+    17: 8,
+    18: 8,
+}
+# Tags whose value is the offset of a further directory (SubIFDs, Exif, GPS, Interoperability).
+_SUB_IFD_TAGS = (330, 34665, 34853, 40965)
+_STRIP_TAGS = ((273, 279), (324, 325))  # (StripOffsets, StripByteCounts), (TileOffsets, TileByteCounts)
+
+
+def _check_tiff_complete(content: bytes, field: str) -> None:
+    """InvalidInputError unless the first directory of a TIFF, the values of its tags, the
+    directories they point to and its strips or tiles all lie within the file."""
+    order = "<" if content[:2] == b"II" else ">"
+    big = content[2:4] in (b"+\x00", b"\x00+")
+    try:
+        (first,) = struct.unpack_from(order + ("Q" if big else "I"), content, 8 if big else 4)
+        end = _tiff_directory_end(content, first, order, big, depth=0)
+    except struct.error:
+        end = None
+    if end is None or end > len(content):
+        needed = "" if end is None else f" and its first image's data run to byte {end} or beyond"
+        raise InvalidInputError(field, f"truncated or corrupt TIFF: the file has {len(content)} bytes{needed}")
+
+
+def _tiff_directory_end(content: bytes, offset: int, order: str, big: bool, *, depth: int) -> int | None:
+    """The last byte + 1 that a directory at `offset` uses (its entries, their values, the
+    directories of _SUB_IFD_TAGS, and the strips or tiles it lists); None where it starts
+    outside the file. struct.error where an entry runs past the end."""
+    if not 8 <= offset < len(content) or depth > 2:
+        return None if depth == 0 else offset
+    count_format, entry_format, inline, entry_size = ("Q", "HHQQ", 8, 20) if big else ("H", "HHII", 4, 12)
+    (count,) = struct.unpack_from(order + count_format, content, offset)
+    first_entry = offset + (8 if big else 2)
+    end = first_entry + count * entry_size + inline
+    values = {}
+    for index in range(count):
+        tag, kind, number, value = struct.unpack_from(order + entry_format, content, first_entry + index * entry_size)
+        size = _TIFF_TYPE_BYTES.get(kind, 1) * number
+        if size > inline:
+            end = max(end, value + size)
+        if any(tag in pair for pair in _STRIP_TAGS):
+            values[tag] = (kind, number, value)
+        if tag in _SUB_IFD_TAGS and size <= inline and number == 1:
+            end = max(end, _tiff_directory_end(content, value, order, big, depth=depth + 1) or len(content) + 1)
+    for offsets_tag, counts_tag in _STRIP_TAGS:
+        starts = _tiff_values(content, values.get(offsets_tag), order, big, end)
+        lengths = _tiff_values(content, values.get(counts_tag), order, big, end)
+        if len(starts) == len(lengths) and np.any(lengths > 0):  # an empty strip's offset may be anything
+            end = max(end, int(np.max((starts + lengths)[lengths > 0])))
+    return end
+
+
+def _tiff_values(content: bytes, entry, order: str, big: bool, end: int) -> np.ndarray:
+    """The integer values of an entry found by _tiff_directory_end, (n,) int64; none where they
+    lie beyond the file (its end already says so)."""
+    if entry is None:
+        return np.zeros(0, np.int64)
+    kind, number, value = entry
+    dtype = {3: "u2", 4: "u4", 16: "u8"}.get(kind)
+    if dtype is None:
+        return np.zeros(0, np.int64)
+    size = np.dtype(dtype).itemsize * number
+    inline = 8 if big else 4
+    if size <= inline:
+        raw = struct.pack(order + ("Q" if big else "I"), value)[:size]
+    elif value + size <= len(content):
+        raw = content[value : value + size]
+    else:
+        return np.zeros(0, np.int64)
+    return np.frombuffer(raw, dtype=order + dtype).astype(np.int64)
 
 
 def _check_size(shape, field: str) -> None:
@@ -174,11 +300,22 @@ def _palette_to_grey(indices: np.ndarray, colormap: np.ndarray) -> np.ndarray:
     return np.round(ramp * scale).astype(np.uint8)[indices]
 
 
+def _luminance(pixels: np.ndarray) -> tuple[np.ndarray, bool]:
+    """(rows, cols, 3 or 4) colour -> (rows, cols) luminance by LUMA_WEIGHTS (alpha dropped), in
+    the input's integer type where it is uint8 or uint16; and whether the channels differed (a grey
+    image stored as RGB comes back as its one channel)."""
+    rgb = pixels[..., :3]
+    if np.array_equal(rgb[..., 0], rgb[..., 1]) and np.array_equal(rgb[..., 1], rgb[..., 2]):
+        return rgb[..., 0].copy(), False
+    luma = rgb.astype(np.float32) @ np.asarray(LUMA_WEIGHTS, np.float32)
+    if pixels.dtype in (np.uint8, np.uint16):
+        luma = np.clip(np.round(luma), 0, np.iinfo(pixels.dtype).max).astype(pixels.dtype)
+    return luma, True
+
+
 def _as_grey_integer(pixels: np.ndarray, field: str) -> np.ndarray:
     if pixels.size == 0:
-        raise InvalidInputError(field, f"the image has no pixels (shape {pixels.shape})")
-    if pixels.ndim == 3 and pixels.shape[-1] in (3, 4):
-        pixels = pixels[..., :3].mean(axis=-1)
+        raise InvalidInputError(field, f"the image has no pixels (shape {pixels.shape}: rows, cols)")
     if pixels.dtype in (np.uint8, np.uint16):
         return pixels
     if np.issubdtype(pixels.dtype, np.floating) or np.issubdtype(pixels.dtype, np.integer):
@@ -199,12 +336,13 @@ def detect_data_bar_rows(pixels: np.ndarray, *, max_fraction: float = 0.2) -> in
     A data bar is drawn in the image's extreme values (black background, white text and frames),
     so its rows are almost entirely at the minimum or maximum grey level; image rows are not.
     """
-    values = pixels.astype(np.float32)
-    low, high = float(values.min()), float(values.max())
+    low, high = float(pixels.min()), float(pixels.max())
     tolerance = 0.02 * max(high - low, 1.0)
+    limit = int(pixels.shape[0] * max_fraction)
+    # Only the rows a bar may take are converted: the whole image took 10-28 s on a 16384² one.
+    values = pixels[pixels.shape[0] - limit :].astype(np.float32)
     at_extreme = (values - low < tolerance) | (high - values < tolerance)
     flat_rows = at_extreme.mean(axis=1) > 0.9
-    limit = int(pixels.shape[0] * max_fraction)
     count = 0
     while count < limit and flat_rows[-1 - count]:
         count += 1

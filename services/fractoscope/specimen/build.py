@@ -143,6 +143,51 @@ def reconstruct_specimen(
     return store.load(specimen_id)
 
 
+def store_height_map(
+    store: SpecimenStore,
+    specimen_id: str,
+    z_um: np.ndarray,
+    *,
+    pixel_size_um: float,
+    report: dict,
+    sigma_um: np.ndarray | None = None,
+    tilt_rel_uncertainty: float | None = None,
+    datum: dict | None = None,
+) -> Specimen:
+    """Stores one height map as it is (no filtering, placement, tiles or image files) as a specimen
+    of one ROI, "overview": what a measurement report of a height map file reads. z_um (rows, cols)
+    µm, NaN unknown; sigma_um its matching noise, µm (the tilt part left out, see PlacedRoi); the
+    matching `report` (MatchingReport's fields), the relative height error a tilt error makes and
+    the datum as RoiEntry keeps them."""
+    validate_id(specimen_id, field="specimen_id")
+    z_um = np.asarray(z_um, np.float32)
+    entry = RoiEntry(
+        "overview",
+        "",
+        0.0,
+        pixel_size_um,
+        (0.0, 0.0),
+        z_um.shape,
+        matching=report,
+        datum=datum,
+        tilt_rel_uncertainty=tilt_rel_uncertainty,
+    )
+    placed = PlacedRoi(
+        entry.id, 0.0, pixel_size_um, entry.origin_um, z_um, np.zeros(z_um.shape, np.uint8), sigma_um=sigma_um
+    )
+    with store.writing(specimen_id) as staging:
+        write_roi_arrays(staging, placed)
+        write_description(
+            staging,
+            specimen_id=specimen_id,
+            request_id="",
+            rois=[entry],
+            layout=QuadtreeLayout.covering(FusedSurface([placed])),
+            tiles={},
+        )
+    return store.load(specimen_id)
+
+
 def _place(
     ordered: list[RoiRequest], measured: dict[str, MeasuredHeights], indices: dict[str, int]
 ) -> tuple[dict[str, PlacedRoi], list[RoiEntry]]:
@@ -171,7 +216,13 @@ def _place(
         walls = _wall_settings(heights, sigma_um)
         if roi.level:
             try:
-                z_um, levelled = datum.level_heights(z_um, pixel_size_um=heights.pixel_size_um, level=roi.level)
+                z_um, levelled = datum.level_heights(
+                    z_um,
+                    pixel_size_um=heights.pixel_size_um,
+                    level=roi.level,
+                    sigma_um=sigma_um,
+                    filled=filtered.filled,
+                )
             except ValueError as error:
                 raise InvalidInputError(f"rois[{indices[roi.id]}].level", str(error)) from None
             entry.datum = levelled.to_dict()

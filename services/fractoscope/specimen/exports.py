@@ -81,7 +81,9 @@ def export_height_map(
     except ValueError as error:
         raise _invalid(error, heights_field="height_map.z_um") from None
     if sigma_um is not None and np.shape(sigma_um) != z_um.shape:
-        raise InvalidInputError("height_map.sigma_um", f"shape {np.shape(sigma_um)} differs from z_um's {z_um.shape}")
+        raise InvalidInputError(
+            "height_map.sigma_um", f"{np.shape(sigma_um)[::-1]} (width, height) differs from z_um's {z_um.shape[::-1]}"
+        )
     if sigma_um is not None and np.any(np.asarray(sigma_um) < 0):
         raise InvalidInputError(
             "height_map.sigma_um", f"must be >= 0 µm (NaN where unknown), got {np.nanmin(sigma_um)}"
@@ -90,7 +92,9 @@ def export_height_map(
         queries.positive_input(export_pixel_size_um, "pixel_size_um")
         if export_pixel_size_um < pixel_size_um or min(z_um.shape) < export_pixel_size_um / pixel_size_um:
             raise InvalidInputError(
-                "pixel_size_um", f"must be at least the map's {pixel_size_um} µm and leave a pixel of its {z_um.shape}"
+                "pixel_size_um",
+                f"must be at least the map's {pixel_size_um} µm and leave a pixel of its "
+                f"{z_um.shape[1]} x {z_um.shape[0]}",
             )
         factor = export_pixel_size_um / pixel_size_um
         z_um = area_average(z_um, factor=factor)

@@ -12,6 +12,7 @@ from fractoscope.errors import InvalidInputError
 from fractoscope.sem.image import SemImage
 from fractoscope.stereo import geometry, matching
 from fractoscope.stereo.disparity import MatchingMethod
+from fractoscope.stereo.relief_sign import DEFAULT_DETECTOR_FROM_TILT_AXIS_DEG, ReliefSignMode
 
 # Where a calibration value came from (the report's tilt_source and pixel_size_source).
 METADATA, ARGUMENT, TILT_CALIBRATION, DEFAULT = "metadata", "argument", "tilt_calibration", "default"
@@ -31,6 +32,8 @@ class MatchingOptions:
     tilt_uncertainty_deg: float = 0.5
     calibrate_tilt: bool = False
     strip_pixels: int = matching.DEFAULT_STRIP_PIXELS
+    relief_sign: ReliefSignMode = ReliefSignMode.AUTO
+    detector_from_tilt_axis_deg: float = DEFAULT_DETECTOR_FROM_TILT_AXIS_DEG
 
 
 def resolve_calibration(images, tilt_deg, pixel_size_um) -> tuple[list[float], float, dict]:
@@ -124,3 +127,5 @@ def validate_options(options: MatchingOptions, *, image_cols: int) -> None:
         raise InvalidInputError("max_disparity_px", f"must be 1 to the image width, got {options.max_disparity_px}")
     if not 0.0 <= options.tilt_uncertainty_deg < 45.0:
         raise InvalidInputError("tilt_uncertainty_deg", f"must be in [0, 45), got {options.tilt_uncertainty_deg}")
+    if np.isinf(options.detector_from_tilt_axis_deg):
+        raise InvalidInputError("detector_from_tilt_axis_deg", "must be finite degrees, or NaN where not known")

@@ -17,7 +17,7 @@ import numpy as np
 from fractoscope.errors import InvalidInputError
 from fractoscope.progress import ProgressCallback, silent
 from fractoscope.sem.image import SemImage
-from fractoscope.stereo import alignment, geometry, matching, photometric, tilt_series
+from fractoscope.stereo import alignment, geometry, matching, photometric, relief_sign, tilt_series
 from fractoscope.stereo.disparity import MatchingMethod, StripMatcher
 from fractoscope.stereo.inputs import (
     ARGUMENT,
@@ -27,6 +27,7 @@ from fractoscope.stereo.inputs import (
     resolve_calibration,
     validate_views,
 )
+from fractoscope.stereo.relief_sign import ReliefSignMode
 
 # The axis the features' parallax points to scatters by up to 2.3° on synthetic pairs whose axis
 # is the one given (dimples: their features crowd on the rims): further off than this is a warning.
@@ -45,6 +46,8 @@ PARAMETER_FIELDS = (
     "propagate_at_full_resolution",
     "tilt_uncertainty_deg",
     "calibrate_tilt",
+    "relief_sign",
+    "detector_from_tilt_axis_deg",
 )
 
 
@@ -113,12 +116,14 @@ def compute_series_height_map(
     sources |= given_sources
     rectified = _rectify(images, tilt_axis_deg)
     matched = _match_views(rectified.views, options, strip_matcher, report_progress)
-    warnings = _matched_enough(matched, rectified)
+    warnings = [note for image in images for note in image.notes]  # JPEG, colour (sem.image)
+    warnings += _matched_enough(matched, rectified)
     tilts, offsets, calibration = _tilts(rectified.x1_px, matched, nominal, options, report_progress)
     if calibration:  # the reference keeps its tilt: only differences are observable
         sources["tilt_source"][1:] = [TILT_CALIBRATION] * (len(images) - 1)
     report_progress(0.92, "heights")
     z_px, _ = tilt_series.heights_px(rectified.x1_px, matched.disparities, tilts, offsets_px=offsets)
+    z_px, tilts, sign_report = _oriented(rectified, z_px, tilts, options, warnings)
     warnings += _disagreeing_views(rectified.x1_px, matched, tilts, offsets, z_px)
     z_um = (z_px * pixel_size).astype(np.float32)
     z_um[rectified.outside] = np.nan  # the canvas's corners, not the image: not in sigma's reference level either
@@ -141,6 +146,7 @@ def compute_series_height_map(
         tilt_uncertainty=tilt_uncertainty,
     )
     report.update(sources, parameters=_parameters_used(options), elapsed_s=time.perf_counter() - started)
+    report.update(sign_report)
     report["method"] = MatchingMethod(options.method).value
     report_progress(1.0, "done")
     return HeightMapResult(z_um, sigma_um, np.nan_to_num(confidence).astype(np.float32), report)
@@ -391,6 +397,41 @@ def _tilts(x1_px, matched: _MatchedViews, nominal, options: MatchingOptions, rep
         "tilt_residual_px": estimate.residual_px,
     }
     return estimate.tilt_deg, estimate.offsets_px, calibration
+
+
+def _oriented(rectified: _Rectified, z_px, tilts, options: MatchingOptions, warnings):
+    """The heights (px) and tilts with the relief's sign chosen as `options.relief_sign` says (the
+    mirror image: both negated), and the report's relief_sign fields; warnings where the images
+    disagree with the sign used or cannot tell it."""
+    verdict = relief_sign.relief_sign_from_shading(
+        rectified.views[0], z_px, detector_azimuth_deg=90.0 + options.detector_from_tilt_axis_deg
+    )
+    mode = ReliefSignMode(options.relief_sign)
+    inverted = mode is ReliefSignMode.INVERTED or (mode is ReliefSignMode.AUTO and verdict.decided and verdict.inverted)
+    given = ", ".join(f"{tilt:g}" for tilt in tilts)
+    if inverted and mode is ReliefSignMode.AUTO:
+        warnings.append(
+            f"the images show the relief inverted under the tilts as given ({given}°; {verdict.cue}: "
+            f"{100 * (1 - verdict.strength) / 2:.0f} % of the image disagrees with them): the heights use the tilts "
+            "with their signs reversed; check the microscope's tilt direction, the image order and the tilt axis, "
+            "or set relief_sign to nominal to keep the tilts as given"
+        )
+    elif mode is not ReliefSignMode.AUTO and verdict.decided and verdict.inverted != inverted:
+        warnings.append(f"the images suggest the relief is the other way up ({verdict.cue}; relief_sign {mode.value})")
+    elif mode is ReliefSignMode.AUTO and not verdict.decided:
+        warnings.append(
+            f"the relief's sign could not be told from the images ({verdict.reason}): the heights follow the tilts as "
+            "given; check that features stand up as they should"
+        )
+    fields = {
+        "relief_sign": "inverted" if inverted else "nominal",
+        "relief_sign_cue": verdict.cue,
+        "relief_sign_strength": verdict.strength,
+        "relief_sign_confidence": verdict.confidence,
+        "relief_sign_decided": verdict.decided,
+    }
+    sign = -1.0 if inverted else 1.0
+    return z_px * sign, np.asarray(tilts, np.float64) * sign, fields
 
 
 def _check_calibrated(estimate: tilt_series.TiltEstimate, nominal) -> None:

@@ -5,11 +5,19 @@ datum gives them a meaning: with the "substrate" datum, the heights of a grain l
 substrate are its heights above that substrate. Each datum is a plane fitted by robust least
 squares (surface.form_removal) and subtracted; heights are (rows, cols) µm, NaN unknown, and a
 region is (x_min, y_min, x_max, y_max) µm with x = col * pixel size, y = row * pixel size.
+
+A datum checks itself (`datum_doubt`): the substrate search always finds some "lowest level",
+even on a surface that has none (a rough surface, or a grain on a background the matcher barely
+measured), so the level it finds must be measured over an extensive area and be flat: its
+heights scatter about its plane by little more than their own sigma, or by little against the
+relief standing on it. A substrate that fails is replaced by the plane through all heights,
+with a warning (or refused, when asked to be strict): a long matching is not thrown away for a
+datum, and zero never claims to be a substrate that was not found.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
@@ -21,13 +29,34 @@ LEVELS = ("plane", "substrate")
 _SUBSTRATE_START_QUANTILE = 0.2
 _SUBSTRATE_SIGMAS = 3.0
 _SUBSTRATE_ROUNDS = 4
+# A level is measured over at least this share of the map, and at least this share of its points
+# were measured rather than filled.
+MIN_LEVEL_AREA = 0.1
+MIN_MEASURED_SHARE = 0.5
+# A level is flat: its residual RMS is at most this many times its heights' median sigma (on the
+# real pollen pairs 1.7 at ±3°, 2.4 at ±6° and 3.0 at ±9°: the substrate's own unevenness, about
+# 0.4 µm, counts more as the sigma falls), or at most this share of the relief (1st to 99th
+# percentile of the levelled heights; 0.015 on the pollen pairs, about 0.2 on a rough surface).
+MAX_RESIDUAL_SIGMAS = 3.0
+MAX_RELIEF_SHARE = 0.05
 
 
 @dataclass(frozen=True)
 class Datum:
     """How heights were levelled: `level` ("plane", "substrate" or "region"), the region (µm) for
     "region", and the plane that was subtracted: z = offset_um + slope_x x + slope_y y (x, y µm),
-    with the share of measured points that defined it."""
+    with the figures that tell whether it is a measured level:
+
+    fraction: share of the known (measured or filled) points that carry the fit;
+    area_fraction: share of the whole map's area that carries it;
+    measured_fraction: share of those points that were measured rather than filled (only they
+        enter the fit);
+    residual_rms_um: RMS of the measured points' residuals from the plane, µm;
+    sigma_um: their heights' median sigma, µm (NaN: not known; None in to_dict);
+    relief_um: 1st to 99th percentile of all levelled heights, µm;
+    tilt_deg: the plane's angle to the map's x-y plane, degrees;
+    requested: the level asked for ("substrate" where the substrate failed and `level` is "plane");
+    warning: why the datum is not the level asked for, or why a region is no level ("" none)."""
 
     level: str
     offset_um: float
@@ -35,52 +64,126 @@ class Datum:
     slope_y: float
     region_um: tuple[float, float, float, float] | None = None
     fraction: float = 1.0
+    area_fraction: float = 1.0
+    measured_fraction: float = 1.0
+    residual_rms_um: float = float("nan")
+    sigma_um: float = float("nan")
+    relief_um: float = float("nan")
+    tilt_deg: float = 0.0
+    requested: str = ""
+    warning: str = ""
 
     def to_dict(self) -> dict:
-        return {
-            "level": self.level,
-            "offset_um": self.offset_um,
-            "slope_x": self.slope_x,
-            "slope_y": self.slope_y,
-            "region_um": list(self.region_um) if self.region_um else None,
-            "fraction": self.fraction,
-        }
+        values = asdict(self)
+        values["region_um"] = list(self.region_um) if self.region_um else None
+        values["sigma_um"] = self.sigma_um if np.isfinite(self.sigma_um) else None  # strict JSON: null unknown
+        return values
 
 
 def level_heights(
-    z_um: np.ndarray, *, pixel_size_um: float, level: str | tuple[float, float, float, float]
+    z_um: np.ndarray,
+    *,
+    pixel_size_um: float,
+    level: str | tuple[float, float, float, float],
+    sigma_um: np.ndarray | None = None,
+    filled: np.ndarray | None = None,
+    strict: bool = False,
 ) -> tuple[np.ndarray, Datum]:
     """Heights with the datum plane subtracted (float32) and the datum. `level`: "plane" (a plane
     through all measured heights), "substrate" (through the lowest extensive level: the points
     near a plane grown from the lowest fifth of the heights) or a region (x_min, y_min, x_max,
-    y_max) µm. ValueError when the region or substrate holds too few measured points."""
+    y_max) µm. `sigma_um` (rows, cols) µm: the heights' matching noise (the tilt part, shared by
+    neighbours, left out), for the flatness check; `filled` (rows, cols) bool: points interpolated
+    rather than measured, which stay out of the fit. A substrate that fails `datum_doubt` gives the
+    plane datum with a warning, or ValueError when `strict`; ValueError too when the region or
+    datum holds too few measured points."""
     z = np.asarray(z_um, np.float64)
-    measured = np.isfinite(z)
+    known = np.isfinite(z)
+    measured = known & ~np.asarray(filled, bool) if filled is not None else known
     if isinstance(level, str):
         if level not in LEVELS:
             raise ValueError(f"level must be one of {', '.join(LEVELS)} or a region, not {level!r}")
-        region = measured if level == "plane" else _substrate(z, measured, pixel_size_um)
+        region = known if level == "plane" else _substrate(z, known, pixel_size_um)
         name, region_um = level, None
     else:
-        region_um = tuple(float(v) for v in level)
-        x0, y0, x1, y1 = region_um
-        if not (x0 < x1 and y0 < y1):
-            raise ValueError("the region's minimum must be smaller than its maximum in x and y")
-        rows, cols = np.indices(z.shape)
-        region = (
-            measured
-            & (cols * pixel_size_um >= x0)
-            & (cols * pixel_size_um <= x1)
-            & (rows * pixel_size_um >= y0)
-            & (rows * pixel_size_um <= y1)
-        )
+        region_um, region = _region(level, known, pixel_size_um)
         name = "region"
-    if region.sum() < 3:
-        raise ValueError(f"the {name} datum needs at least 3 measured points, found {int(region.sum())}")
-    offset, slope_x, slope_y = _plane(z, region, pixel_size_um)
+    levelled, datum = _fitted(z, region, measured, pixel_size_um, name, region_um, sigma_um)
+    doubt = datum_doubt(datum) if name != "plane" else ""
+    if doubt and name == "substrate":
+        if strict:
+            raise ValueError(f"no measured substrate: {doubt}")
+        levelled, plane = _fitted(z, known, measured, pixel_size_um, "plane", None, sigma_um)
+        warning = f"no measured substrate ({doubt}): zero is on a plane through all heights instead"
+        return levelled, replace(plane, requested=name, warning=warning)
+    return levelled, replace(datum, warning=f"the region is no measured level: {doubt}" if doubt else "")
+
+
+def datum_doubt(datum: Datum) -> str:
+    """Why `datum`'s fit is no measured, extensive, flat level ("" when it is one): measured over
+    less than MIN_LEVEL_AREA of the map, mostly filled, or scattering by more than
+    MAX_RESIDUAL_SIGMAS sigmas and by more than MAX_RELIEF_SHARE of the relief."""
+    doubts = []
+    measured_area = datum.area_fraction * datum.measured_fraction
+    if measured_area < MIN_LEVEL_AREA:
+        doubts.append(
+            f"only {100 * measured_area:.1f} % of the map is measured on it, {100 * MIN_LEVEL_AREA:g} % needed"
+        )
+    if datum.measured_fraction < MIN_MEASURED_SHARE:
+        doubts.append(f"{100 * (1 - datum.measured_fraction):.0f} % of its points are filled, not measured")
+    too_rough = not datum.residual_rms_um <= MAX_RELIEF_SHARE * datum.relief_um
+    if too_rough and not datum.residual_rms_um <= MAX_RESIDUAL_SIGMAS * datum.sigma_um:
+        against = (
+            f"{datum.residual_rms_um / datum.sigma_um:.1f} times their sigma of {datum.sigma_um:.3g} µm"
+            if datum.sigma_um > 0
+            else "their sigma unknown"
+        )
+        doubts.append(
+            f"its heights scatter by {datum.residual_rms_um:.3g} µm RMS about its plane ({against}), "
+            f"{100 * datum.residual_rms_um / datum.relief_um:.0f} % of the {datum.relief_um:.3g} µm relief"
+        )
+    return "; ".join(doubts)
+
+
+def _region(
+    level: tuple[float, float, float, float], known: np.ndarray, pixel_size_um: float
+) -> tuple[tuple[float, float, float, float], np.ndarray]:
+    """The region (x_min, y_min, x_max, y_max) µm as floats and its known points."""
+    region_um = tuple(float(v) for v in level)
+    x0, y0, x1, y1 = region_um
+    if not (x0 < x1 and y0 < y1):
+        raise ValueError("the region's minimum must be smaller than its maximum in x and y")
+    rows, cols = np.indices(known.shape)
+    x_um, y_um = cols * pixel_size_um, rows * pixel_size_um
+    return region_um, known & (x_um >= x0) & (x_um <= x1) & (y_um >= y0) & (y_um <= y1)
+
+
+def _fitted(z, region, measured, pixel_size_um, name, region_um, sigma_um) -> tuple[np.ndarray, Datum]:
+    """The heights levelled on the plane through `region`'s measured points, and its Datum."""
+    carrying = region & measured
+    if carrying.sum() < 3:
+        raise ValueError(f"the {name} datum needs at least 3 measured points, found {int(carrying.sum())}")
+    offset, slope_x, slope_y = _plane(z, carrying, pixel_size_um)
     rows, cols = np.indices(z.shape)
     levelled = z - (offset + slope_x * cols * pixel_size_um + slope_y * rows * pixel_size_um)
-    datum = Datum(name, offset, slope_x, slope_y, region_um, float(region.sum() / max(measured.sum(), 1)))
+    sigma = np.asarray(sigma_um, np.float64)[carrying] if sigma_um is not None else np.empty(0)
+    sigma = sigma[np.isfinite(sigma)]
+    low, high = np.percentile(levelled[measured], [1, 99])
+    datum = Datum(
+        name,
+        offset,
+        slope_x,
+        slope_y,
+        region_um,
+        fraction=float(region.sum() / max(np.isfinite(z).sum(), 1)),
+        area_fraction=float(region.mean()),
+        measured_fraction=float(carrying.sum() / region.sum()),
+        residual_rms_um=float(np.sqrt(np.mean(levelled[carrying] ** 2))),
+        sigma_um=float(np.median(sigma)) if sigma.size else float("nan"),
+        relief_um=float(high - low),
+        tilt_deg=float(np.degrees(np.arctan(np.hypot(slope_x, slope_y)))),
+        requested=name,
+    )
     return levelled.astype(np.float32), datum
 
 

@@ -1,5 +1,5 @@
-"""Gaussian filters of ISO 16610-21 (profiles) and ISO 16610-61 (areal), and the default profile
-cut-offs of ISO 21920-3.
+"""Gaussian filters of ISO 16610-21 (profiles) and ISO 16610-61 (areal), and the default cut-offs
+(nesting indices) of ISO 21920-3 and ISO 25178-3 for a sampling and a field.
 
 The weighting function is s(x) = exp(-pi (x / (alpha lambda_c))²) / (alpha lambda_c) with
 alpha = sqrt(ln 2 / pi), whose amplitude transmission exp(-pi (alpha lambda_c / lambda)²) is exactly
@@ -42,6 +42,7 @@ MIN_CUTOFF_STEPS = 2.0
 # The default lambda_c of a profile is only taken with at least this many samples per sampling
 # length: fewer leave the roughness profile a few samples per wavelength.
 _DEFAULT_LAMBDA_C_MIN_STEPS = 10.0
+_MIN_BAND_RATIO = 10.0  # a default lambda_s is at most this fraction of lambda_c
 
 # ISO 21920-3:2021 Table 1, the setting classes Sc1 to Sc5: lambda_c (= sampling length, with five of
 # them in the default evaluation length), lambda_s and the largest sampling distance, all µm.
@@ -58,11 +59,21 @@ ISO_21920_3_SECTIONS = 5
 _EXTRAPOLATED_SETTINGS = ((25.0, 0.8, 0.16), (8.0, 0.25, 0.05), (2.5, 0.08, 0.016), (0.8, 0.025, 0.005))
 
 
+# ISO 25178-3's preferred nesting indices (the 1-2.5-8 series of the settings above), µm; the
+# largest sampling distance for an S-filter nesting index is about a third of it, the next smaller
+# value of the series (its Table 1: 2.5 µm -> 0.8 µm, 8 µm -> 2.5 µm).
+PREFERRED_NESTING_INDICES_UM = tuple(
+    sorted({value for setting in _EXTRAPOLATED_SETTINGS + ISO_21920_3_SETTINGS for value in setting[:2]})
+)
+
+
 @dataclass(frozen=True)
-class ProfileCutoffs:
-    """Cut-offs for a profile, µm. ``from_iso_table`` is False for lengths below the table's
-    shortest evaluation length (400 µm), where the series was extrapolated; ``sampling_ok`` says
-    whether the profile's spacing is within the largest sampling distance for this lambda_s."""
+class NestingIndices:
+    """Default cut-offs (nesting indices) for data sampled every ``spacing_um`` over ``field_um``,
+    µm, 0 where that filter is not applied; ``reason`` says why, in one sentence.
+    ``from_iso_table`` is False for fields below ISO 21920-3's shortest evaluation length (400 µm),
+    where the series was extrapolated; ``sampling_ok`` says whether the spacing is within that
+    table's largest sampling distance for its own lambda_s (False: lambda_s was raised)."""
 
     lambda_c_um: float
     lambda_s_um: float
@@ -70,30 +81,69 @@ class ProfileCutoffs:
     evaluation_length_um: float
     from_iso_table: bool
     sampling_ok: bool
+    spacing_um: float
+    reason: str
 
 
-def default_profile_cutoffs(evaluation_length_um: float, *, spacing_um: float) -> ProfileCutoffs:
-    """The ISO 21920-3 default for a profile of this evaluation length: the largest lambda_c of the
-    setting classes whose five sampling lengths fit in it (le >= 5 lambda_c), with its lambda_s;
-    0 (no such filter) for a lambda_c under ten samples or a lambda_s under two."""
-    if not evaluation_length_um > 0:
-        raise ValueError("evaluation_length_um must be positive")
-    if not spacing_um > 0:
-        raise ValueError("spacing_um must be positive")
+def default_nesting_indices(*, pixel_size_um: float, field_um: float) -> NestingIndices:
+    """The S- and L-filter defaults for data sampled every ``pixel_size_um`` over a field of
+    ``field_um`` (a profile's evaluation length, a map's shorter side), µm. lambda_c: the largest of
+    the setting classes (ISO 21920-3 Table 1, extended below it by the same series) of which the
+    field holds five; lambda_s: the one ISO 21920-3 pairs with it, raised where the sampling is
+    too coarse for it to the smallest preferred nesting index that the sampling resolves (ISO
+    25178-3 Table 1). 0 (no such filter) for a lambda_c under ten samples, or a lambda_s under two
+    samples or over a tenth of lambda_c (without one, a fifth of the field)."""
+    if not field_um > 0:
+        raise ValueError("field_um must be positive")
+    if not pixel_size_um > 0:
+        raise ValueError("pixel_size_um must be positive")
     settings = sorted(_EXTRAPOLATED_SETTINGS + ISO_21920_3_SETTINGS)
-    fitting = [s for s in settings if ISO_21920_3_SECTIONS * s[0] <= evaluation_length_um]
-    lambda_c, lambda_s, max_sampling = fitting[-1] if fitting else settings[0]
-    # A profile too short for any setting sampled coarsely enough to carry one gets no L-filter
-    # (a 9 µm profile at 1 µm spacing got lambda_c = 0.8 µm, which took every height for the
-    # mean line); a lambda_s below two samples would do nothing and is left out too.
-    return ProfileCutoffs(
-        lambda_c_um=lambda_c if lambda_c >= _DEFAULT_LAMBDA_C_MIN_STEPS * spacing_um else 0.0,
-        lambda_s_um=_sampled(lambda_s, spacing_um),
+    fitting = [s for s in settings if ISO_21920_3_SECTIONS * s[0] <= field_um]
+    lambda_c, paired_s, max_sampling = fitting[-1] if fitting else settings[0]
+    series = PREFERRED_NESTING_INDICES_UM
+    resolved = next((v for finer, v in zip(series, series[1:]) if finer >= pixel_size_um * (1 - 1e-9)), series[-1])
+    if lambda_c < _DEFAULT_LAMBDA_C_MIN_STEPS * pixel_size_um:
+        lambda_c = 0.0
+    lambda_s = _sampled(max(paired_s, resolved), pixel_size_um)
+    # A raised lambda_s must leave a band: a tenth of lambda_c (the table's ratios are 32 to 320),
+    # or without one a fifth of the field.
+    if lambda_s > (lambda_c / _MIN_BAND_RATIO if lambda_c else field_um / ISO_21920_3_SECTIONS):
+        lambda_s = 0.0
+    return NestingIndices(
+        lambda_c_um=lambda_c,
+        lambda_s_um=lambda_s,
         max_sampling_um=max_sampling,
-        evaluation_length_um=float(evaluation_length_um),
-        from_iso_table=lambda_c >= ISO_21920_3_SETTINGS[0][0],
-        sampling_ok=spacing_um <= max_sampling * (1 + 1e-9),
+        evaluation_length_um=float(field_um),
+        from_iso_table=fitting[-1][0] >= ISO_21920_3_SETTINGS[0][0] if fitting else False,
+        sampling_ok=pixel_size_um <= max_sampling * (1 + 1e-9),
+        spacing_um=float(pixel_size_um),
+        reason=_nesting_reason(lambda_s, lambda_c, paired_s, pixel_size_um, field_um),
     )
+
+
+def _nesting_reason(lambda_s: float, lambda_c: float, paired_s: float, spacing_um: float, field_um: float) -> str:
+    """One sentence on how default_nesting_indices chose its cut-offs."""
+    if lambda_c:
+        why_c = (
+            f"λc = {lambda_c:g} µm, the largest preferred nesting index of which the {field_um:.4g} µm field holds five"
+        )
+    else:
+        why_c = f"no L-filter, as the {field_um:.4g} µm field holds five of no nesting index of ten samples"
+    if not lambda_s:
+        why_s = (
+            f"no S-filter, as the λs that samples {spacing_um:.4g} µm apart resolve would leave too narrow a band "
+            "(the data's own resolution limits the short wavelengths)"
+        )
+    elif lambda_s > paired_s:
+        why_s = (
+            f"λs = {lambda_s:g} µm, ISO 21920-3's {paired_s:g} µm raised to the smallest preferred nesting index that "
+            f"samples {spacing_um:.4g} µm apart resolve (ISO 25178-3, about three samples per nesting index)"
+        )
+    else:
+        why_s = (
+            f"λs = {lambda_s:g} µm, the one ISO 21920-3 pairs with it, resolved by samples {spacing_um:.4g} µm apart"
+        )
+    return f"{why_c}; {why_s}"
 
 
 def paired_lambda_s_um(lambda_c_um: float, *, spacing_um: float) -> float:

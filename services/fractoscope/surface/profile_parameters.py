@@ -41,14 +41,14 @@ WIDTH_DISCRIMINATION_PERCENT = 1.0  # of the section (sampling) length
 class RoughnessProfile:
     """A roughness profile and the operators that made it: ``r_um`` (n,) µm (NaN where the primary
     profile was unknown), the form removed (form_removal.FORMS or "none"), the cut-offs used (µm; 0
-    where that filter was not applied) and the ISO 21920-3 defaults for this length (``cutoffs``:
-    whether they come from its table, whether the spacing is fine enough for them)."""
+    where that filter was not applied) and the defaults for this length and spacing (``cutoffs``:
+    iso_filters.default_nesting_indices, with why they are what they are)."""
 
     r_um: np.ndarray
     form: str
     lambda_s_um: float
     lambda_c_um: float
-    cutoffs: iso_filters.ProfileCutoffs
+    cutoffs: iso_filters.NestingIndices
 
 
 def roughness_profile(
@@ -68,7 +68,7 @@ def roughness_profile(
     profile = _validated(z_um, spacing_um)
     span = _measured_span(profile)
     z = profile[span]
-    defaults = iso_filters.default_profile_cutoffs(spacing_um * (z.size - 1), spacing_um=spacing_um)
+    defaults = iso_filters.default_nesting_indices(pixel_size_um=spacing_um, field_um=spacing_um * (z.size - 1))
     lambda_c = defaults.lambda_c_um if lambda_c_um is None else float(lambda_c_um)
     lambda_s = defaults.lambda_s_um if lambda_s_um is None else float(lambda_s_um)
     if lambda_s_um is None and lambda_c_um and np.isfinite(lambda_c) and lambda_c > 0:

@@ -140,7 +140,8 @@ class SurfaceAnalysis:
     def legacy(self) -> dict:
         """The keys Fractoscope reported before the chain: Sa ... Sdr, and the Hurst exponent by
         h(r) along the direction with its fit range (µm), fractal dimension 3 - H and curve (NaN
-        and empty without a fit)."""
+        and empty without a fit; H and 3 - H NaN where the fit does not determine H, the note says
+        why)."""
         values = {name: self.parameters[name] for name in ("Sa", "Sq", "Ssk", "Sku", "Sp", "Sv", "Sz", "Sdq", "Sdr")}
         fit = self.hurst.fits.get("hhc", {}).get("along")
         if fit is None:
@@ -153,11 +154,12 @@ class SurfaceAnalysis:
                 "hhc_lag_um": [],
                 "hhc_rms_um": [],
             }
+        hurst = float("nan") if fit.not_determinable else fit.hurst
         return values | {
-            "hurst_exponent": fit.hurst,
+            "hurst_exponent": hurst,
             "hurst_fit_min_um": fit.fit_min_um,
             "hurst_fit_max_um": fit.fit_max_um,
-            "fractal_dimension": 3.0 - fit.hurst,
+            "fractal_dimension": 3.0 - hurst,
             "hhc_lag_um": fit.scale_um.tolist(),
             "hhc_rms_um": fit.value.tolist(),
         }
@@ -244,7 +246,7 @@ def _checked_heights(z_um: np.ndarray) -> np.ndarray:
     to analyse: slopes, spectra and correlations need neighbours, which scattered points lack."""
     z = np.asarray(z_um, dtype=np.float64)
     if z.ndim != 2 or min(z.shape) < 16:
-        raise InvalidInputError("region", f"needs at least 16 x 16 points, got {z.shape}")
+        raise InvalidInputError("region", f"needs at least 16 x 16 points, got {z.shape[-1]} x {z.shape[0]}")
     known = np.isfinite(z)
     if np.count_nonzero(known) < 64:
         raise InvalidInputError("region", "holds fewer than 64 measured points")
@@ -392,27 +394,13 @@ def _hurst(sf_um: np.ndarray, pixel_size_um: float, chain: SurfaceChain) -> Hurs
             )
         else:
             note = ""
-        # A self-affine surface has 0 < H < 1: an exponent beyond by more than two standard errors
-        # says the heights are not self-affine over the fit range.
-        outside = sorted(
-            f"{method} {side} {fit.hurst:.2f} ± {fit.hurst_stderr:.2f}"
+        undetermined = [
+            f"{method} {side}: H {fit.not_determinable}"
             for method, by_side in fits.items()
             for side, fit in by_side.items()
-            if np.isfinite(fit.hurst)
-            and not -2.0 * np.nan_to_num(fit.hurst_stderr) <= fit.hurst <= 1.0 + 2.0 * np.nan_to_num(fit.hurst_stderr)
-        )
-        if outside:
-            note = "; ".join(
-                filter(
-                    None,
-                    [
-                        note,
-                        f"H outside 0-1 ({', '.join(outside)}): the surface is not self-affine over the fit range (a "
-                        "periodic or smooth form left in it?), so H does not describe it",
-                    ],
-                )
-            )
-        return HurstResult(fits, min_windows, note)
+            if fit.not_determinable
+        ]
+        return HurstResult(fits, min_windows, "; ".join(filter(None, [note, *undetermined])))
     return HurstResult({}, chain.min_windows, note)
 
 

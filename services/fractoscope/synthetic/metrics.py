@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fractoscope.surface import roughness
+from fractoscope.synthetic.rendering import visible_sheet_px
 
 
 @dataclass(frozen=True)
@@ -43,11 +44,12 @@ def hidden_in_second_view(z_seen_um: np.ndarray, *, pixel_size_um: float, tilt_d
     (a wall in front of them), (rows, cols) bool: `z_seen_um` is the pair's truth (rows, cols,
     µm) for a tilt axis along the columns (`render_stereo_pair`'s default) and a second view not
     misplaced. In both views a point at x along the rows and height z projects to
-    x cos t + z sin t; the second view sees a point only if no point left of it projects further."""
+    x cos t + z sin t; the second view sees a point only if it is the crossing of its ray nearest to
+    the viewer (`rendering.visible_sheet_px`)."""
     first_rad, second_rad = np.radians(tilt_deg)
     cols = z_seen_um.shape[1]
     first_px = np.arange(cols) - (cols - 1) / 2.0
     z_px = z_seen_um / pixel_size_um
     x_px = (first_px[None, :] - z_px * np.sin(first_rad)) / np.cos(first_rad)
     second_px = x_px * np.cos(second_rad) + z_px * np.sin(second_rad)
-    return second_px < np.maximum.accumulate(second_px, axis=1) - 0.25  # a quarter pixel of resampling
+    return np.abs(second_px - visible_sheet_px(second_px, second_rad)) > 0.25  # a quarter pixel of resampling

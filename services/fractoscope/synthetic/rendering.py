@@ -70,8 +70,7 @@ def render_sem_view(
     shading = _secondary_electron_yield(fine_um, fine_pixel_um, shading_rad, fine_material)
     x_px = np.arange(cols) - (cols - 1) / 2.0
     projected = x_px[None, :] * np.cos(tilt_rad) + fine_um / fine_pixel_um * np.sin(tilt_rad)
-    # Hidden points fold back under the visible ones; the running maximum keeps the visible sheet.
-    projected = np.maximum.accumulate(projected, axis=1)
+    projected = visible_sheet_px(projected, tilt_rad)
     image = np.empty((rows, cols))
     z_seen_um = np.empty((rows, cols))
     for row in range(rows):
@@ -87,6 +86,16 @@ def render_sem_view(
     full_scale = 2**bits - 1
     grey = np.clip(0.1 + 0.8 * image, 0.0, 1.0) * full_scale
     return RenderedView(np.round(grey).astype(np.uint8 if bits == 8 else np.uint16), z_seen_um)
+
+
+def visible_sheet_px(projected_px: np.ndarray, tilt_rad: float) -> np.ndarray:
+    """Image positions (rows, cols) of a surface's points along each row, x cos t + z sin t, with
+    the hidden ones folded onto the point that hides them: at each image position the viewer sees
+    the crossing nearest to it, the leftmost one for t > 0 (a higher point appears further right
+    and hides what lies right of it) and the rightmost one for t < 0."""
+    if tilt_rad >= 0.0:
+        return np.maximum.accumulate(projected_px, axis=1)
+    return np.minimum.accumulate(projected_px[:, ::-1], axis=1)[:, ::-1]
 
 
 def _secondary_electron_yield(

@@ -262,8 +262,8 @@ def _check_npz_headers(content: bytes) -> None:
         if math.prod(shape) > limit:
             raise ApiError(
                 HTTPStatus.REQUEST_ENTITY_TOO_LARGE,
-                f"height_map's {name} array is {'x'.join(map(str, shape))}, more than the {limit} pixels an image "
-                "may have (FRACTO_MAX_IMAGE_PIXELS)",
+                f"height_map's {name} array is {'x'.join(map(str, shape[::-1]))} (width x height), more than the "
+                f"{limit} pixels an image may have (FRACTO_MAX_IMAGE_PIXELS)",
                 "height_map",
             )
         if name in _HEIGHT_MAP_ARRAYS and dtype.kind not in "fiu":

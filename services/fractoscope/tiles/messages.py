@@ -45,9 +45,19 @@ def specimen_message(specimen: Specimen) -> tiles_pb2.Specimen:
                 matching=wire.report_to_message(roi.matching),
                 registration_score=roi.registration_score,
                 level=(roi.datum or {}).get("level", ""),
+                datum=datum_message(roi.datum),
             )
         )
     return message
+
+
+def datum_message(datum: dict | None) -> tiles_pb2.HeightDatum | None:
+    """A stored datum (surface.datum.Datum.to_dict) as its message, None for none; a specimen built
+    before datums checked themselves has their plane only."""
+    if not datum:
+        return None
+    fields = tiles_pb2.HeightDatum.DESCRIPTOR.fields_by_name
+    return tiles_pb2.HeightDatum(**{key: value for key, value in datum.items() if key in fields and value is not None})
 
 
 def with_tile(response, specimen: Specimen, record: TileRecord):
@@ -75,8 +85,15 @@ def tile_message(specimen: Specimen, record: TileRecord, *, upsampled: bool = Fa
 def roi_request(spec: tiles_pb2.RoiSpec, index: int) -> RoiRequest:
     """An ROI spec's placement, validated (errors name `rois[index]`'s fields); without a
     magnification, the one its reference image's metadata states."""
-    if len(spec.images) != 2:
-        raise InvalidInputError(f"rois[{index}].images", f"an ROI needs a stereo pair, got {len(spec.images)} images")
+    if len(spec.images) < 2:
+        raise InvalidInputError(
+            f"rois[{index}].images",
+            f"an ROI needs a stereo pair or a tilt series of 3 or more images, got {len(spec.images)} images",
+        )
+    if spec.parameters.calibrate_tilt and len(spec.images) < 3:
+        raise InvalidInputError(
+            f"rois[{index}].parameters.calibrate_tilt", "tilt calibration needs a series of 3 or more images"
+        )
     if spec.HasField("pixel_size_um"):
         validate_pixel_size_um(spec.pixel_size_um, field=f"rois[{index}].pixel_size_um")
     if not (math.isfinite(spec.magnification) and spec.magnification >= 0):
@@ -147,7 +164,7 @@ def check_child_centres(
 
 
 def roi_height_map_request(spec: tiles_pb2.RoiSpec, request_id: str) -> matching_pb2.ComputeHeightMapRequest:
-    """The ComputeHeightMap of one ROI's pair."""
+    """The ComputeHeightMap of one ROI's pair or tilt series."""
     tilts = [item.tilt_deg for item in spec.images] if all(item.HasField("tilt_deg") for item in spec.images) else None
     return calls.height_map_request(
         [(item.image.content, "") for item in spec.images],
@@ -274,6 +291,7 @@ def roughness_response(analysis: SurfaceAnalysis, request: ChainRequest) -> tile
                 scale_um=fit.scale_um,
                 value=fit.value,
                 in_fit=fit.in_fit.tolist(),
+                not_determinable=fit.not_determinable,
             )
     response.hurst_note = analysis.hurst.note
     response.psd_q_per_um.extend(analysis.psd_q_per_um)

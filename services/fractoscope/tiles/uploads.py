@@ -122,7 +122,7 @@ class Uploads:
         for name in sorted(path.name for path in (directory / "images").iterdir()):
             if name not in named:
                 raise InvalidInputError(f"images[{name!r}]", "is not an image the manifest names")
-        with _as_manifest_entries():
+        with _as_manifest_entries(rois):
             _check_images(rois, shapes)
         return specimen_id, rois
 
@@ -144,7 +144,7 @@ class Uploads:
             max_image_bytes=self.max_bytes,  # the build sends them all in one request
         )
         validate_id(specimen_id, field="manifest.specimen")
-        with _as_manifest_entries():  # what the build would refuse, refused before a job is accepted
+        with _as_manifest_entries(rois):  # what the build would refuse, refused before a job is accepted
             _, _, shapes = checked_rois(rois)
         return specimen_id, rois, shapes
 
@@ -192,12 +192,12 @@ async def _request_id(part) -> str:
 
 
 @contextlib.contextmanager
-def _as_manifest_entries():
-    """Errors about a ReconstructSpecimen request's fields, named as the manifest's entries."""
+def _as_manifest_entries(rois: list[tiles_pb2.RoiSpec]):
+    """Errors about the fields of a ReconstructSpecimen request of `rois`, named as the manifest's entries."""
     try:
         yield
     except InvalidInputError as error:
-        raise InvalidInputError(manifest_field(error.field), error.message) from None
+        raise InvalidInputError(manifest_field(error.field, rois), error.message) from None
 
 
 class _FileCalibration(NamedTuple):

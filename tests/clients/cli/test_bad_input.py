@@ -216,7 +216,7 @@ def test_a_bad_image_of_a_manifest_is_named_by_its_file(capsys, tmp_path):
         )
     )
     code, _, err = _fracto(capsys, "reconstruct", tmp_path / "manifest.json", "--data", tmp_path / "data")
-    assert code == 2 and _one_error_line(err).startswith(f"error: {tmp_path / 'r.tif'}: not a TIFF or PNG file")
+    assert code == 2 and _one_error_line(err).startswith(f"error: {tmp_path / 'r.tif'}: not a TIFF, PNG or JPEG file")
 
 
 def test_export_of_an_npz_to_x3p_carries_its_calibration(capsys, tmp_path):
@@ -386,3 +386,35 @@ def test_a_tilt_axis_no_angle_can_be_is_refused(capsys, tmp_path, axis):
         tmp_path / "heights.npz",
     )
     assert code == 2 and _one_error_line(err).startswith("error: --tilt-axis-deg: must be an angle within ±360°")
+
+
+@pytest.mark.parametrize(
+    "source, extra, named",
+    [
+        ("missing.npz", [], "cannot read missing.npz"),
+        ("manifest.json", [], "manifest.json: give a specimen id or an .npz height map"),
+        ("map.npz", ["--roi", "zoom"], "--roi and --region are for specimens"),
+        ("s", ["--pixel-size-um", "0.1"], "--pixel-size-um is for an npz height map"),
+        ("no-such-specimen", [], "no specimen 'no-such-specimen'"),
+    ],
+)
+def test_report_names_its_real_argument(capsys, tmp_path, monkeypatch, source, extra, named):
+    """`fracto report` takes a specimen id or an npz height map; an error names what was given
+    (once "specimen_id: 'h.npz' is not an id" for a file)."""
+    monkeypatch.chdir(tmp_path)
+    _height_map(tmp_path / "map.npz", _noise())
+    (tmp_path / "manifest.json").write_text("{}")
+    code, _, err = _fracto(capsys, "report", source, *extra, "-o", "r.html", "--data", "data")
+    assert code in (2, 4) and _one_error_line(err).startswith(f"error: {named}")
+    assert not (tmp_path / "r.html").exists()
+
+
+def test_report_of_an_npz_height_map(capsys, tmp_path):
+    """A height map file is reported as readily as a specimen: its calibration, as it records it."""
+    _height_map(tmp_path / "map.npz", _noise())
+    code, out, err = _fracto(capsys, "report", tmp_path / "map.npz", "-o", tmp_path / "map.html", "--json")
+    assert code == 0, err
+    assert json.loads(out)["outputs"] == [str(tmp_path / "map.html")]
+    html = (tmp_path / "map.html").read_text()
+    assert "Measurement report" in html and "No image files are kept with these heights" in html
+    assert 'data-name="overview.tilt_sigma_deg[1]" data-value="0.04"' in html and "tilt_calibration" in html

@@ -156,3 +156,63 @@ def test_a_manifest_json_cannot_hold_is_named(text, field):
     with pytest.raises(InvalidInputError) as error:
         parse_manifest(text, lambda name, field: b"")
     assert error.value.field == field and "\n" not in str(error.value)
+
+
+def _series_roi(**keys) -> dict:
+    return {"id": "o", "images": ["a.tif", "b.tif", "c.tif"], **keys}
+
+
+def test_a_tilt_series_roi_carries_its_images_tilts_and_calibration():
+    """A series lists its images, reference first, one tilt each; "calibrate": true asks for the
+    tilt calibration (calibrate_tilt); a pair's entry is read as before."""
+    reads = []
+
+    def read_image(name: str, field: str) -> bytes:
+        reads.append((name, field))
+        return name.encode()
+
+    _, (series,) = parse_manifest(_manifest([_series_roi(tilt_deg=[-4.5, 0, 4.5], calibrate=True)]), read_image)
+    assert [image.image.filename for image in series.images] == ["a.tif", "b.tif", "c.tif"]
+    assert [image.image.content for image in series.images] == [b"a.tif", b"b.tif", b"c.tif"]
+    assert [image.tilt_deg for image in series.images] == [-4.5, 0.0, 4.5] and series.parameters.calibrate_tilt
+    assert reads[2] == ("c.tif", "manifest.rois[0].images[2]")
+    _, (nominal,) = parse_manifest(_manifest([_series_roi(calibrate=False)]), read_image)
+    assert not nominal.parameters.calibrate_tilt and not any(image.HasField("tilt_deg") for image in nominal.images)
+    _, (pair,) = parse_manifest(_manifest([_pair_roi(0, tilt_deg=[-5, 5])]), read_image)
+    assert [image.image.filename for image in pair.images] == ["l.tif", "r.tif"] and not pair.parameters.calibrate_tilt
+
+
+@pytest.mark.parametrize(
+    "roi, field",
+    [
+        (_series_roi(images=["a.tif", "b.tif"]), "manifest.rois[0].images"),  # a pair is left and right
+        (_series_roi(images=["a.tif", "b.tif", 3]), "manifest.rois[0].images"),
+        (_series_roi(left="a.tif", right="b.tif"), "manifest.rois[0].images"),
+        (_series_roi(tilt_deg=[-5, 5]), "manifest.rois[0].tilt_deg"),
+        (_series_roi(calibrate="yes"), "manifest.rois[0].calibrate"),
+        (_pair_roi(0, calibrate=True), "manifest.rois[0].calibrate"),  # two views cannot be calibrated
+        ({"id": "o", "left": "l.tif"}, "manifest.rois[0].right"),
+    ],
+)
+def test_a_bad_series_entry_is_named(roi, field):
+    with pytest.raises(InvalidInputError) as error:
+        parse_manifest(_manifest([roi]), lambda name, field: b"")
+    assert error.value.field == field and "\n" not in str(error.value)
+
+
+@pytest.mark.parametrize(
+    "field, images, entry",
+    [
+        ("rois[0].images[1].image", 2, "manifest.rois[0].right"),
+        ("rois[0].images[1].image", 3, "manifest.rois[0].images[1]"),
+        ("rois[0].images[2]", 3, "manifest.rois[0].images[2]"),
+        ("rois[0].images[2].tilt_deg", 3, "manifest.rois[0].tilt_deg"),
+        ("rois[0].parameters.calibrate_tilt", 2, "manifest.rois[0].matching.calibrate_tilt"),
+    ],
+)
+def test_request_fields_are_named_as_the_manifest_entries_they_come_from(field, images, entry):
+    from fractoscope.rpc.manifest import manifest_field
+    from fractoscope.v1 import tiles_pb2
+
+    roi = tiles_pb2.RoiSpec(id="o", images=[matching_pb2.TiltImage() for _ in range(images)])
+    assert manifest_field(field, [roi]) == entry

@@ -7,11 +7,11 @@ import json
 import shutil
 import subprocess
 import urllib.request
-from html.parser import HTMLParser
 
 import matplotlib.pyplot as plt
 import numpy as np
 import pytest
+from conftest import ReportNumbers
 from PIL import Image
 
 from fractoscope.report import build_document, report_content, write_report
@@ -19,22 +19,6 @@ from fractoscope.specimen.store import SpecimenStore
 from fractoscope.tiles.http import start_http_server
 
 NOT_CALIBRATED = "The tilt was not calibrated"
-
-
-class _Numbers(HTMLParser):
-    """data-name -> data-value of every number cell, and the page's text."""
-
-    def __init__(self):
-        super().__init__()
-        self.values, self.text = {}, []
-
-    def handle_starttag(self, tag, attrs):
-        attributes = dict(attrs)
-        if "data-value" in attributes:
-            self.values[attributes["data-name"]] = float(attributes["data-value"])
-
-    def handle_data(self, data):
-        self.text.append(data)
 
 
 @pytest.fixture(scope="module")
@@ -53,7 +37,7 @@ def http_api(built):
 
 def test_the_numbers_in_the_report_are_the_apis(http_api, built):
     _, _, _, summary = built
-    page = _Numbers()
+    page = ReportNumbers()
     page.feed(http_api("/api/specimens/synthetic/report?roi=zoom").decode())
     roughness = json.loads(http_api("/api/specimens/synthetic/roughness?roi=zoom"))
     shown = page.values
@@ -89,13 +73,17 @@ def test_the_numbers_in_the_report_are_the_apis(http_api, built):
         and shown["zoom.pixel_size_um"] == zoom["pixel_size_um"]
     )
     assert len(roughness["hurst"]) == 4  # h(r) and PSD, along and across: each with its standard error and fit range
+    text = " ".join(page.text)
+    assert any(not fit["not_determinable"] for fit in roughness["hurst"])  # a self-affine surface, H = 0.8
     for fit in roughness["hurst"]:
+        if fit["not_determinable"]:  # the report gives the reason instead of the number
+            assert f"hurst.{fit['method']}.{fit['side']}.hurst" not in shown and "not determinable" in text
+            continue
         for key in ("hurst", "hurst_stderr", "fit_min_um", "fit_max_um"):
             assert shown[f"hurst.{fit['method']}.{fit['side']}.{key}"] == fit[key], (fit["method"], fit["side"], key)
-    text = " ".join(page.text)
     chain = roughness["chain"]  # the roughness table names the chain the API ran
     assert f"After removing the form ({chain['form']}" in text and chain["s_filter_um"] == chain["l_filter_um"] == 0.0
-    assert "no S- or L-filter" in text and f"correlated over the {chain['window_px']:g} px window" in text
+    assert "No S- or L-filter" in text and f"correlated over the {chain['window_px']:g} px window" in text
     assert NOT_CALIBRATED in text and "argument" in text  # the manifest gave the tilts and the pixel size
 
 
@@ -113,7 +101,7 @@ def test_the_psd_is_plotted_from_the_apis_data(built):
         assert known.sum() > 0.9 * len(c) > 20
         np.testing.assert_array_equal(areal.lines[0].get_xdata(), q[known])
         np.testing.assert_array_equal(areal.lines[0].get_ydata(), c[known])
-        for fit in (fit for fit in roughness["hurst"] if fit["method"] == "psd"):
+        for fit in (fit for fit in roughness["hurst"] if fit["method"] == "psd" and not fit["not_determinable"]):
             curve = next(line for line in profiles.lines if line.get_label().startswith(fit["side"]))
             np.testing.assert_allclose(curve.get_xdata(), 1 / np.asarray(fit["scale_um"]), rtol=1e-12)
             np.testing.assert_array_equal(curve.get_ydata(), np.asarray(fit["value"], dtype=float))
@@ -162,7 +150,7 @@ def test_a_calibrated_tilt_is_reported_with_its_sigma_and_no_warning(built, tmp_
     zoom = next(roi for roi in stored["rois"] if roi["id"] == "zoom")
     zoom["matching"].update(tilt_source=["argument", "tilt_calibration"], tilt_sigma_deg=[0.0, 0.02])
     description.write_text(json.dumps(stored))
-    page = _Numbers()
+    page = ReportNumbers()
     page.feed(write_report(SpecimenStore(copy).load("synthetic"), tmp_path, file_format="html", roi="zoom").read_text())
     text = " ".join(page.text)
     assert NOT_CALIBRATED not in text and "tilt_calibration" in text
@@ -181,7 +169,7 @@ def test_a_region_report_has_the_apis_numbers_for_that_region(built, tmp_path):
         region["min"]["x_um"] + 70,
         region["min"]["y_um"] + 50,
     )
-    page = _Numbers()
+    page = ReportNumbers()
     page.feed(
         write_report(SpecimenStore(data).load("synthetic"), tmp_path, file_format="html", region_um=box).read_text()
     )
@@ -201,3 +189,51 @@ def test_lists_in_the_parameters_table_are_shown_as_their_items_are():
 
     assert _shown([0.9541111286385613, True]) == "0.954111; True"
     assert _shown(0.9541111286385613) == "0.954111" and _shown([]) == "none"
+
+
+def test_the_report_of_a_white_noise_surface_marks_its_hurst_exponent_not_determinable(tmp_path):
+    """A report once printed a profile PSD's H = -0.102 ± 0.842 and elsewhere 1.23 without a word."""
+    from fractoscope.specimen.build import store_height_map
+
+    noise = np.random.default_rng(7).normal(scale=0.2, size=(640, 640))  # the 15 px window: a field of 600 px
+    noise[:, :40] = np.nan  # the profiles start where nothing is measured
+    store = SpecimenStore(tmp_path / "data")
+    specimen = store_height_map(store, "noise", noise, pixel_size_um=1.0, report={})
+    content = report_content(specimen)
+    assert content.roughness.hurst.fits and np.isnan(content.roughness.legacy()["hurst_exponent"])
+    document = build_document(content)
+    try:
+        text = "\n".join(
+            " ".join(str(getattr(block, name, "")) for name in ("text", "caption"))
+            + " ".join(cell.text for row in getattr(block, "rows", []) for cell in row)
+            for block in document.blocks
+        )
+    finally:
+        for block in document.blocks:
+            if hasattr(block, "figure"):
+                plt.close(block.figure)
+    assert "Hurst exponent H" in text and text.count("not determinable") >= 5  # the table, 4 fits, the note
+    assert "fitted over" in text  # the reason comes with the fit range
+    assert "on a grid of 1 µm" in text and "ISO 25178-3's nesting indices for the 1 µm grid" in text
+    for profile in content.profiles:
+        assert f"from samples {profile.spacing_um:.4g} µm apart" in text
+        assert profile.lambda_s_um == 8.0  # not ISO 21920-3's 2.5 µm: 1 µm samples cannot carry it
+
+
+def test_no_legend_entry_names_a_series_without_data(tmp_path):
+    """A profile's legend once read "primary, ROI no data" for the stretch nothing was measured on."""
+    from fractoscope.report import figures
+    from fractoscope.specimen.build import store_height_map
+
+    heights = np.random.default_rng(8).normal(scale=0.2, size=(96, 96))
+    heights[:, :30] = np.nan
+    specimen = store_height_map(SpecimenStore(tmp_path / "data"), "holes", heights, pixel_size_um=0.5, report={})
+    profile = report_content(specimen).profiles[0]
+    assert -1 in profile.found.source_index  # the line crosses the unmeasured stretch
+    figure = figures.profile_figure(profile)
+    try:
+        labels = figure.axes[0].get_legend_handles_labels()[1]
+    finally:
+        plt.close(figure)
+    assert labels and not any("no data" in label for label in labels)
+    assert "primary, ROI overview" in labels

@@ -140,3 +140,88 @@ def test_rgb_tiffs_are_read_as_grey_whichever_way_their_planes_are_stored(planar
     )
     pixels = read_sem_image(buffer.getvalue()).pixels
     assert pixels.shape == (64, 80) and np.corrcoef(pixels.ravel(), grey.ravel())[0, 1] > 0.999
+
+
+def _jpeg(pixels: np.ndarray, quality: int = 95) -> bytes:
+    buffer = io.BytesIO()
+    Image.fromarray(pixels).save(buffer, format="JPEG", quality=quality)
+    return buffer.getvalue()
+
+
+def test_jpeg_is_read_with_a_note_that_its_compression_biases_matching():
+    image = _textured(rows=128, cols=160)
+    smooth = np.round(
+        np.clip(128 + 60 * np.sin(np.arange(160) / 9.0)[None, :] * np.cos(np.arange(128) / 7.0)[:, None], 0, 255)
+    ).astype(np.uint8)
+    read = read_sem_image(_jpeg(smooth), field="left.jpg")
+    assert read.pixels.shape == (128, 160) and read.pixels.dtype == np.uint8
+    assert np.abs(read.pixels.astype(float) - smooth).mean() < 3  # lossy, but the same picture
+    assert read.notes and read.notes[0].startswith("left.jpg: a JPEG file") and "biases the matching" in read.notes[0]
+    assert image_shape(_jpeg(image), field="left.jpg") == (128, 160)
+
+
+def test_colour_is_reduced_to_bt601_luminance_with_a_note():
+    rng = np.random.default_rng(5)
+    rgb = rng.integers(0, 256, size=(96, 120, 3)).astype(np.uint8)
+    buffer = io.BytesIO()
+    Image.fromarray(rgb).save(buffer, format="PNG")
+    read = read_sem_image(buffer.getvalue(), field="colour.png")
+    expected = np.round(rgb.astype(float) @ [0.299, 0.587, 0.114])
+    assert read.pixels.dtype == np.uint8 and np.abs(read.pixels - expected).max() <= 1
+    assert any("luminance" in note and note.startswith("colour.png: ") for note in read.notes)
+    grey_as_rgb = np.repeat(_textured(96, 120)[..., None], 3, axis=-1)  # a grey image saved as RGB: no note
+    read = read_sem_image(_tiff(grey_as_rgb))
+    np.testing.assert_array_equal(read.pixels, grey_as_rgb[..., 0])
+    assert read.notes == ()
+
+
+def test_a_16_bit_tiff_keeps_its_full_depth():
+    image = _textured(dtype=np.uint16)
+    read = read_sem_image(_tiff(image))
+    assert read.pixels.dtype == np.uint16 and read.notes == ()
+    np.testing.assert_array_equal(read.pixels, image)
+
+
+def _zeiss_like_tiff() -> bytes:
+    """A TIFF laid out as SmartSEM writes one: pixel strips first, the directory and its long tag
+    values (metadata) at the end of the file."""
+    image = _textured(256, 300)
+    buffer = io.BytesIO()
+    tifffile.imwrite(buffer, image, rowsperstrip=8, description="x" * 4000, metadata=None)
+    return buffer.getvalue()
+
+
+@pytest.mark.parametrize("keep", [0.5, 0.97, 0.999])
+def test_a_truncated_tiff_is_refused_naming_the_file(keep):
+    """A copy cut short once read as an image with its metadata silently dropped (tifffile reads
+    what is there), and a pair matched for half a minute before anything failed."""
+    content = _zeiss_like_tiff()
+    cut = content[: int(len(content) * keep)]
+    for read in (read_sem_image, image_shape):
+        with pytest.raises(InvalidInputError) as refused:
+            read(cut, field="pot_00.tif")
+        assert refused.value.field == "pot_00.tif" and "truncated" in refused.value.message
+        assert str(refused.value).startswith("pot_00.tif: ")
+
+
+@pytest.mark.real_data
+def test_the_real_zeiss_file_cut_short_is_refused(pollen_series):
+    content = (pollen_series / "pot_00.tif").read_bytes()
+    assert read_sem_image(content).tilt_deg == pytest.approx(-9.0)
+    for keep in (0.5, 0.99, 0.9999):  # before, inside and after the directory (which SmartSEM writes last)
+        with pytest.raises(InvalidInputError, match="truncated") as refused:
+            read_sem_image(content[: int(len(content) * keep)], field="pot_00.tif")
+        assert refused.value.field == "pot_00.tif"
+
+
+def test_a_garbage_file_is_refused_naming_the_file():
+    garbage = np.random.default_rng(0).integers(0, 256, 100_000, dtype=np.uint8).tobytes()
+    for content in (garbage, b"II*\x00" + garbage, b"\xff\xd8\xff" + garbage):
+        with pytest.raises(InvalidInputError) as refused:
+            read_sem_image(content, field="garbage.tif")
+        assert refused.value.field == "garbage.tif"
+
+
+def test_size_messages_are_width_by_height():
+    with pytest.raises(InvalidInputError, match="got 300x20"):
+        read_sem_image(_tiff(_textured(20, 300)))

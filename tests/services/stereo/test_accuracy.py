@@ -87,8 +87,13 @@ def _within(result, pair):
 # Sa within 0.9 %; cleavage 1.23 % (±5°, within the target) and 2.60 % (0/10°; 4.4 % before
 # the hidden bands behind walls were handled, see test_visibility) RMS, 88-90 % valid (84-87 %
 # while pixels with a semi-global seed were propagated too, see tgv_zncc), Sa within 0.4 %,
-# 96.5-96.7 % within a pixel, 98.6-99.3 % within three sigmas. Window correlation: dimples 4.1-4.2 %,
-# 98.8-98.9 %, 0.5 %; cleavage 2.8-6.5 %, 78-80 %, 2.0 %. See "Accuracy" in the README.
+# 96.5-96.7 % within a pixel, 98.6-99.3 % within three sigmas. Since the renderer hides at negative
+# tilts what a higher point hides (rendering.visible_sheet_px; before, the −5° view showed its
+# walls as seen from below), cleavage at ±5° measures 1.76 % RMS, 86.0 % valid, 91.6 % within a
+# pixel and 99.0 % within three sigmas by default, 3.3 %, 77.8 %, 81.4 % and 98.0 % by window
+# correlation (0/10° unchanged): matching must now face the reference's own hidden bands.
+# Window correlation: dimples 4.1-4.2 %, 98.8-98.9 %, 0.5 %; cleavage 2.8-6.5 %, 78-80 %, 2.0 %.
+# See "Accuracy" in the README.
 BEYOND_TARGETS = {
     ("dimples", "tgv_zncc"): (
         dimple_pair,
@@ -96,7 +101,7 @@ BEYOND_TARGETS = {
     ),
     ("cleavage", "tgv_zncc"): (
         cleavage_pair,
-        {"valid": 0.86, "rms": 0.03, "sa": 0.02, "one_pixel": 0.95, "three_sigma": 0.98},
+        {"valid": 0.85, "rms": 0.03, "sa": 0.02, "one_pixel": 0.90, "three_sigma": 0.98},
     ),
     ("dimples", "window_zncc"): (
         dimple_pair,
@@ -104,7 +109,7 @@ BEYOND_TARGETS = {
     ),
     ("cleavage", "window_zncc"): (
         cleavage_pair,
-        {"valid": 0.75, "rms": 0.07, "sa": 0.025, "one_pixel": 0.88, "three_sigma": 0.95},
+        {"valid": 0.75, "rms": 0.07, "sa": 0.025, "one_pixel": 0.80, "three_sigma": 0.95},
     ),
 }
 

@@ -105,11 +105,32 @@ def test_scale_limited_surface_reports_its_cutoffs():
     ],
 )
 def test_default_profile_cutoffs_follow_iso_21920_3(length_um, lambda_c_um, lambda_s_um, from_table):
-    cutoffs = iso_filters.default_profile_cutoffs(length_um, spacing_um=0.01)
+    cutoffs = iso_filters.default_nesting_indices(pixel_size_um=0.01, field_um=length_um)
     assert (cutoffs.lambda_c_um, cutoffs.lambda_s_um, cutoffs.from_iso_table) == (lambda_c_um, lambda_s_um, from_table)
     assert cutoffs.sampling_ok
 
 
 def test_sampling_coarser_than_the_table_allows_is_flagged():
-    assert not iso_filters.default_profile_cutoffs(4000.0, spacing_um=1.0).sampling_ok
-    assert iso_filters.default_profile_cutoffs(4000.0, spacing_um=0.5).sampling_ok
+    assert not iso_filters.default_nesting_indices(pixel_size_um=1.0, field_um=4000.0).sampling_ok
+    assert iso_filters.default_nesting_indices(pixel_size_um=0.5, field_um=4000.0).sampling_ok
+
+
+@pytest.mark.parametrize(
+    ("pixel_size_um", "field_um", "lambda_s_um", "lambda_c_um"),
+    [
+        (1.0, 1020.0, 8.0, 80.0),  # the 1 µm/px overview once got ISO 21920-3's 2.5 µm, 2.5 samples
+        (0.25, 140.0, 0.8, 25.0),  # sampled finely enough for the pair the series makes
+        (0.05582, 85.0, 0.25, 8.0),  # the real pollen pair's pixel size
+        (0.1, 25.5, 0.0, 2.5),  # the lambda_s 0.1 µm resolves would leave no band below 2.5 µm
+        (1.0, 9.0, 0.0, 0.0),  # a field too short for either
+    ],
+)
+def test_default_nesting_indices_follow_the_sampling_and_the_field(pixel_size_um, field_um, lambda_s_um, lambda_c_um):
+    chosen = iso_filters.default_nesting_indices(pixel_size_um=pixel_size_um, field_um=field_um)
+    assert (chosen.lambda_s_um, chosen.lambda_c_um) == (lambda_s_um, lambda_c_um)
+    assert not chosen.lambda_s_um or chosen.lambda_s_um >= 3 * pixel_size_um  # ISO 25178-3 Table 1's sampling
+    assert not chosen.lambda_c_um or 5 * chosen.lambda_c_um <= field_um
+    for value in (chosen.lambda_s_um, chosen.lambda_c_um):
+        assert not value or value in iso_filters.PREFERRED_NESTING_INDICES_UM
+    assert chosen.spacing_um == pixel_size_um and chosen.reason.count(";") == 1  # one sentence, both filters
+    assert (f"λs = {lambda_s_um:g} µm" in chosen.reason) == bool(lambda_s_um)

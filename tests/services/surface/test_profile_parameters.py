@@ -63,7 +63,7 @@ def test_roughness_profile_removes_form_and_waviness_and_reports_the_defaults():
     z = 0.01 * x + 3.0 * np.sin(2 * np.pi * x / 6000.0) + roughness  # form and a waviness 24 lambda_c long
     result = profile_parameters.roughness_profile(z, spacing_um=0.25)
     assert (result.lambda_c_um, result.lambda_s_um) == (250.0, 2.5)
-    assert result.cutoffs == iso_filters.default_profile_cutoffs(x[-1] - x[0], spacing_um=0.25)
+    assert result.cutoffs == iso_filters.default_nesting_indices(pixel_size_um=0.25, field_um=x[-1] - x[0])
     middle = slice(2000, 6000)
     # The 25 µm wave passes both filters: (1 - T(lambda_c)) T(lambda_s) of its amplitude.
     passed = (1 - iso_filters.transmission(25.0, cutoff_um=250.0)) * iso_filters.transmission(25.0, cutoff_um=2.5)

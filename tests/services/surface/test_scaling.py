@@ -130,3 +130,33 @@ def test_bad_arguments_are_named():
         scaling.hurst_exponent(z, pixel_size_um=PIXEL_UM, window_px=2, fit_range_um=(2.0, 1.0))
     with pytest.raises(ValueError, match="pixel_size_um"):
         scaling.trustworthy_range_um(z.shape, pixel_size_um=0.0, window_px=2)
+
+
+@pytest.mark.parametrize(
+    ("hurst", "stderr", "why"),
+    [
+        (0.7, 0.03, ""),
+        (-0.102, 0.842, "outside (0, 1)"),  # the profile PSD of a real report, printed without a word
+        (1.23, 0.05, "outside (0, 1)"),
+        (0.001, 0.001, "cannot be told from 0"),  # white noise by h(r)
+        (0.5, 0.2, "standard error above 0.15"),
+        (float("nan"), 0.1, "no finite H"),
+    ],
+)
+def test_an_exponent_outside_zero_to_one_or_too_uncertain_is_not_determinable(hurst, stderr, why):
+    reason = scaling.hurst_validity(hurst, stderr)
+    assert (reason == "") if not why else (reason.startswith("not determinable") and why in reason)
+
+
+def test_white_noise_has_no_determinable_hurst_exponent_by_either_method():
+    z = np.random.default_rng(2).normal(size=(192, 192))
+    fits = scaling.hurst_exponents(z, pixel_size_um=0.5, window_px=1.0)
+    for fit in fits.values():
+        assert fit.not_determinable.startswith("not determinable")
+        assert f"fitted over {fit.fit_min_um:.3g} to {fit.fit_max_um:.3g} µm" in fit.not_determinable
+
+
+def test_a_self_affine_surface_has_a_determinable_hurst_exponent():
+    z = isotropic_self_affine((256, 256), hurst=0.7, seed=3)
+    fit = scaling.hurst_exponent(z, pixel_size_um=1.0, window_px=1.0)
+    assert fit.not_determinable == "" and 0.5 < fit.hurst < 0.9

@@ -235,3 +235,61 @@ def test_a_reconstruction_over_grpc_with_more_than_max_rois_is_refused_naming_ro
     finally:
         server.stop(grace=None)
     assert caught.value.field == "rois" and str(MAX_ROIS) in str(caught.value)
+
+
+def _series_parts(images: dict[str, bytes], roi: dict) -> list:
+    manifest = {"specimen": "series", "rois": [{"id": "overview", **roi}]}
+    return [("manifest", (None, json.dumps(manifest), "application/json"))] + [
+        ("images", (name, content, "image/png")) for name, content in images.items()
+    ]
+
+
+def test_a_tilt_series_is_uploaded_and_what_its_calibration_cannot_take_is_refused(server):
+    """A manifest ROI of three views with "calibrate": true is stored as an upload; a series
+    missing a view, and a pair asked to calibrate its tilts (directly or through matching), are
+    refused naming the manifest's entry."""
+    import io
+
+    from PIL import Image
+
+    from fractoscope import synthetic
+
+    base, _, uploads = server
+    surface = synthetic.self_affine_surface((96, 96), hurst=0.8, rms_um=1.0, seed=3)
+    views, _ = synthetic.render_tilt_series(
+        surface, pixel_size_um=0.1, tilt_deg=(-5.0, 0.0, 5.0), output_shape=(64, 64), seed=3
+    )
+    images = {}
+    for index, view in enumerate(views):
+        encoded = io.BytesIO()
+        Image.fromarray(view).save(encoded, format="PNG")
+        images[f"view{index}.png"] = encoded.getvalue()
+    series = {"images": list(images), "tilt_deg": [-4.5, 0, 4.5], "pixel_size_um": 0.1, "calibrate": True}
+    answer = requests.post(f"{base}/api/uploads", files=_series_parts(images, series), timeout=60)
+    assert answer.status_code == 201 and answer.json()["rois"] == ["overview"], answer.text
+    missing = dict(list(images.items())[:2])
+    _refused(base, _series_parts(missing, series), uploads, "manifest.rois[0].images[2]")
+    pair = {"left": "view0.png", "right": "view2.png", "tilt_deg": [-5, 5], "pixel_size_um": 0.1}
+    only_pair = {name: images[name] for name in ("view0.png", "view2.png")}
+    _refused(base, _series_parts(only_pair, {**pair, "calibrate": True}), uploads, "manifest.rois[0].calibrate")
+    asked = {**pair, "matching": {"calibrate_tilt": True}}
+    _refused(base, _series_parts(only_pair, asked), uploads, "manifest.rois[0].matching.calibrate_tilt")
+
+
+def test_a_reconstruction_over_grpc_of_one_image_or_a_calibrated_pair_is_refused_naming_the_roi(tmp_path):
+    image = matching_pb2.TiltImage(image=common_pb2.ImageFile(content=b"not an image"))
+    server, port = create_server("127.0.0.1:0", data_dir=tmp_path / "data")
+    server.start()
+    try:
+        with FractoscopeClient(f"127.0.0.1:{port}", timeout_s=60) as client:
+            with pytest.raises(ClientError) as one:
+                client.reconstruct_specimen("one", [tiles_pb2.RoiSpec(id="o", images=[image])])
+            calibrated = tiles_pb2.RoiSpec(
+                id="o", images=[image, image], parameters=matching_pb2.MatchingParameters(calibrate_tilt=True)
+            )
+            with pytest.raises(ClientError) as pair:
+                client.reconstruct_specimen("pair", [calibrated])
+    finally:
+        server.stop(grace=None)
+    assert one.value.field == "rois[0].images" and "3 or more" in str(one.value)
+    assert pair.value.field == "rois[0].parameters.calibrate_tilt"

@@ -7,6 +7,7 @@ import argparse
 import contextlib
 import difflib
 import json
+import math
 import os
 import re
 from collections.abc import Iterator
@@ -18,7 +19,7 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from fractoscope import strict_json
 from fractoscope.client import FractoscopeClient
 from fractoscope.errors import InvalidInputError
-from fractoscope.rpc.manifest import image_entry, manifest_field
+from fractoscope.rpc.manifest import image_entry, image_names, manifest_field
 
 err = Console(stderr=True)
 SERVER_HELP = "HOST:PORT of a Fractoscope server (default: FRACTO_SERVER, else in-process)"
@@ -70,6 +71,46 @@ def progress_bar(description: str, enabled: bool):
 def print_json(document) -> None:
     """Prints a --json answer: strict JSON, unknown and infinite numbers null."""
     print(strict_json.dumps(document))
+
+
+def calibrated_tilts(report: dict) -> str:
+    """The tilts a matching report (MatchingReport's fields) estimated, with their sigmas and the
+    nominal tilts they started from, as one line of text; "" when its tilts were not calibrated."""
+    if "tilt_calibration" not in (report.get("tilt_source") or ()):
+        return ""
+    estimated = ", ".join(f"{t:+.3f} ± {s:.3f}" for t, s in zip(report["tilt_deg"], report["tilt_sigma_deg"]))
+    nominal = ", ".join(f"{t:+.2f}" for t in report["tilt_deg_nominal"])
+    return f"tilts estimated {estimated} ° (nominal {nominal}; residual {report['tilt_residual_px']:.3f} px)"
+
+
+def relief_sign_sentence(report: dict) -> str:
+    """Which way up the heights of a matching report (MatchingReport's fields) are and what told
+    it, as one line of text; "" for a report without the verdict."""
+    sign, cue = report.get("relief_sign"), report.get("relief_sign_cue")
+    if not sign:
+        return ""
+    if not report.get("relief_sign_decided"):
+        return f"relief {sign}: as the tilts as given say (the images could not tell the sign)"
+    agreeing = 100 * (1 + report["relief_sign_strength"]) / 2
+    confidence = report["relief_sign_confidence"]
+    told = f"{cue}: {agreeing:.0f} % of the image agrees with the tilts as given, confidence {confidence:.4f}"
+    if sign == "inverted":
+        return f"relief inverted: the heights use the tilts with their signs reversed ({told})"
+    return f"relief {sign} ({told})"
+
+
+def datum_sentence(datum: dict) -> str:
+    """Where height zero is and the figures that say whether it is a measured level, from a datum
+    (surface.datum.Datum.to_dict, or a Datum message as a dict), with its warning."""
+    places = {"plane": "a plane through all heights", "substrate": "the substrate", "region": "the region's plane"}
+    sigma = datum.get("sigma_um")
+    against = f" against a sigma of {sigma:.3g} µm" if sigma is not None and math.isfinite(sigma) else ""
+    sentence = (
+        f"datum: 0 µm on {places.get(datum['level'], datum['level'])}, tilted {datum['tilt_deg']:.2f}°; fitted on "
+        f"{100 * datum['area_fraction']:.1f} % of the map ({100 * datum['measured_fraction']:.0f} % of it measured), "
+        f"residual {datum['residual_rms_um']:.3g} µm RMS{against}"
+    )
+    return sentence + (f"; warning: {datum['warning']}" if datum.get("warning") else "")
 
 
 def existing_file(text: str) -> Path:
@@ -188,7 +229,7 @@ def _manifest_entry(path: Path, field: str) -> str:
     name = None
     if entry:
         try:
-            name = json.loads(path.read_bytes())["rois"][entry[0]][entry[1]]
+            name = image_names(json.loads(path.read_bytes())["rois"][entry[0]])[entry[1]]
         except (OSError, ValueError, LookupError, TypeError, RecursionError):
             pass
     return (

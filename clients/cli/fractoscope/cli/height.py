@@ -14,12 +14,15 @@ from fractoscope.cli.common import (
     PICTURE_SUFFIXES,
     SERVER_HELP,
     UsageError,
+    calibrated_tilts,
     connected,
+    datum_sentence,
     err,
     existing_file,
     output_file,
     print_json,
     progress_bar,
+    relief_sign_sentence,
 )
 from fractoscope.client import FractoscopeClient, HeightMap
 
@@ -58,6 +61,19 @@ def add_parsers(commands) -> None:
         "fast (optical flow refined by window correlation: about StereoSGBM's time at 0.2-0.7 times its error)",
     )
     height.add_argument(
+        "--relief-sign",
+        choices=("auto", "nominal", "inverted"),
+        default="auto",
+        help="which way up the heights are: auto (default: as the images show it where the detector's lighting "
+        "tells it, else as the tilts say, with a warning), nominal (as the tilts as given say) or inverted",
+    )
+    height.add_argument(
+        "--detector-from-tilt-axis-deg",
+        type=float,
+        help="where the secondary-electron detector lies, degrees counter-clockwise from the tilt axis as displayed "
+        "(default 0: the side the axis points to, the top of the image for a vertical axis); nan: not known",
+    )
+    height.add_argument(
         "--propagate-at-full-resolution",
         action="store_true",
         help="let pixels try their neighbours' disparities at full resolution too: for steps (cleavage); "
@@ -73,7 +89,13 @@ def add_parsers(commands) -> None:
         metavar="DATUM",
         help="where height zero is: plane (a plane through all heights), substrate (a plane through the "
         "lowest extensive level, e.g. what a grain lies on) or X0,Y0,X1,Y1 (a plane through that region, µm from "
-        "the image's top-left); default: as measured (arbitrary offset)",
+        "the image's top-left); default: as measured (arbitrary offset). A substrate that is not measured "
+        "over an extensive, flat area gives the plane datum with a warning",
+    )
+    height.add_argument(
+        "--strict-level",
+        action="store_true",
+        help="fail instead when --level substrate finds no measured substrate (nothing is written)",
     )
     height.add_argument(
         "-o", "--output", required=True, help="output .npz with z_um, sigma_um, confidence and the calibration"
@@ -140,6 +162,8 @@ def compute_height(client: FractoscopeClient, args, quiet: bool) -> HeightMap:
             normalize_local_contrast=args.local_contrast,
             propagate_at_full_resolution=args.propagate_at_full_resolution,
             method=args.method.replace("-", "_"),
+            relief_sign=args.relief_sign,
+            detector_from_tilt_axis_deg=args.detector_from_tilt_axis_deg,
             on_progress=advance,
         )
 
@@ -164,7 +188,7 @@ def command_height(args) -> int:
             report["tilt_deg"], tilt_uncertainty_deg=report["tilt_uncertainty_deg"]
         ),
     )
-    result, levelled = _levelled(result, args.level)
+    result, levelled = _levelled(result, args.level, sigma_um=local_sigma_um, strict=args.strict_level)
     write_height_npz(
         out,
         z_um=result.z_um,
@@ -196,18 +220,28 @@ def command_height(args) -> int:
 
 
 def _levelled(
-    result: HeightMap, level: str | tuple[float, float, float, float] | None
+    result: HeightMap,
+    level: str | tuple[float, float, float, float] | None,
+    *,
+    sigma_um: np.ndarray,
+    strict: bool,
 ) -> tuple[HeightMap, Datum | None]:
     """The heights with height zero at `level` (see level_choice; None: as measured), and the
-    datum they were levelled to."""
+    datum they were levelled to, checked against the heights' matching noise `sigma_um` (µm);
+    its warning, if any, printed. `strict`: a substrate that is not found fails (UsageError)."""
     from fractoscope.surface import datum
 
     if level is None:
         return result, None
+    flag = f"--level {level if isinstance(level, str) else ','.join(f'{v:g}' for v in level)}"
     try:
-        z_um, plane = datum.level_heights(result.z_um, pixel_size_um=result.pixel_size_um, level=level)
+        z_um, plane = datum.level_heights(
+            result.z_um, pixel_size_um=result.pixel_size_um, level=level, sigma_um=sigma_um, strict=strict
+        )
     except ValueError as error:
-        raise UsageError(f"--level: {error}") from None
+        raise UsageError(f"{flag}: {error}") from None
+    if plane.warning:
+        print(f"warning: {flag}: {plane.warning}", file=sys.stderr)
     levelled = HeightMap(z_um, result.sigma_um, result.confidence, result.texture, result.pixel_size_um, result.report)
     return levelled, plane
 
@@ -219,11 +253,12 @@ def _print_summary(summary: dict, shape: tuple[int, ...], *, with_tilts: bool) -
         f"{summary['z_max_um']:.3f} µm, {100 * summary['valid_fraction']:.1f} % valid, median sigma "
         f"{summary['median_sigma_um']:.3f} µm"
     )
+    if relief := relief_sign_sentence(summary["report"]):
+        print(relief)
     if with_tilts:
-        report = summary["report"]
-        estimated = ", ".join(f"{t:+.3f} ± {s:.3f}" for t, s in zip(report["tilt_deg"], report["tilt_sigma_deg"]))
-        nominal = ", ".join(f"{t:+.2f}" for t in report["tilt_deg_nominal"])
-        print(f"tilts estimated {estimated} ° (nominal {nominal}; residual {report['tilt_residual_px']:.3f} px)")
+        print(calibrated_tilts(summary["report"]))
+    if summary.get("datum"):
+        print(datum_sentence(summary["datum"]))
 
 
 def matching_parameters(args) -> dict:
@@ -234,6 +269,8 @@ def matching_parameters(args) -> dict:
         "normalize_local_contrast": args.local_contrast,
         "propagate_at_full_resolution": args.propagate_at_full_resolution,
         "tilt_axis_deg": args.tilt_axis_deg,
+        "relief_sign": args.relief_sign,
+        "detector_from_tilt_axis_deg": args.detector_from_tilt_axis_deg,
     }
 
 

@@ -13,7 +13,9 @@ from fractoscope.cli.common import (
     PICTURE_SUFFIXES,
     SERVER_HELP,
     UsageError,
+    calibrated_tilts,
     connected,
+    datum_sentence,
     err,
     existing_file,
     given_pixel_size_um,
@@ -23,6 +25,7 @@ from fractoscope.cli.common import (
     progress_bar,
     recorded_pixel_size_um,
     region_argument,
+    relief_sign_sentence,
 )
 from fractoscope.client.manifest import load_manifest
 from fractoscope.rpc import wire
@@ -130,12 +133,17 @@ def add_parsers(commands) -> None:
     report = specimen_command(
         "report", "the measurement report of an ROI or region: HTML, and PDF with --pdf", command_report
     )
-    report.add_argument("specimen")
+    report.add_argument("source", metavar="SOURCE", help="specimen id, or a .npz height map (fracto height)")
     area = report.add_mutually_exclusive_group()
-    area.add_argument("--roi", help="ROI id (default: the overview)")
-    area.add_argument("--region", type=region_argument, metavar="X0,Y0,X1,Y1", help="region of the fused surface, µm")
+    area.add_argument("--roi", help="ROI id (default: the overview; specimens only)")
+    area.add_argument(
+        "--region", type=region_argument, metavar="X0,Y0,X1,Y1", help="region of the fused surface, µm (specimens only)"
+    )
     report.add_argument("-o", "--output", required=True, metavar="REPORT.html", help="the HTML report")
     report.add_argument("--pdf", metavar="REPORT.pdf", help="also the report as PDF")
+    report.add_argument(
+        "--pixel-size-um", type=float, help="pixel size of an npz map, µm (default: the one it records)"
+    )
 
 
 def command_reconstruct(args) -> int:
@@ -160,6 +168,11 @@ def command_reconstruct(args) -> int:
                 else ""
             )
         )
+        for line in (calibrated_tilts(roi["matching"]), relief_sign_sentence(roi["matching"])):
+            if line:
+                err.print(f"    {line}", markup=False, soft_wrap=True)
+        if roi.get("datum"):
+            err.print(f"    {datum_sentence(roi['datum'])}", markup=False, soft_wrap=True)
     return 0
 
 
@@ -263,10 +276,11 @@ def command_roughness(args) -> int:
     if bias["Sq"] is not None:
         print(f"matching noise inflates Sa by {bias['Sa']:.3g} µm and Sq by {bias['Sq']:.3g} µm")
     for fit in values["hurst"]:
-        print(
-            f"Hurst {fit['method']} {fit['side']:6} ({fit['direction_deg']:g}°): {fit['hurst']:.3f} ± "
-            f"{fit['hurst_stderr']:.3f} (fit {fit['fit_min_um']:.3g} to {fit['fit_max_um']:.3g} µm)"
+        shown = fit.get("not_determinable") or (
+            f"{fit['hurst']:.3f} ± {fit['hurst_stderr']:.3f} "
+            f"(fit {fit['fit_min_um']:.3g} to {fit['fit_max_um']:.3g} µm)"
         )
+        print(f"Hurst {fit['method']} {fit['side']:6} ({fit['direction_deg']:g}°): {shown}")
     if values["hurst_note"]:
         print(values["hurst_note"])
     return 0
@@ -278,8 +292,6 @@ def roughness_of_file(path: Path, chain: dict, *, pixel_size_um: float | None) -
     from fractoscope.formats.height_npz import read_height_npz
     from fractoscope.formats.x3p import read_x3p
     from fractoscope.specimen.queries import ChainRequest, roughness_of_map
-    from fractoscope.stereo import geometry
-    from fractoscope.stereo.inputs import MatchingOptions
     from fractoscope.stereo.matching import DEFAULT_WINDOW_PX
     from fractoscope.tiles.messages import roughness_response
 
@@ -292,18 +304,7 @@ def roughness_of_file(path: Path, chain: dict, *, pixel_size_um: float | None) -
     else:
         stored = read_height_npz(path)
         z_um, file_pixel_um, window_px = stored.z_um.astype(np.float64), stored.pixel_size_um, DEFAULT_WINDOW_PX
-        # The matching noise alone: the chain propagates the tilt part (which scales all heights together) apart.
-        sigma_um = stored.local_sigma_um if stored.local_sigma_um is not None else stored.sigma_um
-        if stored.calibration is not None and stored.local_sigma_um is not None:
-            tilt_uncertainty = stored.record.get("report", {}).get(
-                "tilt_uncertainty_deg", MatchingOptions().tilt_uncertainty_deg
-            )
-            tilt_rel = geometry.series_relative_height_error(
-                stored.calibration.tilt_deg, tilt_uncertainty_deg=tilt_uncertainty
-            )
-        if sigma_um is not None:
-            known = np.isfinite(sigma_um) & np.isfinite(z_um)
-            sigma_um = np.where(known, sigma_um, np.median(sigma_um[known]) if known.any() else 0.0)
+        sigma_um, tilt_rel = _matching_noise(stored)
     pixel_um = pixel_size_um if pixel_size_um is not None else recorded_pixel_size_um(path, file_pixel_um)
     request = ChainRequest(**chain)
     analysis = roughness_of_map(
@@ -316,6 +317,67 @@ def roughness_of_file(path: Path, chain: dict, *, pixel_size_um: float | None) -
         default_window_px=window_px,
     )
     return wire.response_to_roughness(roughness_response(analysis, request))
+
+
+def _matching_noise(stored) -> tuple[np.ndarray | None, float | None]:
+    """The matching noise of a height map file (formats.height_npz.HeightMapFile), µm, on its grid
+    (unknown points: the median), and the relative height error its tilts' uncertainty makes
+    (None: not recorded): the chain propagates the tilt part, which scales all heights together,
+    apart from the noise."""
+    from fractoscope.stereo import geometry
+    from fractoscope.stereo.inputs import MatchingOptions
+
+    sigma_um = stored.local_sigma_um if stored.local_sigma_um is not None else stored.sigma_um
+    tilt_rel = None
+    if stored.calibration is not None and stored.local_sigma_um is not None:
+        tilt_uncertainty = stored.record.get("report", {}).get(
+            "tilt_uncertainty_deg", MatchingOptions().tilt_uncertainty_deg
+        )
+        tilt_rel = geometry.series_relative_height_error(
+            stored.calibration.tilt_deg, tilt_uncertainty_deg=tilt_uncertainty
+        )
+    if sigma_um is not None:
+        known = np.isfinite(sigma_um) & np.isfinite(stored.z_um)
+        sigma_um = np.where(known, sigma_um, np.median(sigma_um[known]) if known.any() else 0.0)
+    return sigma_um, tilt_rel
+
+
+def report_of_file(path: Path, outputs: list[Path], *, pixel_size_um: float | None) -> None:
+    """The measurement report of an npz height map of `fracto height` (its calibration, matching
+    report and noise where it records them), written to each of `outputs` (.html, .pdf): the map
+    is stored as a specimen of one ROI in a temporary data folder and reported as specimens are."""
+    import re
+    import shutil
+    import tempfile
+
+    from fractoscope.formats.height_npz import read_height_npz
+    from fractoscope.report import write_report
+    from fractoscope.specimen.build import store_height_map
+    from fractoscope.specimen.store import SpecimenStore
+
+    stored = read_height_npz(path)
+    sigma_um, tilt_rel = _matching_noise(stored)
+    name = re.sub(r"[^A-Za-z0-9_-]", "-", path.stem)[:64] or "height-map"
+    with tempfile.TemporaryDirectory(prefix="fracto-report-") as folder:
+        specimen = store_height_map(
+            SpecimenStore(Path(folder)),
+            name,
+            stored.z_um,
+            pixel_size_um=pixel_size_um
+            if pixel_size_um is not None
+            else recorded_pixel_size_um(path, stored.pixel_size_um),
+            # The calibration as recorded, where the file keeps no matching report that states it.
+            report={
+                **(stored.calibration.to_report() if stored.calibration else {}),
+                **stored.record.get("report", {}),
+            },
+            sigma_um=sigma_um,
+            tilt_rel_uncertainty=tilt_rel,
+            datum=stored.record.get("datum"),
+        )
+        for output in outputs:
+            written = write_report(specimen, Path(folder), file_format=output.suffix.lower().removeprefix("."))
+            shutil.move(written, output)
 
 
 def command_zoom(args) -> int:
@@ -365,9 +427,19 @@ def command_report(args) -> int:
     outputs = [output_file(args.output, "-o", suffixes=(".html",))]
     if args.pdf:
         outputs.append(output_file(args.pdf, "--pdf", suffixes=(".pdf",)))
-    with connected(args.server, args.data) as client:
-        for path in outputs:
-            client.report(args.specimen, path, roi=args.roi, region_um=args.region)
+    source = Path(args.source)
+    if source.suffix.lower() == ".npz":
+        if args.roi or args.region:
+            raise UsageError("--roi and --region are for specimens; a height map is reported whole")
+        report_of_file(existing_file(args.source), outputs, pixel_size_um=given_pixel_size_um(args.pixel_size_um))
+    elif source.is_file() or source.suffix:
+        raise UsageError(f"{args.source}: give a specimen id or an .npz height map of fracto height")
+    else:
+        if args.pixel_size_um is not None:
+            raise UsageError("--pixel-size-um is for an npz height map; a specimen keeps its pixel sizes")
+        with connected(args.server, args.data) as client:
+            for path in outputs:
+                client.report(args.source, path, roi=args.roi, region_um=args.region)
     if args.json:
         print_json({"outputs": [str(path) for path in outputs]})
     else:

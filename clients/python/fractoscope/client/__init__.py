@@ -95,6 +95,8 @@ class FractoscopeClient(ChannelOwner):
         normalize_local_contrast: bool | None = None,
         propagate_at_full_resolution: bool = False,
         method: str | None = None,
+        relief_sign: str | None = None,
+        detector_from_tilt_axis_deg: float | None = None,
         on_progress: ProgressCallback | None = None,
         request_id: str = "",
     ) -> HeightMap:
@@ -105,7 +107,10 @@ class FractoscopeClient(ChannelOwner):
         (None: the server's default, on) and `propagate_at_full_resolution`: see
         MatchingParameters (against shading that changes with the tilt, and for surfaces with
         steps). `method`: "tgv_zncc", "window_zncc" or "fast" (None: the server's default,
-        tgv_zncc; see MatchingMethod)."""
+        tgv_zncc; see MatchingMethod). `relief_sign`: "auto", "nominal" or "inverted" (None: the
+        server's default, auto; see ReliefSignMode), with where the detector lies,
+        `detector_from_tilt_axis_deg` (° from the tilt axis; None: along it, see MatchingParameters).
+        The report's relief_sign fields give the verdict."""
         files = [
             (image, "") if isinstance(image, bytes) else (Path(image).read_bytes(), Path(image).name)
             for image in images
@@ -126,6 +131,10 @@ class FractoscopeClient(ChannelOwner):
             request.parameters.propagate_at_full_resolution = True
         if method is not None:
             request.parameters.method = _matching_method(method)
+        if relief_sign is not None:
+            request.parameters.relief_sign = _relief_sign_mode(relief_sign)
+        if detector_from_tilt_axis_deg is not None:
+            request.parameters.detector_from_tilt_axis_deg = detector_from_tilt_axis_deg
         with raised_as_client_errors():
             return calls.read_height_map(self._matching.ComputeHeightMap(request, timeout=self._timeout_s), on_progress)
 
@@ -388,3 +397,12 @@ def _matching_method(name: str) -> int:
     except ValueError:
         known = ", ".join(repr(known) for known in wire.method_names())
         raise ValueError(f"method must be one of {known}, got {name!r}") from None
+
+
+def _relief_sign_mode(name: str) -> int:
+    """A relief sign mode's name ("auto", "nominal" or "inverted") as a ReliefSignMode value;
+    ValueError naming `relief_sign` otherwise."""
+    try:
+        return wire.relief_sign_code(name)
+    except ValueError:
+        raise ValueError(f"relief_sign must be one of 'auto', 'nominal', 'inverted', got {name!r}") from None

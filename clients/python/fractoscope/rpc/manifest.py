@@ -3,13 +3,18 @@ Shared by the client (a manifest file, images relative to it) and the HTTP API (
 uploaded with its images).
 
     {"specimen": "steel-42",
-     "rois": [{"id": "overview", "left": "o_l.tif", "right": "o_r.tif", "magnification": 500},
+     "rois": [{"id": "overview", "images": ["o_m5.tif", "o_0.tif", "o_p5.tif"], "tilt_deg": [-5, 0, 5],
+               "calibrate": true, "magnification": 500},
               {"id": "zoom", "left": "z_l.tif", "right": "z_r.tif", "magnification": 2000,
                "parent": "overview", "center_um": "auto", "tilt_deg": [-5, 5], "pixel_size_um": 0.05,
                "tilt_axis_deg": 90, "matching": {"propagate_at_full_resolution": true}}]}
 
-"matching" holds MatchingParameters fields (see the protobuf API) for that ROI's pair. The
-overview may name a "level" ("plane" or "substrate"): where height zero is (RoiSpec.level).
+An ROI is a stereo pair ("left", "right") or a tilt series of three or more images ("images",
+reference first); "tilt_deg" gives one tilt per image. "calibrate": true (series only) estimates
+the tilts from the images, the given or metadata tilts being the start (MatchingParameters'
+calibrate_tilt). "matching" holds MatchingParameters fields (see the protobuf API) for that ROI's
+images. The overview may name a "level" ("plane" or "substrate"): where height zero is
+(RoiSpec.level).
 """
 
 from __future__ import annotations
@@ -30,6 +35,8 @@ _KEYS = {
     "id",
     "left",
     "right",
+    "images",
+    "calibrate",
     "tilt_deg",
     "pixel_size_um",
     "tilt_axis_deg",
@@ -106,26 +113,37 @@ def _refuse_repeated_key(value: dict, where: str) -> None:
         raise InvalidInputError(f"{where}.{value.repeated}", "is given more than once")
 
 
-_ROI_IMAGE_FIELD = re.compile(r"rois\[(\d+)\]\.images\[([01])\](\.image|\.tilt_deg)?")
+_ROI_IMAGE_FIELD = re.compile(r"rois\[(\d+)\]\.images\[(\d+)\](\.image|\.tilt_deg)?")
+_PAIR_SIDES = ("left", "right")
 
 
-def manifest_field(field: str) -> str:
+def manifest_field(field: str, rois: Sequence[tiles_pb2.RoiSpec] = ()) -> str:
     """The manifest entry that a ReconstructSpecimen request's `field` comes from:
-    rois[i].images[0].image is manifest.rois[i].left, rois[i].images[1].tilt_deg is
-    manifest.rois[i].tilt_deg, rois[i].parameters.x is manifest.rois[i].matching.x."""
+    rois[i].images[0].image is manifest.rois[i].left (manifest.rois[i].images[0] for a tilt
+    series: an image index above 1, or an ROI of the request's `rois` with three or more images),
+    rois[i].images[1].tilt_deg is manifest.rois[i].tilt_deg, rois[i].parameters.x is
+    manifest.rois[i].matching.x."""
     image = _ROI_IMAGE_FIELD.fullmatch(field)
     if image:
-        return (
-            f"manifest.rois[{image[1]}].{'tilt_deg' if image[3] == '.tilt_deg' else ('left', 'right')[int(image[2])]}"
-        )
+        roi, view = int(image[1]), int(image[2])
+        if image[3] == ".tilt_deg":
+            return f"manifest.rois[{roi}].tilt_deg"
+        series = view >= len(_PAIR_SIDES) or (roi < len(rois) and len(rois[roi].images) > len(_PAIR_SIDES))
+        return f"manifest.rois[{roi}]." + (f"images[{view}]" if series else _PAIR_SIDES[view])
     return "manifest." + field.replace("].parameters.", "].matching.", 1)
 
 
-def image_entry(field: str) -> tuple[int, str] | None:
-    """(ROI index, "left" or "right"): the manifest's image file that a ReconstructSpecimen
-    request's `field` (rois[i].images[j] or its .image) is about; None for any other field."""
+def image_entry(field: str) -> tuple[int, int] | None:
+    """(ROI index, image index, reference first): the manifest's image file that a
+    ReconstructSpecimen request's `field` (rois[i].images[j] or its .image) is about; None for any
+    other field."""
     image = _ROI_IMAGE_FIELD.fullmatch(field)
-    return (int(image[1]), ("left", "right")[int(image[2])]) if image and image[3] != ".tilt_deg" else None
+    return (int(image[1]), int(image[2])) if image and image[3] != ".tilt_deg" else None
+
+
+def image_names(entry: dict) -> list[str]:
+    """The image files a checked ROI entry names, reference first: its series, or left and right."""
+    return list(entry["images"]) if "images" in entry else [entry[side] for side in _PAIR_SIDES]
 
 
 def _roi(entry, index: int) -> tiles_pb2.RoiSpec:
@@ -137,24 +155,24 @@ def _roi(entry, index: int) -> tiles_pb2.RoiSpec:
     unknown = set(entry) - _KEYS
     if unknown:
         raise InvalidInputError(where, f"unknown keys {sorted(unknown)}; known: {sorted(_KEYS)}")
-    for key in ("id", "left", "right"):
-        if not isinstance(entry.get(key), str):
-            raise InvalidInputError(f"{where}.{key}", "is required (a string)")
+    if not isinstance(entry.get("id"), str):
+        raise InvalidInputError(f"{where}.id", "is required (a string)")
+    names = _image_files(entry, where)
     if not isinstance(entry.get("parent", ""), str):
         raise InvalidInputError(f"{where}.parent", "must be the id of another ROI (a string)")
     tilts = entry.get("tilt_deg")
     if tilts is not None:
-        tilts = _pair(tilts, f"{where}.tilt_deg", "must be two numbers [t1, t2]")
+        tilts = _numbers(tilts, len(names), f"{where}.tilt_deg")
     spec = tiles_pb2.RoiSpec(
         id=entry["id"],
         parent=entry.get("parent", ""),
         magnification=_float(entry.get("magnification", 0.0), f"{where}.magnification"),
     )
-    for side_index, side in enumerate(("left", "right")):
+    for view, name in enumerate(names):
         image = spec.images.add()  # filled in place: nesting a built message would copy the image
-        image.image.filename = entry[side].replace("\\", "/").rsplit("/", 1)[-1]
+        image.image.filename = name.replace("\\", "/").rsplit("/", 1)[-1]
         if tilts is not None:
-            image.tilt_deg = tilts[side_index]
+            image.tilt_deg = tilts[view]
     for key in ("pixel_size_um", "tilt_axis_deg"):
         if key in entry:
             setattr(spec, key, _float(entry[key], f"{where}.{key}"))
@@ -169,7 +187,32 @@ def _roi(entry, index: int) -> tiles_pb2.RoiSpec:
         spec.level = entry["level"]
     if "matching" in entry:
         _matching(entry["matching"], spec.parameters, f"{where}.matching")
+    if entry.get("calibrate", False) is not False:
+        if entry["calibrate"] is not True or len(names) < 3:
+            raise InvalidInputError(
+                f"{where}.calibrate",
+                "must be true or false; true (calibrate the tilts) takes a series of 3 or more images",
+            )
+        spec.parameters.calibrate_tilt = True
     return spec
+
+
+def _image_files(entry: dict, where: str) -> list[str]:
+    """The image files an ROI entry names, reference first: "left" and "right", or "images" (a
+    tilt series of three or more), checked."""
+    if "images" in entry:
+        names = entry["images"]
+        if "left" in entry or "right" in entry:
+            raise InvalidInputError(f"{where}.images", 'give either "left" and "right" (a pair) or "images" (a series)')
+        if not (isinstance(names, list) and len(names) >= 3 and all(isinstance(name, str) for name in names)):
+            raise InvalidInputError(
+                f"{where}.images", "must list 3 or more image files, reference first (a pair: left and right)"
+            )
+        return list(names)
+    for side in _PAIR_SIDES:
+        if not isinstance(entry.get(side), str):
+            raise InvalidInputError(f"{where}.{side}", 'is required (a string), or "images" for a tilt series')
+    return [entry[side] for side in _PAIR_SIDES]
 
 
 def _matching(value, parameters, field: str) -> None:
@@ -195,10 +238,10 @@ def _add_images(
     the bytes counted per ROI exceed `max_image_bytes`."""
     files: dict[str, bytes] = {}
     for index, entry in enumerate(entries):
-        for side in ("left", "right"):
-            if entry[side] not in files:
-                files[entry[side]] = read_image(entry[side], f"manifest.rois[{index}].{side}")
-    carried = sum(len(files[entry[side]]) for entry in entries for side in ("left", "right"))
+        for view, name in enumerate(image_names(entry)):
+            if name not in files:
+                files[name] = read_image(name, manifest_field(f"rois[{index}].images[{view}]", specs))
+    carried = sum(len(files[name]) for entry in entries for name in image_names(entry))
     if max_image_bytes is not None and carried > max_image_bytes:
         raise InvalidInputError(
             "manifest.rois",
@@ -206,8 +249,8 @@ def _add_images(
             f"the build), more than the {max_image_bytes} allowed",
         )
     for spec, entry in zip(specs, entries):
-        for image, side in zip(spec.images, ("left", "right")):
-            image.image.content = files[entry[side]]
+        for image, name in zip(spec.images, image_names(entry)):
+            image.image.content = files[name]
 
 
 def _number(value) -> bool:
@@ -221,6 +264,14 @@ def _float(value, field: str, message: str = "must be a number") -> float:
         return float(value)
     except OverflowError:  # an integer of hundreds of digits
         raise InvalidInputError(field, f"{message}, and this one is too large for a double") from None
+
+
+def _numbers(value, count: int, field: str) -> list[float]:
+    """`count` numbers (one tilt per image), checked."""
+    message = f"must be {count} numbers, one per image"
+    if not (isinstance(value, list) and len(value) == count):
+        raise InvalidInputError(field, message)
+    return [_float(item, field, message) for item in value]
 
 
 def _pair(value, field: str, message: str) -> tuple[float, float]:

@@ -40,7 +40,9 @@ def raster_to_array(raster: common_pb2.Raster, *, field: str = "raster") -> np.n
     if dtype is None:
         raise InvalidInputError(f"{field}.data_type", "must be FLOAT32, UINT8 or UINT16")
     if raster.rows <= 0 or raster.cols <= 0:
-        raise InvalidInputError(field, f"rows and cols must be positive, got {raster.rows} x {raster.cols}")
+        raise InvalidInputError(
+            field, f"rows and cols must be positive, got {raster.cols} x {raster.rows} (cols x rows)"
+        )
     expected = raster.rows * raster.cols * dtype.itemsize
     if len(raster.data) != expected:
         raise InvalidInputError(f"{field}.data", f"holds {len(raster.data)} bytes, expected {expected}")
@@ -58,9 +60,29 @@ def report_to_message(report: dict) -> matching_pb2.MatchingReport:
     """The `report` dict of a height map (keys as in MatchingReport; `parameters` a dict of
     MatchingParameters fields) to its message."""
     fields = {key: report[key] for key in REPORT_FIELDS if key in report}
-    if "parameters" in fields and report.get("method"):  # the parameters as used name the method run
-        fields["parameters"] = {**fields["parameters"], "method": method_code(report["method"])}
+    if "parameters" in fields:
+        parameters = dict(fields["parameters"])
+        if report.get("method"):  # the parameters as used name the method run
+            parameters["method"] = method_code(report["method"])
+        if isinstance(parameters.get("relief_sign"), str):
+            parameters["relief_sign"] = relief_sign_code(parameters["relief_sign"])
+        fields["parameters"] = parameters
     return matching_pb2.MatchingReport(**fields)
+
+
+_RELIEF_SIGN_PREFIX = "RELIEF_SIGN_MODE_"
+
+
+def relief_sign_code(mode: str) -> int:
+    """The ReliefSignMode value of a mode's name ("auto", "nominal" or "inverted"); ValueError for
+    another."""
+    return matching_pb2.ReliefSignMode.Value(f"{_RELIEF_SIGN_PREFIX}{mode.upper()}")
+
+
+def relief_sign_name(code: int) -> str:
+    """A ReliefSignMode value's name ("auto" for UNSPECIFIED); ValueError for an unknown value."""
+    name = matching_pb2.ReliefSignMode.Name(code or matching_pb2.RELIEF_SIGN_MODE_AUTO)
+    return name.removeprefix(_RELIEF_SIGN_PREFIX).lower()
 
 
 _METHOD_PREFIX = "MATCHING_METHOD_"
@@ -225,7 +247,8 @@ def response_to_roughness(response: tiles_pb2.GetRoughnessResponse) -> dict:
     "units", its uncertainty in "uncertainty": {name: {"u_total", "u_tilt", "u_noise"}}), the
     legacy Hurst keys, "chain", "pixel_size_um", "noise_bias" {"Sa", "Sq"}, "tilt_rel_uncertainty",
     "hurst" (one dict per fit: method "hhc" or "psd", side "along" or "across", direction_deg,
-    hurst, hurst_stderr, fit_min_um, fit_max_um, fit_min_windows, scale_um, value, in_fit),
+    hurst, hurst_stderr, fit_min_um, fit_max_um, fit_min_windows, scale_um, value, in_fit,
+    not_determinable: why H is not determinable, "" when it is),
     "hurst_note" and "psd" {"q_per_um", "c_um4"}. Unknown numbers are None."""
     values = {name: _number(getattr(response, field)) for name, field in _ROUGHNESS_FIELDS.items()}
     values |= {parameter.name: _number(parameter.value) for parameter in response.parameters}
@@ -253,6 +276,7 @@ def response_to_roughness(response: tiles_pb2.GetRoughnessResponse) -> dict:
             "scale_um": list(fit.scale_um),
             "value": [_number(v) for v in fit.value],
             "in_fit": list(fit.in_fit),
+            "not_determinable": fit.not_determinable,
         }
         for fit in response.hurst_fits
     ]
