@@ -100,7 +100,7 @@ class ReliefSign:
         return 1.0 - self.p_value
 
 
-def undetermined(reason: str) -> ReliefSign:
+def _undetermined(reason: str) -> ReliefSign:
     """A verdict that decides nothing, for `reason`."""
     return ReliefSign(False, False, "none", 0.0, 0, 1.0, reason)
 
@@ -112,9 +112,9 @@ def relief_sign_from_shading(image: np.ndarray, z_px: np.ndarray, *, detector_az
     displayed; both arrays turned so that the tilt axis runs along the columns)."""
     towards_top = float(np.sin(np.radians(detector_azimuth_deg)))
     if not np.isfinite(towards_top):
-        return undetermined("the detector's side in the image is not known")
+        return _undetermined("the detector's side in the image is not known")
     if abs(towards_top) < _MIN_OFF_TILT_DIRECTION:
-        return undetermined("the detector lies along the tilt direction, where its lighting and the tilt's look alike")
+        return _undetermined("the detector lies along the tilt direction, where its lighting and the tilt's look alike")
     coefficients = _block_row_slope_coefficients(image, z_px)
     # A facet rising towards larger rows leans its normal towards the top of the image: facing
     # a detector at the top, it is the brighter the steeper it rises.
@@ -122,7 +122,7 @@ def relief_sign_from_shading(image: np.ndarray, z_px: np.ndarray, *, detector_az
     disagreeing = int(np.sum(coefficients * towards_top < 0))
     votes = agreeing + disagreeing
     if votes < MIN_BLOCKS:
-        return undetermined(f"too little of the image has heights ({votes} blocks of {MIN_BLOCKS} needed)")
+        return _undetermined(f"too little of the image has heights ({votes} blocks of {MIN_BLOCKS} needed)")
     p_value = float(binomtest(agreeing, votes, 0.5).pvalue)
     strength = (agreeing - disagreeing) / votes
     decided = p_value < DECISIVE_P_VALUE and abs(strength) >= MIN_STRENGTH

@@ -162,7 +162,7 @@ def _roi(entry, index: int) -> tiles_pb2.RoiSpec:
         raise InvalidInputError(f"{where}.parent", "must be the id of another ROI (a string)")
     tilts = entry.get("tilt_deg")
     if tilts is not None:
-        tilts = _numbers(tilts, len(names), f"{where}.tilt_deg")
+        tilts = _numbers(tilts, len(names), f"{where}.tilt_deg", f"must be {len(names)} numbers, one per image")
     spec = tiles_pb2.RoiSpec(
         id=entry["id"],
         parent=entry.get("parent", ""),
@@ -178,7 +178,7 @@ def _roi(entry, index: int) -> tiles_pb2.RoiSpec:
             setattr(spec, key, _float(entry[key], f"{where}.{key}"))
     centre = entry.get("center_um", "auto")
     if centre != "auto":
-        x_um, y_um = _pair(centre, f"{where}.center_um", 'must be [x, y] in µm or "auto"')
+        x_um, y_um = _numbers(centre, 2, f"{where}.center_um", 'must be [x, y] in µm or "auto"')
         spec.center_um.CopyFrom(common_pb2.PointUm(x_um=x_um, y_um=y_um))
     if "level" in entry:
         # Its value is checked where it is used (tiles.messages.roi_request), whose errors name it too.
@@ -208,11 +208,11 @@ def _image_files(entry: dict, where: str) -> list[str]:
             raise InvalidInputError(
                 f"{where}.images", "must list 3 or more image files, reference first (a pair: left and right)"
             )
-        return list(names)
-    for side in _PAIR_SIDES:
-        if not isinstance(entry.get(side), str):
-            raise InvalidInputError(f"{where}.{side}", 'is required (a string), or "images" for a tilt series')
-    return [entry[side] for side in _PAIR_SIDES]
+    else:
+        for side in _PAIR_SIDES:
+            if not isinstance(entry.get(side), str):
+                raise InvalidInputError(f"{where}.{side}", 'is required (a string), or "images" for a tilt series')
+    return image_names(entry)
 
 
 def _matching(value, parameters, field: str) -> None:
@@ -266,15 +266,8 @@ def _float(value, field: str, message: str = "must be a number") -> float:
         raise InvalidInputError(field, f"{message}, and this one is too large for a double") from None
 
 
-def _numbers(value, count: int, field: str) -> list[float]:
-    """`count` numbers (one tilt per image), checked."""
-    message = f"must be {count} numbers, one per image"
+def _numbers(value, count: int, field: str, message: str) -> list[float]:
+    """A list of `count` numbers, checked; InvalidInputError(field, message) otherwise."""
     if not (isinstance(value, list) and len(value) == count):
         raise InvalidInputError(field, message)
     return [_float(item, field, message) for item in value]
-
-
-def _pair(value, field: str, message: str) -> tuple[float, float]:
-    if not (isinstance(value, list) and len(value) == 2):
-        raise InvalidInputError(field, message)
-    return _float(value[0], field, message), _float(value[1], field, message)
