@@ -29,6 +29,10 @@ TOOLS := .tools
 KUBECONFORM := $(TOOLS)/bin/kubeconform
 KUSTOMIZE := $(TOOLS)/bin/kustomize
 KUBE_SCHEMAS := $(TOOLS)/kubernetes-schemas/.written
+# SeaweedFS, the S3 server of the store tests (tests/s3_server.py): its replace directives rule out
+# `go install`, so it is built inside its downloaded module.
+WEED := $(TOOLS)/bin/weed
+SEAWEEDFS := github.com/seaweedfs/seaweedfs@v0.0.0-20261109003541-7506e5f91cd6
 
 .PHONY: install proto run test bench load lint clean
 
@@ -84,12 +88,16 @@ $(GHZ):
 $(KUSTOMIZE):
 	GOBIN=$(abspath $(TOOLS)/bin) go install sigs.k8s.io/kustomize/kustomize/v5@v5.5.0
 
+$(WEED):
+	dir=$$(go mod download -json $(SEAWEEDFS) | $(PYTHON) -c 'import json, sys; print(json.load(sys.stdin)["Dir"])'); \
+	cd "$$dir" && go build -o $(abspath $@) ./weed
+
 $(KUBE_SCHEMAS): deploy/kubernetes_schemas.py
 	$(PYTHON) deploy/kubernetes_schemas.py $(dir $@) --version v1.31.0
 	touch $@
 
 ## test: the whole test suite
-test: install $(CHROMIUM) $(PDFTOPPM) $(KUBECONFORM) $(KUSTOMIZE) $(KUBE_SCHEMAS)
+test: install $(CHROMIUM) $(PDFTOPPM) $(KUBECONFORM) $(KUSTOMIZE) $(KUBE_SCHEMAS) $(WEED)
 	$(MAKE) --no-print-directory lint
 	$(BIN)/python -m pytest -q
 
@@ -97,6 +105,9 @@ test: install $(CHROMIUM) $(PDFTOPPM) $(KUBECONFORM) $(KUSTOMIZE) $(KUBE_SCHEMAS
 bench: install $(WRK) $(GHZ)
 	$(BIN)/python -m benchmarks.matching --out bench-results
 	$(BIN)/python -m benchmarks.accuracy --out bench-results
+	$(BIN)/python -m benchmarks.renderers --out bench-results
+	$(BIN)/python -m benchmarks.sigma_calibration --out bench-results
+	$(BIN)/python -m benchmarks.views --out bench-results
 	$(BIN)/python -m benchmarks.relief_sign --out bench-results
 	$(BIN)/python -m benchmarks.meshing --out bench-results
 	$(BIN)/python -m benchmarks.exports --out bench-results

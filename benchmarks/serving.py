@@ -32,6 +32,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import grpc
@@ -229,6 +230,15 @@ def _ghz(arguments: list[str], cpus) -> dict:
     }
 
 
+def measured(phase: Callable[[], dict]) -> dict:
+    """A phase's figures, or {"failed": what went wrong} when it raised: one failed phase (a load
+    tool that died, a server that stopped answering) is reported, never the end of the run."""
+    try:
+        return phase()
+    except Exception as error:  # any failure of the phase is its result
+        return {"failed": f"{type(error).__name__}: {error}"}
+
+
 def mixed(address: str, base_url: str, tile_paths: list[str], rois: list, *, server_pid: int, load: dict) -> dict:
     """Builds, tile reads over HTTP and health checks together for `load["duration_s"]` (see the
     module's docstring); the figures of each and the server's memory."""
@@ -258,10 +268,17 @@ def mixed(address: str, base_url: str, tile_paths: list[str], rois: list, *, ser
     builders = [threading.Thread(target=builder, args=(index,)) for index in range(BUILDERS)]
     figures = {}
     readers = [
-        threading.Thread(target=lambda: figures.__setitem__("http_get_tile", http_tiles(base_url, tile_paths, **load))),
         threading.Thread(
             target=lambda: figures.__setitem__(
-                "health", health_checks(address, duration_s=duration_s, cpus=load["cpus"], scratch=load["scratch"])
+                "http_get_tile", measured(lambda: http_tiles(base_url, tile_paths, **load))
+            )
+        ),
+        threading.Thread(
+            target=lambda: figures.__setitem__(
+                "health",
+                measured(
+                    lambda: health_checks(address, duration_s=duration_s, cpus=load["cpus"], scratch=load["scratch"])
+                ),
             )
         ),
     ]
@@ -359,7 +376,7 @@ def main() -> None:
         http_tiles(base_url, tile_paths, **{**load, "duration_s": 3})  # warms the endpoint's cache (gzip of every tile)
         for name, phase in phases.items():
             with MemorySampler(server.pid) as memory:
-                results[name] = phase()
+                results[name] = measured(phase)
             results[name]["server_rss_mb"] = memory.summary()
         results["mixed"] = mixed(address, base_url, tile_paths, rois, server_pid=server.pid, load=load)
         with FractoscopeClient(address, timeout_s=600) as client:
@@ -368,7 +385,7 @@ def main() -> None:
         server.terminate()
         server.wait(timeout=30)
     try:
-        results["grpc_get_tile_bare_server"] = _bare_server_floor(tile_bytes, load, server_cpus)
+        results["grpc_get_tile_bare_server"] = measured(lambda: _bare_server_floor(tile_bytes, load, server_cpus))
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
     out = Path(args.out)
@@ -385,6 +402,9 @@ def main() -> None:
     )
     for name in [*phases, "grpc_get_tile_bare_server"]:
         row = results[name]
+        if "failed" in row:
+            print(f"{name:14} FAILED: {row['failed']}")
+            continue
         memory = row["server_rss_mb"]
         print(
             f"{name:14} {row['tool']:>5} {row['requests_per_s']:8.0f} {row['p50_ms']:8.2f} {row['p99_ms']:8.2f} "
@@ -392,15 +412,24 @@ def main() -> None:
         )
     mixed_row = results["mixed"]
     tiles, health = mixed_row["http_get_tile"], mixed_row["health"]
+    for name, row in (("tiles", tiles), ("health checks", health)):
+        if "failed" in row:
+            print(f"mixed, {name} FAILED: {row['failed']}")
+    if "failed" not in tiles and "failed" not in health:
+        _print_mixed(mixed_row, args.duration_s)
+    print(f"written to {out / (args.name + '.json')}")
+
+
+def _print_mixed(mixed_row: dict, duration_s: float) -> None:
+    tiles, health = mixed_row["http_get_tile"], mixed_row["health"]
     print(
-        f"mixed, {args.duration_s:g} s: {mixed_row['builds']} builds by {BUILDERS} clients, "
+        f"mixed, {duration_s:g} s: {mixed_row['builds']} builds by {BUILDERS} clients, "
         f"{mixed_row['builds_refused']} refused (RESOURCE_EXHAUSTED), {len(mixed_row['build_errors'])} failed; tiles "
         f"{tiles['requests_per_s']:.0f}/s at p99 {tiles['p99_ms']:.1f} ms, {tiles['errors']} errors; health p99 "
         f"{health['p99_ms']:.1f} ms, slowest {health['max_ms']:.1f} ms, {health['errors']} errors; server memory max "
         f"{mixed_row['server_rss_mb']['max']:.0f} MB sampled, {mixed_row['server_peak_mb']:.0f} MB peak of the whole "
         "run"
     )
-    print(f"written to {out / (args.name + '.json')}")
 
 
 def _bare_server_floor(tile_bytes: int, load: dict, server_cpus) -> dict:

@@ -7,11 +7,13 @@ from dataclasses import dataclass
 from html.parser import HTMLParser
 from pathlib import Path
 
+import cv2
 import meshoptimizer
 import numpy as np
 import pygltflib
 import pytest
 import tifffile
+from s3_server import s3_endpoint, s3_objects  # noqa: F401 - fixtures: a real S3 server for the store tests
 
 from fractoscope import synthetic
 from fractoscope.client import FractoscopeClient
@@ -283,3 +285,27 @@ class ReportNumbers(HTMLParser):
 
     def handle_data(self, data):
         self.text.append(data)
+
+
+def glb_texture(glb: bytes) -> np.ndarray:
+    """The grey texture image of a GLB."""
+    gltf = pygltflib.GLTF2.load_from_bytes(glb)
+    view = gltf.bufferViews[gltf.images[0].bufferView]
+    data = gltf.binary_blob()[view.byteOffset : view.byteOffset + view.byteLength]
+    return cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE)
+
+
+def tile_seams_grey_levels(data: Path) -> list[int]:
+    """The largest grey difference along each shared border of neighbouring tiles of one level of
+    a stored specimen's folder `data`."""
+    tiles = {tuple(int(p) for p in path.with_suffix("").parts[-3:]): path for path in data.glob("tiles/*/*/*.glb")}
+    worst = []
+    for (level, col, row), path in tiles.items():
+        for neighbour, mine, theirs in (
+            ((level, col + 1, row), np.s_[:, -1], np.s_[:, 0]),
+            ((level, col, row + 1), np.s_[-1], np.s_[0]),
+        ):
+            if neighbour in tiles:
+                a, b = glb_texture(path.read_bytes())[mine], glb_texture(tiles[neighbour].read_bytes())[theirs]
+                worst.append(int(np.abs(a.astype(int) - b).max()))
+    return worst

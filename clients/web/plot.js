@@ -12,6 +12,14 @@ export function niceTicks(low, high, count = 5) {
   return ticks;
 }
 
+// A number with `significant` digits ("2.0"), never in exponent form between 1e-6 and 1e21: toPrecision
+// writes 120 to two digits as "1.2e+2", which becomes "120".
+export function formatNumber(value, significant = 3) {
+  if (value === null || value === undefined || !Number.isFinite(value)) return "–";
+  const text = value.toPrecision(significant);
+  return text.includes("e") ? String(+text) : text;
+}
+
 // A length or height in µm with as many decimals as its size asks for.
 export function formatUm(value, digits = 3) {
   if (value === null || !Number.isFinite(value)) return "–";

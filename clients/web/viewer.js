@@ -3,12 +3,13 @@
 // the roughness of the view, and keeps its state in a permalink.
 // Tileset frame (3D Tiles, Z up, metres): x = specimen x, y = -specimen y, z = height.
 import * as THREE from "three";
-import { OrbitControls } from "three/addons/controls/OrbitControls.js";
 import { MeshoptDecoder } from "three/addons/libs/meshopt_decoder.module.js";
 import { TilesRenderer } from "3d-tiles-renderer";
 import { GLTFExtensionsPlugin } from "3d-tiles-renderer/plugins";
+import { VIEWS, ViewCamera } from "./camera.js";
 import { Measurements } from "./measure.js";
-import { formatUm, niceTicks } from "./plot.js";
+import { formatNumber, formatUm, niceTicks } from "./plot.js";
+import { SpecimenList } from "./specimens.js";
 import { MAX_ROIS, RAMP, isWallMesh, lightDirection, rampGradient, sharedUniforms, surfaceMaterial } from "./surface.js";
 
 const METRES_PER_UM = 1e-6;
@@ -29,13 +30,34 @@ renderer.setPixelRatio(window.devicePixelRatio);
 view.appendChild(renderer.domElement);
 const scene = new THREE.Scene();
 scene.background = new THREE.Color(0x111111);
-const camera = new THREE.PerspectiveCamera(45, 1, 1e-9, 10);
-camera.up.set(0, 0, 1);
-const controls = new OrbitControls(camera, renderer.domElement);
-controls.screenSpacePanning = true;
+// The tiles follow whichever camera is shown: one at a time, so nothing is loaded for the other.
+const cameras = new ViewCamera(renderer.domElement, (camera) => {
+  if (tiles) {
+    for (const other of [cameras.perspective, cameras.orthographic]) tiles.deleteCamera(other);
+    tiles.setCamera(camera);
+    tiles.setResolutionFromRenderer(camera, renderer);
+  }
+  $("projection").value = cameras.isOrthographic ? "orthographic" : "perspective";
+  updatePermalink();
+  requestRender();
+});
 const uniforms = sharedUniforms();
 const overlay = new THREE.Group(); // measurement lines and markers, in the tileset frame
 scene.add(overlay);
+
+// 3DTilesRendererJS warns on every 3D Tiles 1.1 tileset that it supports 1.1 in part; ours use of
+// 1.1 only tile metadata (the zoom kind), which it reads, so that one warning is left out.
+class SpecimenTiles extends TilesRenderer {
+  preprocessTileset(json, ...rest) {
+    const warn = console.warn;
+    console.warn = (message, ...more) => String(message).includes("versions at 1.1") || warn(message, ...more);
+    try {
+      super.preprocessTileset(json, ...rest);
+    } finally {
+      console.warn = warn;
+    }
+  }
+}
 
 let tiles = null;
 let specimen = null; // {id, rois, level, pixelSizeUm, heightRangeUm}
@@ -48,15 +70,14 @@ const measurements = new Measurements({
   elements: { hint: $("tool-hint"), list: $("measurements"), plot: $("profile-plot") },
 });
 window.viewer.measurements = measurements;
-window.viewer.debug = { camera, controls }; // for the browser tests
+window.viewer.debug = { get camera() { return cameras.camera; }, get controls() { return cameras.controls; }, cameras }; // for the browser tests
 
 function resize() {
   const { clientWidth: width, clientHeight: height } = view;
   renderer.setSize(width, height);
-  camera.aspect = width / height;
-  camera.updateProjectionMatrix();
+  cameras.setAspect(width / height);
   measurements.setResolution(width, height);
-  if (tiles) tiles.setResolutionFromRenderer(camera, renderer);
+  if (tiles) tiles.setResolutionFromRenderer(cameras.camera, renderer);
   requestRender();
 }
 window.addEventListener("resize", resize);
@@ -75,7 +96,7 @@ function applyDisplay() {
   $("light-azimuth-value").textContent = `${value("light-azimuth")}°`;
   $("light-elevation-value").textContent = `${value("light-elevation")}°`;
   $("lighting-value").textContent = value("lighting").toFixed(2);
-  $("exaggeration-value").textContent = `${exaggeration.toPrecision(exaggeration < 10 ? 2 : 3)}`;
+  $("exaggeration-value").textContent = exaggeration.toFixed(1);
   $("legend").innerHTML = uniforms.shadeZoom.value
     ? '<span class="swatch" style="background:#7f7"></span>optical zoom (measured) &nbsp; <span class="swatch" style="background:#f96"></span>digital zoom (upsampled)'
     : "";
@@ -127,13 +148,13 @@ async function open(id, state = {}) {
     pixelSizeUm: Math.min(...summary.rois.map((roi) => roi.pixel_size_um)), heightRangeUm: [0, 1],
   };
   setRoiOutlines(summary.rois);
-  tiles = new TilesRenderer(`/specimens/${id}/tileset.json`);
+  tiles = new SpecimenTiles(`/specimens/${id}/tileset.json`);
   tiles.fetchOptions.headers = authorization;
   // Tiles are meshoptimizer-compressed (EXT_meshopt_compression).
   tiles.registerPlugin(new GLTFExtensionsPlugin({ meshoptDecoder: MeshoptDecoder }));
   tiles.errorTarget = ERROR_TARGET_PX;
-  tiles.setCamera(camera);
-  tiles.setResolutionFromRenderer(camera, renderer);
+  tiles.setCamera(cameras.camera);
+  tiles.setResolutionFromRenderer(cameras.camera, renderer);
   tiles.addEventListener("load-tileset", () => {
     if (status.tilesetLoaded) return;
     status.tilesetLoaded = true;
@@ -142,17 +163,9 @@ async function open(id, state = {}) {
     uniforms.heightRange.value.set(box[2] - box[11], box[2] + box[11]);
     const sphere = new THREE.Sphere();
     tiles.getBoundingSphere(sphere);
-    camera.near = sphere.radius * 1e-3;
-    camera.far = sphere.radius * 20;
-    if (state.camera) {
-      const [x, y, z, tx, ty, tz] = state.camera.map((v) => v * METRES_PER_UM);
-      camera.position.set(x, -y, z);
-      controls.target.set(tx, -ty, tz);
-    } else {
-      frameOverview();
-    }
-    camera.updateProjectionMatrix();
-    controls.update();
+    cameras.setExtent(sphere.radius);
+    if (state.camera) cameras.decode(state.camera, state.orthographicHalfUm ?? null);
+    else frameOverview(VIEWS.start);
     updateColourBar();
     if (state.measurements) measurements.decode(state.measurements);
   });
@@ -180,23 +193,23 @@ async function open(id, state = {}) {
     }
   });
   scene.add(tiles.group);
-  $("scale-bar").hidden = false;
+  list.select(id);
   applyDisplay();
   const overview = summary.rois[0];
   setStatus(`specimen ${id}: ${summary.rois.length} ROI; overview ${overview.id}` + (overview.magnification ? ` at ${overview.magnification}×` : "")
-    + `, ${+overview.pixel_size_um.toPrecision(3)} µm/px` + (specimen.level ? `; heights from the ${specimen.level}` : ""));
+    + `, ${formatNumber(overview.pixel_size_um)} µm/px` + (specimen.level ? `; heights from the ${specimen.level}` : ""));
 }
 
-// Looks at the overview ROI from above and a little to the front, all of it in the view.
-function frameOverview() {
+// Looks at the overview ROI from `direction` (VIEWS), all of it in the view.
+function frameOverview(direction) {
   const { min, max } = specimen.rois[0].region;
   const [low, high] = specimen.heightRangeUm;
   const centre = new THREE.Vector3((min.x_um + max.x_um) / 2, -(min.y_um + max.y_um) / 2, (low + high) / 2).multiplyScalar(METRES_PER_UM);
   const halfWidth = ((max.x_um - min.x_um) / 2) * METRES_PER_UM;
   const halfHeight = ((max.y_um - min.y_um) / 2) * METRES_PER_UM;
-  const distance = (1.15 * Math.max(halfHeight, halfWidth / camera.aspect)) / Math.tan(THREE.MathUtils.degToRad(camera.fov / 2));
-  controls.target.copy(centre);
-  camera.position.copy(centre).add(new THREE.Vector3(0, -0.18, 0.98).multiplyScalar(distance));
+  cameras.frame(centre, halfWidth, halfHeight, direction);
+  updatePermalink();
+  requestRender();
 }
 
 function setRoiOutlines(rois) {
@@ -209,7 +222,7 @@ function setRoiOutlines(rois) {
   });
   $("roi-labels").replaceChildren(...shown.map((roi) => {
     const label = document.createElement("span");
-    label.textContent = `${roi.id}${roi.magnification ? ` · ${roi.magnification}×` : ""} · ${+roi.pixel_size_um.toPrecision(3)} µm/px`;
+    label.textContent = `${roi.id}${roi.magnification ? ` · ${roi.magnification}×` : ""} · ${formatNumber(roi.pixel_size_um)} µm/px`;
     label.dataset.x = roi.region.min.x_um;
     label.dataset.y = roi.region.min.y_um;
     return label;
@@ -220,7 +233,7 @@ function updateRoiLabels() {
   const top = specimen ? specimen.heightRangeUm[1] : 0;
   const exaggeration = overlay.scale.z;
   for (const label of $("roi-labels").children) {
-    const point = new THREE.Vector3(label.dataset.x * METRES_PER_UM, -label.dataset.y * METRES_PER_UM, top * METRES_PER_UM * exaggeration).project(camera);
+    const point = new THREE.Vector3(label.dataset.x * METRES_PER_UM, -label.dataset.y * METRES_PER_UM, top * METRES_PER_UM * exaggeration).project(cameras.camera);
     const visible = point.z < 1 && Math.abs(point.x) < 1 && Math.abs(point.y) < 1;
     label.style.display = visible ? "" : "none";
     label.style.left = `${((point.x + 1) / 2) * view.clientWidth}px`;
@@ -234,11 +247,14 @@ function niceLength(metres) {
 }
 
 function updateScaleBar() {
-  const distance = camera.position.distanceTo(controls.target);
-  const metresPerPixel = (2 * distance * Math.tan(THREE.MathUtils.degToRad(camera.fov / 2))) / view.clientHeight;
+  // Only where a length on screen is one on the specimen; elsewhere a bar would lie.
+  const metresPerPixel = specimen ? cameras.trueMetresPerPixel(view.clientHeight) : null;
+  $("scale-bar").hidden = metresPerPixel === null;
+  $("scale-hint").hidden = !specimen || metresPerPixel !== null;
+  if (metresPerPixel === null) return;
   const length = niceLength(metresPerPixel * 150);
   $("scale-line").style.width = `${length / metresPerPixel}px`;
-  $("scale-label").textContent = `${+(length / METRES_PER_UM).toPrecision(3)} µm`;
+  $("scale-label").textContent = `${+formatNumber(length / METRES_PER_UM)} µm`;
 }
 
 // Tiles' progress: what is shown, loading and failed, and whether the view has settled.
@@ -257,8 +273,8 @@ function updateProgress() {
 
 function frame() {
   requestAnimationFrame(frame);
-  controls.update();
-  camera.updateMatrixWorld();
+  cameras.controls.update();
+  cameras.camera.updateMatrixWorld();
   if (tiles) {
     tiles.group.updateMatrixWorld();
     uniforms.toTileset.value.copy(tiles.group.matrixWorld).invert();
@@ -269,7 +285,7 @@ function frame() {
   needsRender = false;
   updateScaleBar();
   updateRoiLabels();
-  renderer.render(scene, camera);
+  renderer.render(scene, cameras.camera);
 }
 
 // The surface point under a pointer event: specimen µm (x right, y down) and the shown height.
@@ -280,7 +296,7 @@ function surfacePoint(event) {
   for (const [dx, dy] of [[0, 0], [0.5, 0], [-0.5, 0], [0, 0.5], [0, -0.5]]) {
     const x = event.clientX + dx - bounds.left;
     const y = event.clientY + dy - bounds.top;
-    caster.setFromCamera(new THREE.Vector2((x / bounds.width) * 2 - 1, -(y / bounds.height) * 2 + 1), camera);
+    caster.setFromCamera(new THREE.Vector2((x / bounds.width) * 2 - 1, -(y / bounds.height) * 2 + 1), cameras.camera);
     const hit = caster.intersectObject(tiles.group, true).find((h) => !isWallMesh(h.object));
     if (hit) {
       const local = hit.point.clone().applyMatrix4(uniforms.toTileset.value);
@@ -291,10 +307,9 @@ function surfacePoint(event) {
 }
 
 async function measureRoughness() {
-  const distance = camera.position.distanceTo(controls.target);
-  const halfHeight = distance * Math.tan(THREE.MathUtils.degToRad(camera.fov / 2));
-  const halfWidth = halfHeight * camera.aspect;
-  const [cx, cy] = [controls.target.x / METRES_PER_UM, -controls.target.y / METRES_PER_UM];
+  const halfHeight = cameras.halfHeight();
+  const halfWidth = halfHeight * cameras.aspect;
+  const [cx, cy] = [cameras.controls.target.x / METRES_PER_UM, -cameras.controls.target.y / METRES_PER_UM];
   const [hx, hy] = [halfWidth / METRES_PER_UM, halfHeight / METRES_PER_UM];
   const form = $("roughness-form").value;
   const response = await api(`/api/specimens/${specimen.id}/roughness?region=${cx - hx},${cy - hy},${cx + hx},${cy + hy}&form=${form}`);
@@ -307,7 +322,7 @@ function describeRoughness(result) {
   // Each value with its standard uncertainty where known, then the chain that produced them.
   const withUncertainty = (name, digits, unit) => {
     const u = result.uncertainty[name]?.u_total;
-    return `${name} ${result[name].toFixed(digits)}${u == null ? "" : ` ± ${u.toPrecision(2)}`} ${unit}`;
+    return `${name} ${result[name].toFixed(digits)}${u == null ? "" : ` ± ${formatNumber(u, 2)}`} ${unit}`;
   };
   const chain = result.chain;
   const filters = [["λs", chain.s_filter_um], ["λc", chain.l_filter_um]].filter(([, v]) => v).map(([n, v]) => `${n} ${v} µm`);
@@ -315,11 +330,11 @@ function describeRoughness(result) {
   const lines = [
     `${withUncertainty("Sa", 3, "µm")}, ${withUncertainty("Sq", 3, "µm")}, ${withUncertainty("Sdr", 2, "%")}`,
     hurst
-      ? `Hurst ${hurst.hurst.toFixed(2)} ± ${hurst.hurst_stderr.toFixed(2)} (h(r), ${hurst.fit_min_um.toPrecision(2)}–${hurst.fit_max_um.toPrecision(2)} µm)`
+      ? `Hurst ${hurst.hurst.toFixed(2)} ± ${hurst.hurst_stderr.toFixed(2)} (h(r), ${formatNumber(hurst.fit_min_um, 2)}–${formatNumber(hurst.fit_max_um, 2)} µm)`
       : result.hurst_note,
-    `chain: form ${chain.form}, ${filters.length ? filters.join(", ") : "no filters"}, ${result.pixel_size_um.toPrecision(3)} µm/px`,
+    `chain: form ${chain.form}, ${filters.length ? filters.join(", ") : "no filters"}, ${formatNumber(result.pixel_size_um)} µm/px`,
   ];
-  if (result.noise_bias.Sq != null) lines.push(`noise adds ${result.noise_bias.Sq.toPrecision(2)} µm to Sq`);
+  if (result.noise_bias.Sq != null) lines.push(`noise adds ${formatNumber(result.noise_bias.Sq, 2)} µm to Sq`);
   return lines.join("\n");
 }
 
@@ -344,9 +359,11 @@ async function busy(button, work) {
 function permalink() {
   const url = new URL(location.href);
   const params = url.searchParams;
-  const round = (v) => +(v / METRES_PER_UM).toFixed(3);
   params.set("specimen", specimen?.id ?? "");
-  params.set("camera", [camera.position.x, -camera.position.y, camera.position.z, controls.target.x, -controls.target.y, controls.target.z].map(round).join(","));
+  const { camera, orthographic } = cameras.encode();
+  params.set("camera", camera.join(","));
+  if (orthographic === null) params.delete("orthographic");
+  else params.set("orthographic", orthographic);
   params.set("colouring", uniforms.colouring.value ? "height" : "texture");
   params.set("light", [$("light-azimuth").value, $("light-elevation").value, $("lighting").value].join(","));
   params.set("exaggeration", $("exaggeration").value);
@@ -375,47 +392,63 @@ function applyState(params) {
   const cameraValues = (params.get("camera") || "").split(",").map(Number);
   return {
     camera: cameraValues.length === 6 && cameraValues.every(Number.isFinite) ? cameraValues : null,
+    orthographicHalfUm: Number(params.get("orthographic")) > 0 ? Number(params.get("orthographic")) : null,
     measurements: params.get("measurements"),
   };
 }
 
-// The view as a PNG, with the colour bar, the scale bar and the legend drawn into it.
+// The view as a PNG, with the overlays drawn into it where the page shows them (each text moved
+// inside the picture where it would reach past its edge). Its texts and their boxes (CSS px) go to
+// window.viewer.snapshotTexts.
 function snapshot() {
   const canvas = document.createElement("canvas");
   const source = renderer.domElement;
   [canvas.width, canvas.height] = [source.width, source.height];
   const context = canvas.getContext("2d");
-  const ratio = source.width / view.clientWidth;
   context.drawImage(source, 0, 0);
-  context.scale(ratio, ratio);
-  context.font = "13px system-ui, sans-serif";
-  context.fillStyle = "#fff";
-  context.shadowColor = "#000";
-  context.shadowBlur = 3;
-  const line = $("scale-line").getBoundingClientRect();
+  context.scale(source.width / view.clientWidth, source.width / view.clientWidth);
+  Object.assign(context, { font: "13px system-ui, sans-serif", fillStyle: "#fff", shadowColor: "#000", shadowBlur: 3 });
   const origin = view.getBoundingClientRect();
-  context.fillRect(line.left - origin.left, line.top - origin.top, line.width, line.height);
-  context.fillText($("scale-label").textContent, line.left - origin.left, line.bottom - origin.top + 16);
-  if (!$("colour-bar").hidden) {
-    const ramp = $("colour-bar-ramp").getBoundingClientRect();
-    const gradient = context.createLinearGradient(0, ramp.bottom - origin.top, 0, ramp.top - origin.top);
-    RAMP.forEach((c, i) => gradient.addColorStop(i / (RAMP.length - 1), `rgb(${c.map((v) => Math.round(v * 255)).join(",")})`));
-    context.fillStyle = gradient;
-    context.fillRect(ramp.left - origin.left, ramp.top - origin.top, ramp.width, ramp.height);
-    context.fillStyle = "#fff";
-    for (const tick of $("colour-bar-ticks").children) {
-      const box = tick.getBoundingClientRect();
-      context.fillText(tick.textContent, box.left - origin.left + 8, box.top - origin.top + box.height * 0.8);
-    }
-    const title = $("colour-bar-title").getBoundingClientRect();
-    context.fillText(`${$("colour-bar-title").textContent} (${$("colour-bar-datum").textContent})`, title.left - origin.left, title.bottom - origin.top - 2);
+  const texts = [];
+  const text = (value, x, y) => {
+    const width = context.measureText(value).width;
+    const left = Math.max(4, Math.min(x, view.clientWidth - width - 4));
+    context.fillText(value, left, y);
+    texts.push({ text: value, left, right: left + width });
+  };
+  const box = (id) => {
+    const { left, top, right, bottom, width, height } = $(id).getBoundingClientRect();
+    return { left: left - origin.left, top: top - origin.top, right: right - origin.left, bottom: bottom - origin.top, width, height };
+  };
+  if (!$("scale-bar").hidden) {
+    const line = box("scale-line");
+    context.fillRect(line.left, line.top, line.width, line.height);
+    text($("scale-label").textContent, line.left, line.bottom + 16);
   }
-  if ($("legend").textContent) {
-    const legend = $("legend").getBoundingClientRect();
-    context.fillText($("legend").textContent.replace(/\s+/g, " ").trim(), legend.left - origin.left, legend.bottom - origin.top - 3);
-  }
-  context.fillText(`Fractoscope: ${specimen?.id ?? ""}`, 16, 20);
+  if (!$("colour-bar").hidden) drawColourBar(context, box, text);
+  if ($("legend").textContent) text($("legend").textContent.replace(/\s+/g, " ").trim(), box("legend").left, box("legend").bottom - 3);
+  text(`Fractoscope: ${specimen?.id ?? ""}`, 16, 20);
+  window.viewer.snapshotTexts = texts;
   return canvas.toDataURL("image/png");
+}
+
+// The colour bar into a snapshot: its ramp, ticks, title and datum (`box(id)` and `text(value, x,
+// y)` as in snapshot).
+function drawColourBar(context, box, text) {
+  const ramp = box("colour-bar-ramp");
+  const gradient = context.createLinearGradient(0, ramp.bottom, 0, ramp.top);
+  RAMP.forEach((c, i) => gradient.addColorStop(i / (RAMP.length - 1), `rgb(${c.map((v) => Math.round(v * 255)).join(",")})`));
+  context.fillStyle = gradient;
+  context.fillRect(ramp.left, ramp.top, ramp.width, ramp.height);
+  context.fillStyle = "#fff";
+  for (const tick of $("colour-bar-ticks").children) {
+    const { left, top, height } = tick.getBoundingClientRect();
+    text(tick.textContent, left - view.getBoundingClientRect().left + 8, top - view.getBoundingClientRect().top + height * 0.8);
+  }
+  const title = box("colour-bar-title");
+  text($("colour-bar-title").textContent, title.left, title.bottom - 2);
+  const datum = box("colour-bar-datum");
+  text($("colour-bar-datum").textContent, datum.left, datum.top + 12);
 }
 window.viewer.snapshot = snapshot;
 
@@ -432,8 +465,8 @@ document.querySelectorAll("[data-tool]").forEach((button) => button.addEventList
 $("clear-measurements").addEventListener("click", () => measurements.clear());
 $("roughness-button").addEventListener("click", (event) => busy(event.currentTarget, measureRoughness));
 document.querySelectorAll("#panel input").forEach((input) => input.addEventListener("input", applyDisplay));
-controls.addEventListener("change", requestRender);
-controls.addEventListener("end", updatePermalink);
+cameras.controls.addEventListener("change", requestRender);
+cameras.controls.addEventListener("end", updatePermalink);
 $("permalink").addEventListener("click", async () => {
   const link = permalink();
   $("permalink-text").value = link;
@@ -451,24 +484,40 @@ $("snapshot").addEventListener("click", () => {
   download.download = `fractoscope-${specimen?.id ?? "view"}.png`;
   download.click();
 });
-$("specimen").addEventListener("change", (event) => open(event.target.value));
+document.querySelectorAll("[data-view]").forEach((button) => button.addEventListener("click", () => showView(button.dataset.view)));
+$("projection").addEventListener("change", (event) => cameras.setProjection(event.target.value === "orthographic"));
+// Keys: T, F, S the top, front and side views, O orthographic or perspective, R the starting view.
+window.addEventListener("keydown", (event) => {
+  if (event.target.closest?.("input, select, textarea") || event.ctrlKey || event.metaKey || event.altKey) return;
+  const action = { t: "top", f: "front", s: "side", r: "start", o: "projection" }[event.key.toLowerCase()];
+  if (!action || !specimen) return;
+  if (action === "projection") cameras.setProjection(!cameras.isOrthographic);
+  else showView(action);
+});
 
-const specimens = await (await api("/api/specimens")).json();
-const chooser = $("specimen");
-for (const entry of specimens) chooser.add(new Option(`${entry.id} (${entry.rois.length} ROI)`, entry.id));
+function showView(name) {
+  if (specimen) frameOverview(VIEWS[name]);
+}
+
+const list = new SpecimenList({
+  element: $("specimens"), api, token,
+  onPick: (id) => open(id),
+  // A build that the link asked for and that was not there yet: shown once it is built.
+  onBuilt: (id) => { if (!specimen && id === query.get("specimen")) open(id, applyState(query)); },
+});
+const specimens = await list.refresh();
 const wanted = query.get("specimen");
 resize();
 applyDisplay();
 if (wanted && !specimens.some((entry) => entry.id === wanted)) {
   // Never silently show another specimen than the one the link names.
-  chooser.add(new Option("(choose a specimen)", ""), 0);
-  chooser.value = "";
-  status.error = `no specimen "${wanted}" here` + (specimens.length ? `; there are: ${specimens.map((s) => s.id).join(", ")}` : "");
-  showMessage(status.error);
-  setStatus(status.error, true);
+  const job = list.jobOf(wanted);
+  const building = job && (job.state === "queued" || job.state === "running");
+  status.error = building ? null : `no specimen "${wanted}" here` + (specimens.length ? `; there are: ${specimens.map((s) => s.id).join(", ")}` : "");
+  showMessage(building ? `${wanted} is being built: it opens here when it is done` : status.error);
+  if (!building) setStatus(status.error, true);
 } else if (specimens.length) {
-  chooser.value = wanted || specimens[0].id;
-  await open(chooser.value, applyState(query));
+  await open(wanted || specimens[0].id, applyState(query));
 } else {
   setStatus("no specimens yet: run fracto reconstruct");
 }

@@ -65,6 +65,28 @@ def test_kubernetes_deployments_are_probed_limited_and_unprivileged():
     assert next(d for d in deployments if d["metadata"]["name"] == "matching")["spec"]["replicas"] >= 2
 
 
+def test_tile_replicas_share_object_storage_and_roll_over_one_at_a_time():
+    """Tiles: two replicas or more, replaced one at a time, at least one through any voluntary
+    disruption, scaled on CPU; specimens in object storage (no volume claim), its keys from a Secret."""
+    documents = {(d["kind"], d["metadata"]["name"]): d for d in _k8s_documents()}
+    assert not [kind for kind, _ in documents if kind == "PersistentVolumeClaim"]
+    tiles = documents["Deployment", "tiles"]["spec"]
+    assert tiles["replicas"] >= 2 and tiles["strategy"]["type"] == "RollingUpdate"
+    assert tiles["strategy"]["rollingUpdate"]["maxUnavailable"] == 0
+    pod = tiles["template"]["spec"]
+    assert all("persistentVolumeClaim" not in volume for volume in pod["volumes"])
+    (container,) = pod["containers"]
+    environment = {variable["name"]: variable["value"] for variable in container["env"]}
+    assert build_parser().parse_args([]).store is None  # the folder store stays the default
+    assert environment["FRACTO_STORE"].startswith("s3://")
+    assert container["envFrom"] == [{"secretRef": {"name": "object-store"}}]
+    budget = documents["PodDisruptionBudget", "tiles"]["spec"]
+    assert budget["minAvailable"] == 1 and budget["selector"]["matchLabels"] == {"app": "tiles"}
+    autoscaler = documents["HorizontalPodAutoscaler", "tiles"]["spec"]
+    assert autoscaler["scaleTargetRef"]["name"] == "tiles" and autoscaler["minReplicas"] >= 2
+    assert autoscaler["metrics"][0]["resource"]["name"] == "cpu"
+
+
 def _kubeconform(manifests: str) -> subprocess.CompletedProcess:
     schemas = TOOLS / "kubernetes-schemas"
     assert (TOOLS / "bin" / "kubeconform").exists() and schemas.exists(), "run `make test`: it builds the validators"
@@ -93,7 +115,7 @@ def test_kubernetes_manifests_are_valid_against_the_api_schemas():
     manifests = _kustomize_build()
     result = _kubeconform(manifests)
     assert result.returncode == 0, result.stdout + result.stderr
-    assert "Valid: 8, Invalid: 0, Errors: 0, Skipped: 0" in result.stdout
+    assert "Valid: 9, Invalid: 0, Errors: 0, Skipped: 0" in result.stdout
     assert manifests.count("namespace: fractoscope") >= 7 and "image: fractoscope:0.1.0" in manifests
 
 
@@ -110,10 +132,14 @@ def test_kubeconform_refuses_a_misspelt_field_and_a_wrong_type():
 
 def test_compose_and_image_run_the_server_as_a_user():
     compose = yaml.safe_load((DEPLOY / "compose.yaml").read_text())
-    assert set(compose["services"]) == set(SERVICE_NAMES)
-    for name, service in compose["services"].items():
-        args = build_parser().parse_args(service["command"])
+    assert set(compose["services"]) == {*SERVICE_NAMES, "s3", "gateway"}
+    for name in SERVICE_NAMES:
+        args = build_parser().parse_args(compose["services"][name]["command"])
         assert args.services == name
+    tiles = compose["services"]["tiles"]
+    assert build_parser().parse_args(tiles["command"]).store.startswith("s3://") and tiles["deploy"]["replicas"] >= 2
+    assert "ports" not in tiles and compose["services"]["gateway"]["ports"] == ["50051:50051", "8080:8080"]
+    assert tiles["environment"]["AWS_ENDPOINT_URL"] == "http://s3:8333"
     dockerfile = (DEPLOY / "Dockerfile").read_text()
     assert dockerfile.count("\nFROM ") + dockerfile.startswith("FROM ") >= 2  # multi-stage
     assert "\nUSER 10001" in dockerfile and 'ENTRYPOINT ["fracto-server"]' in dockerfile

@@ -5,6 +5,8 @@ Arrays, on the reference image's grid (rows, cols), float32:
   correlation (as in the HeightMap message);
 - `local_sigma_um`, the part of sigma_um that neighbouring heights do not share (the tilt error,
   which scales all heights together, left out; see stereo.geometry.matching_sigma_um);
+- `views_used` (uint8), how many views of the series each height rests on (as in the HeightMap
+  message), when the server counted them;
 - `pixel_size_um` (a scalar) and `tilt_deg` (one per view), readable without this module;
 - `tilt_deg_estimated` when the tilts were calibrated.
 
@@ -43,6 +45,7 @@ class HeightMapFile:
     sigma_um: np.ndarray | None = None
     confidence: np.ndarray | None = None
     local_sigma_um: np.ndarray | None = None
+    views_used: np.ndarray | None = None
     calibration: Calibration | None = None
     record: dict = field(default_factory=dict)
 
@@ -68,6 +71,7 @@ def write_height_npz(
     calibration: Calibration,
     record: dict,
     tilt_deg_estimated: np.ndarray | None = None,
+    views_used: np.ndarray | None = None,
 ) -> None:
     """Writes the file; `record` holds tilt_axis_deg, max_slope, method, parameters, report and
     datum (see the module's docstring), to which the software and calibration are added."""
@@ -83,6 +87,8 @@ def write_height_npz(
     }
     if tilt_deg_estimated is not None:
         arrays["tilt_deg_estimated"] = np.asarray(tilt_deg_estimated, np.float64)
+    if views_used is not None:
+        arrays["views_used"] = np.asarray(views_used, np.uint8)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(path, **arrays)
@@ -96,7 +102,7 @@ def read_height_npz(path: str | Path, *, field: str | None = None) -> HeightMapF
     z_um = values.get("z_um")
     if z_um is None or z_um.ndim != 2 or not _real(z_um):
         raise InvalidInputError(field, "holds no 2D z_um array of real numbers (write it with fracto height)")
-    for name in ("sigma_um", "confidence", "local_sigma_um"):
+    for name in ("sigma_um", "confidence", "local_sigma_um", "views_used"):
         if name in values and values[name].shape != z_um.shape:
             raise InvalidInputError(field, f"its {name} array has shape {values[name].shape}, its z_um {z_um.shape}")
         if name in values and not _real(values[name]):
@@ -113,6 +119,7 @@ def read_height_npz(path: str | Path, *, field: str | None = None) -> HeightMapF
         sigma_um=values.get("sigma_um"),
         confidence=values.get("confidence"),
         local_sigma_um=values.get("local_sigma_um"),
+        views_used=values.get("views_used"),
         calibration=calibration,
         record=record,
         array_pixel_size_um=_array_pixel_size_um(values, field),

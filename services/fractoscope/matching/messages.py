@@ -208,6 +208,7 @@ def height_map_response(result: HeightMapResult, texture: np.ndarray) -> matchin
         ("sigma_um", result.sigma_um),
         ("confidence", result.confidence),
         ("texture", texture),
+        ("views_used", result.views_used),
     ):
         wire.fill_raster(getattr(height_map, field), values)
     return response

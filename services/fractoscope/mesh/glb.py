@@ -69,7 +69,8 @@ def tile_glb(
     extras: dict | None = None,
 ) -> bytes:
     """A `mesh.levels.LodTile` as GLB, compact on `grid` (None: plain float32), its texture as
-    JPEG; pixel (0, 0) at `origin_um` (x, y); its walls as a second primitive."""
+    PNG; pixel (0, 0) at `origin_um` (x, y); its walls and its floor (if any) as primitives of
+    their own."""
     return mesh_glb(
         to_gltf_positions_m(tile.positions, pixel_size_um=pixel_size_um, origin_um=origin_um),
         tile.normals,
@@ -79,16 +80,17 @@ def tile_glb(
         grid=grid,
         extras=extras,
         wall_triangles=tile.triangles[tile.walls],
+        floor_triangles=tile.floor,
     )
 
 
-def encode_texture(grey: np.ndarray, *, jpeg_quality: int = 90) -> bytes:
-    """(rows, cols) uint8 or uint16 grey image as JPEG bytes."""
-    if grey.dtype != np.uint8:
-        grey = cv2.convertScaleAbs(grey, alpha=255.0 / max(float(grey.max()), 1.0))
-    ok, encoded = cv2.imencode(".jpg", grey, [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])
+def encode_texture(grey: np.ndarray) -> bytes:
+    """(rows, cols) uint8 grey image as PNG bytes. Lossless: tiles meshed apart show their shared
+    border with the same grey values (JPEG's blocks made them differ by up to 16 grey levels), at
+    about 1 KB more per 65 x 65 texture."""
+    ok, encoded = cv2.imencode(".png", np.asarray(grey, np.uint8), [cv2.IMWRITE_PNG_COMPRESSION, 9])
     if not ok:
-        raise RuntimeError("JPEG encoding failed")
+        raise RuntimeError("PNG encoding failed")
     return encoded.tobytes()
 
 
@@ -105,28 +107,29 @@ def mesh_glb(
     normals: np.ndarray,
     uvs: np.ndarray,
     triangles: np.ndarray,
-    texture_jpeg: bytes,
+    texture_png: bytes,
     *,
     grid: PositionGrid | None,
     extras: dict | None = None,
     wall_triangles: np.ndarray | None = None,
+    floor_triangles: np.ndarray | None = None,
 ) -> bytes:
     """A GLB holding one mesh: positions (N, 3) metres, unit normals (N, 3), texture coordinates
     (N, 2) in [0, 1] with (0, 0) at the image's top-left, triangles (M, 3) counter-clockwise seen
-    from +Y, and the JPEG texture. `wall_triangles` (K, 3), on the same vertices, become a second
+    from +Y, and the PNG texture. `wall_triangles` (K, 3), on the same vertices, become a second
     primitive with the material named "wall" (see mesh.walls), so that viewers can show them
-    differently. With a `grid` the geometry is quantized to it and meshopt-compressed; without,
-    it is plain float32 with no extensions, which any glTF reader opens. `extras` lands on the
-    mesh node."""
+    differently; `floor_triangles` a third, material "unmeasured" (flat grey, mesh.outline). With
+    a `grid` the geometry is quantized to it and meshopt-compressed; without, it is plain float32
+    with no extensions, which any glTF reader opens. `extras` lands on the mesh node."""
     count = len(positions_m)
-    index_sets = _index_sets(triangles, wall_triangles, count)
+    index_sets = _index_sets(triangles, wall_triangles, floor_triangles, count)
     attributes = _vertex_attributes(positions_m, normals, uvs, grid)
     geometry = _GeometryBuffers.of(
         [indices for indices, _ in index_sets], attributes, count, compressed=grid is not None
     )
     image_view = len(geometry.views)
-    views = geometry.views + [pygltflib.BufferView(buffer=0, byteOffset=geometry.size, byteLength=len(texture_jpeg))]
-    blob = b"".join(geometry.parts + [texture_jpeg, b"\0" * (-len(texture_jpeg) % 4)])
+    views = geometry.views + [pygltflib.BufferView(buffer=0, byteOffset=geometry.size, byteLength=len(texture_png))]
+    blob = b"".join(geometry.parts + [texture_png, b"\0" * (-len(texture_png) % 4)])
     buffers = [pygltflib.Buffer(byteLength=len(blob))]
     node = pygltflib.Node(mesh=0, extras=extras or {})
     extensions = []
@@ -143,10 +146,10 @@ def mesh_glb(
         scenes=[pygltflib.Scene(nodes=[0])],
         nodes=[node],
         meshes=[pygltflib.Mesh(primitives=primitives)],
-        materials=[_MATERIAL, _WALL_MATERIAL],
+        materials=[_MATERIAL, _WALL_MATERIAL, _FLOOR_MATERIAL],
         textures=[pygltflib.Texture(source=0, sampler=0)],
         samplers=[_sampler()],
-        images=[pygltflib.Image(bufferView=image_view, mimeType="image/jpeg")],
+        images=[pygltflib.Image(bufferView=image_view, mimeType="image/png")],
         accessors=_accessors([indices for indices, _ in index_sets], attributes, count, normalized=grid is not None),
         bufferViews=views,
         buffers=buffers,
@@ -154,12 +157,14 @@ def mesh_glb(
     return _glb(gltf, blob)
 
 
-def _index_sets(triangles: np.ndarray, wall_triangles: np.ndarray | None, count: int) -> list[tuple[np.ndarray, int]]:
+def _index_sets(triangles, wall_triangles, floor_triangles, count: int) -> list[tuple[np.ndarray, int]]:
     """(flat indices, material) of each primitive that has triangles: the surface's (material 0),
-    then the walls' (material 1), for `count` vertices."""
+    the walls' (material 1), then the floor's (material 2; None: none), for `count` vertices."""
     # 16-bit indices when they stay below 65535, which glTF reserves for primitive restart.
     index_type = np.uint16 if count <= 65535 else np.uint32
-    parts = [(triangles, 0), (wall_triangles if wall_triangles is not None else np.zeros((0, 3)), 1)]
+    none = np.zeros((0, 3))
+    parts = [(triangles, 0), (none if wall_triangles is None else wall_triangles, 1)]
+    parts.append((none if floor_triangles is None else floor_triangles, 2))
     return [(np.ascontiguousarray(t, index_type).ravel(), material) for t, material in parts if len(t)]
 
 
@@ -200,6 +205,14 @@ _WALL_MATERIAL = pygltflib.Material(
     name="wall",
     pbrMetallicRoughness=pygltflib.PbrMetallicRoughness(
         baseColorFactor=[0.45, 0.45, 0.45, 1.0], metallicFactor=0.0, roughnessFactor=1.0
+    ),
+    doubleSided=True,
+)
+# Where nothing was measured, asked for as a floor at height zero: plain light grey, no relief.
+_FLOOR_MATERIAL = pygltflib.Material(
+    name="unmeasured",
+    pbrMetallicRoughness=pygltflib.PbrMetallicRoughness(
+        baseColorFactor=[0.7, 0.7, 0.7, 1.0], metallicFactor=0.0, roughnessFactor=1.0
     ),
     doubleSided=True,
 )

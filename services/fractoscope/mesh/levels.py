@@ -22,14 +22,15 @@ from __future__ import annotations
 import enum
 import functools
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
-import cv2
 import fast_simplification
 import meshoptimizer
 import numpy as np
 
+from fractoscope.mesh import deviation
 from fractoscope.mesh.grid import cell_sums, quad_triangles
+from fractoscope.mesh.outline import Unmeasured, chamfer_triangles, drop_islands, floor_triangles
 from fractoscope.mesh.walls import (
     WALL_SIGMA_FACTOR,
     grid_wall_triangles,
@@ -75,8 +76,11 @@ class LodTile:
     positions: (N, 3) (col_px, row_px, z_um); normals: (N, 3) unit vectors in glTF axes
     (X along columns, Y up, Z along rows); triangles: (M, 3) vertex indices, counter-clockwise
     seen from above; uvs: (N, 2) texture coordinates; texture: (h, w) uint8 grey image of the
-    tile's area at the level's resolution; walls: (M,) bool, the triangles that are walls.
-    geometric_error_um leaves the walls out.
+    tile's area at the level's resolution; walls: (M,) bool, the triangles that are walls;
+    floor: (F, 3) triangles of the flat floor at height zero that stands for the unmeasured area
+    (mesh.outline; empty unless asked for), on vertices of their own. geometric_error_um leaves
+    the walls out and is at least the finer level's tiles' errors; level_error_um is this tile's
+    own.
     """
 
     level: int
@@ -89,6 +93,8 @@ class LodTile:
     texture: np.ndarray
     geometric_error_um: float
     walls: np.ndarray
+    floor: np.ndarray
+    level_error_um: float
 
 
 def cluster_levels(
@@ -157,6 +163,9 @@ def iter_tiles(
     level_count: int | None = None,
     max_slope: float | None = None,
     sigma_um: np.ndarray | None = None,
+    margin_cells: int = 0,
+    min_island_px: float = 0.0,
+    unmeasured: Unmeasured = Unmeasured.ABSENT,
 ) -> Iterator[LodTile]:
     """The tiles of every level, finest level first, as they are built. Each tile carries its
     measured geometric error: the largest vertical distance between its surface and the
@@ -168,62 +177,64 @@ def iter_tiles(
     at each pixel only what exceeds three of its sigmas (within which the full-resolution data
     does not know its own surface better), and is at least the errors of the finer level's tiles
     under it (those leave out less around walls; a viewer that refines a tile must not find its
-    children worse). Tiles without triangles are skipped."""
+    children worse). Tiles without triangles are skipped. The outer `margin_cells` (one level only)
+    shape normals but get no vertex; levels drop islands below `min_island_px` (mesh.outline)."""
     if z_um.shape != texture.shape or z_um.ndim != 2:
         raise ValueError(f"z_um and texture must be 2D of one shape, got {z_um.shape} and {texture.shape}")
     count = level_count or level_count_for(z_um.shape)
     tolerance_um = None if sigma_um is None else WALL_SIGMA_FACTOR * np.nan_to_num(sigma_um).astype(np.float32)
-    full_resolution_walls = None
     finer_errors: dict[tuple[int, int], float] = {}  # the finer level's tiles' errors by (row, col)
     for level, cluster in enumerate(cluster_levels(z_um, texture, count=count, sigma_um=sigma_um)):
         errors: dict[tuple[int, int], float] = {}
+        if level > 0 and min_island_px > 0:
+            cluster = replace(cluster, z_um=drop_islands(cluster.z_um, min_area_cells=min_island_px / 4**level)[0])
         grid_walls = _level_walls(cluster, pixel_size_um=pixel_size_um, max_slope=max_slope)
         if level == 0:
             full_resolution_walls = grid_walls
         surface_um = _away_from_walls(*full_resolution_walls, z_um, cluster.cell_px) if level > 0 else z_um
         decimated = level > 0 and method is not Simplification.VERTEX_CLUSTERING
-        deviation = _grid_deviation(cluster, surface_um, grid_walls) if level > 0 and not decimated else None
-        for tile_row, row_cells in enumerate(_tile_spans(cluster.z_um.shape[0])):
-            for tile_col, col_cells in enumerate(_tile_spans(cluster.z_um.shape[1])):
-                mesh = _tile_mesh(
-                    cluster,
-                    row_cells,
-                    col_cells,
-                    grid_walls,
-                    decimated=decimated,
-                    pixel_size_um=pixel_size_um,
-                    max_slope=max_slope,
-                )
-                if len(mesh.triangles) == 0:
+        grid_error = deviation.grid_deviation(cluster, surface_um, grid_walls) if level > 0 and not decimated else None
+        meshed = functools.partial(
+            _tile_mesh, grid_walls=grid_walls, decimated=decimated, pixel_size_um=pixel_size_um, max_slope=max_slope
+        )
+        margin = margin_cells if level == 0 else 0
+        for tile_row, row_cells in enumerate(_tile_spans(cluster.z_um.shape[0], margin)):
+            for tile_col, col_cells in enumerate(_tile_spans(cluster.z_um.shape[1], margin)):
+                if len((mesh := meshed(cluster, row_cells, col_cells)).triangles) == 0:
                     continue
                 footprint = _footprint(cluster.cell_px, row_cells, col_cells, z_um.shape)
-                error = 0.0
-                if level > 0:
-                    error = _measured_error_um(
-                        mesh, footprint, deviation=deviation, surface_um=surface_um, tolerance_um=tolerance_um
-                    )
+                own = level and _measured_error_um(
+                    mesh, footprint, grid_error=grid_error, surface_um=surface_um, tolerance_um=tolerance_um
+                )
                 children = [finer_errors.get((2 * tile_row + i, 2 * tile_col + j), 0.0) for i in (0, 1) for j in (0, 1)]
-                error = errors[(tile_row, tile_col)] = max(error, *children)
-                yield _lod_tile(mesh, cluster, row_cells, col_cells, key=(level, tile_row, tile_col), error_um=error)
+                errors[(tile_row, tile_col)] = max(float(own), *children)
+                key = (level, tile_row, tile_col)
+                floor = _floor(cluster, row_cells, col_cells) if unmeasured is Unmeasured.FLAT else None
+                yield _lod_tile(
+                    mesh, cluster, row_cells, col_cells, key=key, errors_um=(errors[key[1:]], float(own)), floor=floor
+                )
         finer_errors = errors
 
 
-def tile_count(shape: tuple[int, int], level_count: int | None = None) -> int:
+def tile_count(shape: tuple[int, int], level_count: int | None = None, margin_cells: int = 0) -> int:
     """How many tiles `iter_tiles` yields at most for a height map of `shape` (all of them when
     every tile has a triangle)."""
     count = level_count or level_count_for(shape)
     total = 0
     for level in range(count):
         cells = [-(-size // 2**level) for size in shape]
-        total += len(_tile_spans(cells[0])) * len(_tile_spans(cells[1]))
+        margin = margin_cells if level == 0 else 0
+        total += len(_tile_spans(cells[0], margin)) * len(_tile_spans(cells[1], margin))
     return total
 
 
-def _tile_spans(cells: int) -> list[tuple[int, int]]:
-    """Inclusive (first, last) vertex index of each tile along one axis; neighbours share one."""
-    if cells <= 1:
-        return [(0, 0)]
-    return [(start, min(start + LOD_TILE_MAX_CELLS, cells - 1)) for start in range(0, cells - 1, LOD_TILE_MAX_CELLS)]
+def _tile_spans(cells: int, margin: int = 0) -> list[tuple[int, int]]:
+    """Inclusive (first, last) vertex index of each tile along one axis, the outer `margin` cells
+    left out; neighbours share one."""
+    first, last = margin, cells - 1 - margin
+    if last <= first:
+        return [(first, first)]
+    return [(start, min(start + LOD_TILE_MAX_CELLS, last)) for start in range(first, last, LOD_TILE_MAX_CELLS)]
 
 
 def _footprint(cell_px: int, row_cells, col_cells, shape) -> tuple[slice, slice]:
@@ -256,61 +267,104 @@ class _TileMesh:
 
 
 def _tile_mesh(
-    cluster: ClusterLevel, row_cells, col_cells, grid_walls, *, decimated: bool, pixel_size_um: float, max_slope
+    cluster: ClusterLevel, row_cells, col_cells, *, grid_walls, decimated: bool, pixel_size_um: float, max_slope
 ) -> _TileMesh:
     """The tile's grid mesh of the level, its walls taken from the level's (upper, lower)
     `grid_walls`; or, `decimated`, its quadric decimation, whose walls are found anew."""
     if not decimated:
         positions, triangles = _grid_mesh(cluster, row_cells, col_cells)
         walls = _grid_tile_walls(grid_walls, cluster, row_cells, col_cells)
+        chamfers = triangles[len(walls) :]  # (mesh.outline) after the quads' triangles
+        walls = np.concatenate(
+            [walls, _walls(cluster, row_cells, col_cells, positions, chamfers, pixel_size_um, max_slope)]
+        )
         normals = _grid_normals(cluster, row_cells, col_cells, pixel_size_um)
     else:
         positions, triangles = _decimated_mesh(cluster, row_cells, col_cells)
-        walls = wall_triangles(
-            positions[:, :2] * pixel_size_um,
-            positions[:, 2],
-            triangles,
-            max_slope=max_slope,
-            sigma_um=_nearest_cell(cluster, row_cells, col_cells, positions, cluster.sigma_um),
-        )
+        walls = _walls(cluster, row_cells, col_cells, positions, triangles, pixel_size_um, max_slope)
         normals = _decimated_normals(cluster, row_cells, col_cells, positions, pixel_size_um)
     return _TileMesh(positions, triangles, walls, normals)
 
 
-def _measured_error_um(mesh: _TileMesh, footprint, *, deviation, surface_um, tolerance_um) -> float:
+def _walls(cluster: ClusterLevel, row_cells, col_cells, positions, triangles, pixel_size_um, max_slope) -> np.ndarray:
+    """(M,) bool: which of a tile's `triangles` are walls (mesh.walls), with the sigma of each
+    vertex's nearest cell."""
+    return wall_triangles(
+        positions[:, :2] * pixel_size_um,
+        positions[:, 2],
+        triangles,
+        max_slope=max_slope,
+        sigma_um=_nearest_cell(cluster, row_cells, col_cells, positions, cluster.sigma_um),
+    )
+
+
+def _measured_error_um(mesh: _TileMesh, footprint, *, grid_error, surface_um, tolerance_um) -> float:
     """Largest vertical distance, µm, between a coarser level's tile and the full-resolution
     `surface_um` over its footprint, less `tolerance_um` (None: nothing): read off the level's
-    grid `deviation` (vertex clustering), or else measured on the tile's triangles, walls left out."""
-    if deviation is not None:
-        return _nanmax(deviation[footprint] if tolerance_um is None else deviation[footprint] - tolerance_um[footprint])
-    return _mesh_deviation(
+    `grid_error` (vertex clustering), or else measured on the tile's triangles, walls left out."""
+    if grid_error is not None:
+        return deviation.nanmax(
+            grid_error[footprint] if tolerance_um is None else grid_error[footprint] - tolerance_um[footprint]
+        )
+    return deviation.mesh_deviation(
         mesh.positions, mesh.triangles[~mesh.walls], surface_um, footprint, tolerance_um=tolerance_um
     )
 
 
 def _lod_tile(
-    mesh: _TileMesh, cluster: ClusterLevel, row_cells, col_cells, *, key: tuple[int, int, int], error_um: float
+    mesh: _TileMesh,
+    cluster: ClusterLevel,
+    row_cells,
+    col_cells,
+    *,
+    key: tuple[int, int, int],
+    errors_um: tuple[float, float],
+    floor: tuple[np.ndarray, np.ndarray] | None,
 ) -> LodTile:
-    """The tile `key` (level, tile_row, tile_col) with its texture coordinates and its block of
-    the level's texture as uint8."""
+    """The tile `key` (level, tile_row, tile_col) with its texture coordinates, its block of the
+    level's texture as uint8, its (geometric, own) `errors_um` and the `floor` (positions (F, 3),
+    triangles into them) appended to its vertices."""
     level, tile_row, tile_col = key
     block = cluster.texture[row_cells[0] : row_cells[1] + 1, col_cells[0] : col_cells[1] + 1]
+    positions, normals, floor_triangles_ = mesh.positions, mesh.normals, np.zeros((0, 3), np.int64)
+    if floor is not None and len(floor[1]):
+        floor_positions, floor_triangles_ = floor[0], floor[1] + len(positions)
+        positions = np.concatenate([positions, floor_positions])
+        normals = np.concatenate([normals, np.tile(np.float32([0.0, 1.0, 0.0]), (len(floor_positions), 1))])
     return LodTile(
         level=level,
         tile_row=tile_row,
         tile_col=tile_col,
-        positions=mesh.positions,
-        normals=mesh.normals,
+        positions=positions,
+        normals=normals,
         triangles=mesh.triangles,
-        uvs=_uvs(mesh.positions, cluster.cell_px, row_cells, col_cells),
+        uvs=_uvs(positions, cluster.cell_px, row_cells, col_cells),
         texture=np.clip(np.round(block), 0, 255).astype(np.uint8),
-        geometric_error_um=error_um,
+        geometric_error_um=errors_um[0],
         walls=mesh.walls,
+        floor=floor_triangles_,
+        level_error_um=errors_um[1],
     )
 
 
+def _floor(cluster: ClusterLevel, row_cells, col_cells) -> tuple[np.ndarray, np.ndarray]:
+    """The flat floor at height zero of the block's unmeasured area (mesh.outline): (N, 3)
+    positions (col_px, row_px, 0) at the cell centres and (M, 3) triangles into them."""
+    block = (slice(row_cells[0], row_cells[1] + 1), slice(col_cells[0], col_cells[1] + 1))
+    known = np.isfinite(cluster.z_um[block])
+    centre = (cluster.cell_px - 1) / 2.0
+    rows = (np.arange(row_cells[0], row_cells[1] + 1) * cluster.cell_px + centre).astype(np.float32)
+    cols = (np.arange(col_cells[0], col_cells[1] + 1) * cluster.cell_px + centre).astype(np.float32)
+    grid_rows, grid_cols = np.meshgrid(rows, cols, indexing="ij")
+    positions = np.column_stack([grid_cols.ravel(), grid_rows.ravel(), np.zeros(grid_rows.size, np.float32)])
+    triangles = floor_triangles(np.arange(known.size).reshape(known.shape), known)
+    used, triangles = np.unique(triangles, return_inverse=True)
+    return positions[used], triangles.reshape(-1, 3)
+
+
 def _grid_mesh(cluster: ClusterLevel, row_cells, col_cells) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices of the measured cells of the block and two triangles per fully measured quad."""
+    """Vertices of the measured cells of the block, two triangles per fully measured quad and then
+    one per quad with three measured corners (mesh.outline's chamfers)."""
     block = (slice(row_cells[0], row_cells[1] + 1), slice(col_cells[0], col_cells[1] + 1))
     z = cluster.z_um[block]
     measured = np.isfinite(z)
@@ -323,7 +377,7 @@ def _grid_mesh(cluster: ClusterLevel, row_cells, col_cells) -> tuple[np.ndarray,
     index[measured] = np.arange(len(positions))
     for axis, values in enumerate((cluster.col_px[block], cluster.row_px[block], z)):
         positions[:, axis] = values[measured]
-    return positions, _quad_triangles(index)
+    return positions, np.concatenate([_quad_triangles(index), chamfer_triangles(index)])
 
 
 def _away_from_walls(upper: np.ndarray, lower: np.ndarray, z_um: np.ndarray, cell_px: int) -> np.ndarray:
@@ -376,7 +430,7 @@ def _decimated_mesh(cluster: ClusterLevel, row_cells, col_cells):
     simplified = simplified[used] / scale
     # Quadric placement is ill-conditioned on flat patches; keep every vertex on the level's
     # surface. Vertices on hole rims (kept, being borders) may fall in an open quad: unchanged.
-    on_surface = _grid_height_at(cluster, simplified[:, 0], simplified[:, 1])
+    on_surface = deviation.grid_height_at(cluster, simplified[:, 0], simplified[:, 1])
     simplified[:, 2] = np.where(np.isfinite(on_surface), on_surface, simplified[:, 2])
     return _in_vertex_cache_order(simplified, faces.reshape(-1, 3))
 
@@ -395,143 +449,6 @@ def _in_vertex_cache_order(positions: np.ndarray, triangles: np.ndarray) -> tupl
     return reordered, new_index[cached].astype(np.int64).reshape(-1, 3)
 
 
-def _grid_height_at(cluster: ClusterLevel, col_px: np.ndarray, row_px: np.ndarray) -> np.ndarray:
-    """Height of the level's grid mesh (its triangles through the cell centroids) at points."""
-    size = cluster.cell_px
-    centre = (size - 1) / 2.0
-    quad_rows = np.clip(np.floor((row_px - centre) / size).astype(np.int64), 0, cluster.z_um.shape[0] - 2)
-    quad_cols = np.clip(np.floor((col_px - centre) / size).astype(np.int64), 0, cluster.z_um.shape[1] - 2)
-
-    def corner(row_step, col_step):
-        index = (quad_rows + row_step, quad_cols + col_step)
-        return cluster.col_px[index], cluster.row_px[index], cluster.z_um[index]
-
-    a, b, c, d = corner(0, 0), corner(0, 1), corner(1, 0), corner(1, 1)
-    first, in_first = _barycentric_height(col_px, row_px, a, c, b)
-    second, _ = _barycentric_height(col_px, row_px, b, c, d)
-    return np.where(in_first, first, second)
-
-
-def _grid_deviation(cluster: ClusterLevel, z_full: np.ndarray, walls: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
-    """|grid mesh - full-resolution heights| at every full-resolution pixel (NaN where the mesh
-    has no triangle, a wall triangle (`walls`: (upper, lower) per quad), or the pixel is
-    unknown), for a level of even cell size.
-
-    Quads run between cell centres, so the pixels inside quad (i, j) form the block that starts
-    at (i s + s/2, j s + s/2), and all quads are evaluated at once. Quads with an incomplete corner cell (map edges,
-    holes), whose vertices are
-    centroids away from the regular layout, are evaluated with their actual vertex positions."""
-    size, half = cluster.cell_px, cluster.cell_px // 2
-    quads_r, quads_c = cluster.z_um.shape[0] - 1, cluster.z_um.shape[1] - 1
-    deviation = np.full(z_full.shape, np.nan, np.float32)
-    if quads_r < 1 or quads_c < 1:
-        return deviation
-    padded = np.full((half + quads_r * size, half + quads_c * size), np.nan, np.float32)
-    rows, cols = min(padded.shape[0], z_full.shape[0]), min(padded.shape[1], z_full.shape[1])
-    padded[:rows, :cols] = z_full[:rows, :cols]
-    blocks = padded[half:, half:].reshape(quads_r, size, quads_c, size)
-
-    # The triangle pair equals the bilinear patch minus the quad's twist (a - b - c + d) times
-    # u v in the upper triangle and (1 - u)(1 - v) in the lower one. OpenCV's linear resize puts
-    # output pixel x at input coordinate (x - (s - 1) / 2) / s: the cell-centre convention.
-    z = cluster.z_um.astype(np.float32)
-    bilinear = cv2.resize(z, (z.shape[1] * size, z.shape[0] * size), interpolation=cv2.INTER_LINEAR)
-    bilinear_blocks = bilinear[half : half + quads_r * size, half : half + quads_c * size].reshape(
-        quads_r, size, quads_c, size
-    )
-    offset = (np.arange(size, dtype=np.float32) + 0.5) / size
-    u, v = offset[None, None, None, :], offset[None, :, None, None]
-    twist_weight = np.where(u + v <= 1.0, u * v, (1.0 - u) * (1.0 - v)).astype(np.float32)
-    twist = (z[:-1, :-1] - z[:-1, 1:] - z[1:, :-1] + z[1:, 1:])[:, None, :, None]
-    difference = np.subtract(blocks, bilinear_blocks)
-    difference += twist * twist_weight
-    np.abs(difference, out=difference)
-
-    complete = cluster.complete
-    regular = complete[:-1, :-1] & complete[:-1, 1:] & complete[1:, :-1] & complete[1:, 1:]
-    measured = np.isfinite(z)
-    irregular = ~regular & measured[:-1, :-1] & measured[:-1, 1:] & measured[1:, :-1] & measured[1:, 1:]
-    if irregular.any():
-        difference[np.nonzero(irregular)[0], :, np.nonzero(irregular)[1], :] = _irregular_quad_deviation(
-            cluster, blocks, np.nonzero(irregular)
-        )
-    upper_walls, lower_walls = walls
-    if upper_walls.any() or lower_walls.any():
-        in_wall = np.where(u + v <= 1.0, upper_walls[:, None, :, None], lower_walls[:, None, :, None])
-        difference[in_wall] = np.nan
-    flat = difference.reshape(quads_r * size, quads_c * size)
-    deviation[half : half + flat.shape[0], half : half + flat.shape[1]] = flat[
-        : z_full.shape[0] - half, : z_full.shape[1] - half
-    ]
-    return deviation
-
-
-def _irregular_quad_deviation(cluster: ClusterLevel, blocks, quads) -> np.ndarray:
-    """(n, s, s) deviations of the pixels of quads (i, j) whose vertices sit at their centroids."""
-    size, half = cluster.cell_px, cluster.cell_px // 2
-    quad_rows, quad_cols = quads
-    pixel_rows = (quad_rows * size + half)[:, None, None] + np.arange(size)[None, :, None]
-    pixel_cols = (quad_cols * size + half)[:, None, None] + np.arange(size)[None, None, :]
-    surface = _grid_height_at(cluster, pixel_cols.astype(np.float64), pixel_rows.astype(np.float64))
-    return np.abs(blocks[quad_rows, :, quad_cols, :] - surface)
-
-
-def _barycentric_height(x, y, p, q, r):
-    """Height of the plane through triangle (p, q, r) at (x, y), and whether (x, y) lies inside
-    (up to rounding). Each corner is (x, y, z) arrays."""
-    (x1, y1, z1), (x2, y2, z2), (x3, y3, z3) = p, q, r
-    tolerance = -1e-4
-    with np.errstate(invalid="ignore", divide="ignore"):  # degenerate triangles give NaN: outside
-        determinant = (y2 - y3) * (x1 - x3) + (x3 - x2) * (y1 - y3)
-        w1 = ((y2 - y3) * (x - x3) + (x3 - x2) * (y - y3)) / determinant
-        w2 = ((y3 - y1) * (x - x3) + (x1 - x3) * (y - y3)) / determinant
-        w3 = 1.0 - w1 - w2
-        return w1 * z1 + w2 * z2 + w3 * z3, (w1 >= tolerance) & (w2 >= tolerance) & (w3 >= tolerance)
-
-
-def _nanmax(values: np.ndarray) -> float:
-    """The largest finite value, at least 0."""
-    finite = values[np.isfinite(values)]
-    return max(float(finite.max()), 0.0) if finite.size else 0.0
-
-
-def _mesh_deviation(
-    positions, triangles, z_um, footprint, *, tolerance_um=None, chunk_pixels: int = 4_000_000
-) -> float:
-    """Largest vertical distance between an irregular (decimated) mesh and the full-resolution
-    heights over the footprint, less `tolerance_um` (rows, cols) at each pixel: every pixel inside
-    a triangle's bounding box is tested with barycentric coordinates, in chunks of about
-    `chunk_pixels` candidate pixels."""
-    corners = positions[triangles]  # (T, 3 corners, 3 coordinates)
-    low = np.floor(corners[:, :, :2].min(axis=1)).astype(np.int64)
-    high = np.ceil(corners[:, :, :2].max(axis=1)).astype(np.int64)
-    low = np.maximum(low, [footprint[1].start, footprint[0].start])
-    high = np.minimum(high, [footprint[1].stop - 1, footprint[0].stop - 1])
-    widths, heights = np.maximum(high - low + 1, 0).T
-    counts = widths * heights
-    ends = np.cumsum(counts)  # candidate pixels up to and including each triangle
-    worst = 0.0
-    start = 0
-    while start < len(triangles):
-        done = ends[start - 1] if start else 0
-        stop = max(int(np.searchsorted(ends, done + chunk_pixels, side="right")), start + 1)
-        ids = np.repeat(np.arange(start, stop), counts[start:stop])
-        offsets = np.arange(len(ids)) - np.repeat(ends[start:stop] - counts[start:stop] - done, counts[start:stop])
-        x = low[ids, 0] + offsets % widths[ids]
-        y = low[ids, 1] + offsets // widths[ids]
-        p, q, r = (tuple(corners[ids, k, axis] for axis in range(3)) for k in range(3))
-        height, inside = _barycentric_height(x.astype(np.float64), y.astype(np.float64), p, q, r)
-        difference = (
-            np.abs(height - z_um[y, x]) if tolerance_um is None else np.abs(height - z_um[y, x]) - tolerance_um[y, x]
-        )
-        difference = difference[inside]
-        difference = difference[np.isfinite(difference)]
-        if difference.size:
-            worst = max(worst, float(difference.max()))
-        start = stop
-    return worst
-
-
 def _uvs(positions, cell_px, row_cells, col_cells) -> np.ndarray:
     """Texture coordinates: the tile texture's texel (i, j) covers cell (row_cells[0] + i, ...)."""
     centre = (cell_px - 1) / 2.0
@@ -543,8 +460,16 @@ def _uvs(positions, cell_px, row_cells, col_cells) -> np.ndarray:
 def _normal_field(cluster: ClusterLevel, row_cells, col_cells, pixel_size_um: float) -> np.ndarray:
     """(rows, cols, 3) upward unit normals (-dh/dX, 1, -dh/dZ) / norm in glTF axes over a block
     of cells, from central differences over the actual centroid spacing (cells at the map's edge
-    are partial); (0, 1, 0) where a neighbour is unknown."""
-    block = (slice(row_cells[0], row_cells[1] + 1), slice(col_cells[0], col_cells[1] + 1))
+    are partial); (0, 1, 0) where a neighbour is unknown. The differences reach one cell beyond
+    the block where the level has it, so that tiles sharing a border give its vertices one normal
+    (else each would shade them by its own one-sided difference: a seam)."""
+    rows, cols = cluster.z_um.shape
+    first_row, first_col = max(row_cells[0] - 1, 0), max(col_cells[0] - 1, 0)
+    block = (slice(first_row, min(row_cells[1] + 2, rows)), slice(first_col, min(col_cells[1] + 2, cols)))
+    inner = (
+        slice(row_cells[0] - first_row, row_cells[1] + 1 - first_row),
+        slice(col_cells[0] - first_col, col_cells[1] + 1 - first_col),
+    )
     z = cluster.z_um[block].astype(np.float32)
     if min(z.shape) < 2:
         slope_rows = slope_cols = np.zeros_like(z)
@@ -553,6 +478,7 @@ def _normal_field(cluster: ClusterLevel, row_cells, col_cells, pixel_size_um: fl
             slope_rows = np.gradient(z, axis=0) / (np.gradient(cluster.row_px[block], axis=0) * pixel_size_um)
             slope_cols = np.gradient(z, axis=1) / (np.gradient(cluster.col_px[block], axis=1) * pixel_size_um)
     slope_rows, slope_cols = np.nan_to_num(slope_rows), np.nan_to_num(slope_cols)
+    slope_rows, slope_cols = slope_rows[inner], slope_cols[inner]
     inverse_norm = 1.0 / np.sqrt(1.0 + slope_rows**2 + slope_cols**2)
     return np.stack([-slope_cols * inverse_norm, inverse_norm, -slope_rows * inverse_norm], axis=-1)
 

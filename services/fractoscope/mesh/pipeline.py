@@ -9,6 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fractoscope.mesh import glb, levels
+from fractoscope.mesh.outline import DEFAULT_MIN_ISLAND_PX, Unmeasured, drop_islands
 from fractoscope.progress import silent
 from fractoscope.surface import filtering
 from fractoscope.units import METRES_PER_UM
@@ -16,7 +17,8 @@ from fractoscope.units import METRES_PER_UM
 
 @dataclass(frozen=True)
 class EncodedTile:
-    """One tile of one level as GLB; level 0 is full resolution, larger is coarser."""
+    """One tile of one level as GLB; level 0 is full resolution, larger is coarser. Its geometric
+    error is at least its finer tiles' (as 3D Tiles wants); level_error_m is its own."""
 
     level: int
     tile_row: int
@@ -26,6 +28,7 @@ class EncodedTile:
     vertex_count: int
     triangle_count: int
     wall_triangle_count: int = 0
+    level_error_m: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -39,6 +42,17 @@ class MeshingOptions:
     level_count: int | None = None
     plain_glb: bool = False  # float32 GLBs without extensions instead of quantized, meshopt-compressed ones
     max_slope: float | None = None  # steeper triangles are walls (mesh.walls); None: no walls
+    unmeasured: Unmeasured = Unmeasured.ABSENT  # how areas without heights are drawn (mesh.outline)
+    min_island_px: float = DEFAULT_MIN_ISLAND_PX  # smaller measured patches are dropped (mesh.outline); 0: none
+    margin_cells: int = 0  # outer rows and columns that only shape the normals (one level only)
+
+
+@dataclass(frozen=True)
+class MeshReport:
+    """What meshing changed in the heights: the filter's counts, and how many islands it dropped."""
+
+    filtered: filtering.FilterReport
+    islands_dropped: int
 
 
 def mesh_height_map(
@@ -50,11 +64,13 @@ def mesh_height_map(
     options: MeshingOptions = MeshingOptions(),
     sigma_um: np.ndarray | None = None,
     progress: Callable[[float, str], None] | None = None,
-) -> tuple[list[EncodedTile], filtering.FilterReport]:
+) -> tuple[list[EncodedTile], MeshReport]:
     """Filters `z_um` ((rows, cols) µm, NaN unknown), builds the levels with `texture` (grey, same
     shape) and encodes every tile with pixel (0, 0) at `origin_um` (x, y); tiles come finest level
     first, tiles without a measured quad left out. `sigma_um` (same shape, optional) is each
-    height's local uncertainty, which widens what `options.max_slope` lets pass as surface."""
+    height's local uncertainty, which widens what `options.max_slope` lets pass as surface.
+    Islands below `options.min_island_px` are dropped after filtering (those that reach the edge
+    kept when the map has a margin: it is a piece of a larger surface)."""
     report = progress or silent
     filtered = filtering.filter_heights(
         z_um,
@@ -62,20 +78,29 @@ def mesh_height_map(
         max_fill_distance_px=options.max_fill_distance_px,
         smoothing_um=options.smoothing_um,
     )
+    z_um, islands = filtered.z_um, 0
+    if options.min_island_px > 0:
+        z_um, islands = drop_islands(z_um, min_area_cells=options.min_island_px, keep_edge=options.margin_cells > 0)
     report(0.1, "filtered")
 
-    total = levels.tile_count(z_um.shape, options.level_count)
+    total = levels.tile_count(z_um.shape, options.level_count, options.margin_cells)
     tiles = levels.iter_tiles(
-        filtered.z_um,
+        z_um,
         texture,
         pixel_size_um=pixel_size_um,
         method=options.method,
         level_count=options.level_count,
         max_slope=options.max_slope,
         sigma_um=sigma_um,
+        margin_cells=options.margin_cells,
+        min_island_px=options.min_island_px,
+        unmeasured=options.unmeasured,
     )
+    floor = options.unmeasured is Unmeasured.FLAT
     grid = (
-        None if options.plain_glb else _position_grid(filtered.z_um, pixel_size_um=pixel_size_um, origin_um=origin_um)
+        None
+        if options.plain_glb
+        else _position_grid(z_um, pixel_size_um=pixel_size_um, origin_um=origin_um, with_zero=floor)
     )
     encoded = []
     # Tiles are built (numpy, mostly outside the GIL) in a worker thread while this thread encodes
@@ -86,14 +111,20 @@ def mesh_height_map(
             pending = builder.submit(next, tiles, None)
             encoded.append(_encoded_tile(tile, pixel_size_um=pixel_size_um, grid=grid, origin_um=origin_um))
             report(0.1 + 0.9 * len(encoded) / total, f"level {tile.level}: {len(encoded)} of at most {total} tiles")
-    return encoded, filtered.report
+    return encoded, MeshReport(filtered.report, islands)
 
 
-def _position_grid(z_um: np.ndarray, *, pixel_size_um: float, origin_um: tuple[float, float]) -> glb.PositionGrid:
-    """The quantization grid spanning the whole height map (rows, cols) µm, NaN unknown, in glTF
-    metres with pixel (0, 0) at `origin_um` (x, y): one grid for all its tiles."""
+def _position_grid(
+    z_um: np.ndarray, *, pixel_size_um: float, origin_um: tuple[float, float], with_zero: bool
+) -> glb.PositionGrid:
+    """The quantization grid spanning the whole height map (rows, cols) µm, NaN unknown (and
+    height zero `with_zero`, for a floor there), in glTF metres with pixel (0, 0) at `origin_um`
+    (x, y): one grid for all its tiles."""
     rows, cols = z_um.shape
-    corners = np.array([[0.0, 0.0, np.nanmin(z_um)], [cols - 1.0, rows - 1.0, np.nanmax(z_um)]])
+    low, high = (np.nanmin(z_um), np.nanmax(z_um)) if np.isfinite(z_um).any() else (0.0, 0.0)
+    if with_zero:
+        low, high = min(low, 0.0), max(high, 0.0)
+    corners = np.array([[0.0, 0.0, low], [cols - 1.0, rows - 1.0, high]])
     return glb.PositionGrid.spanning(
         *glb.to_gltf_positions_m(corners, pixel_size_um=pixel_size_um, origin_um=origin_um)
     )
@@ -113,4 +144,5 @@ def _encoded_tile(
         vertex_count=len(tile.positions),
         triangle_count=len(tile.triangles),
         wall_triangle_count=int(tile.walls.sum()),
+        level_error_m=tile.level_error_um * METRES_PER_UM,
     )

@@ -9,10 +9,10 @@ import numpy as np
 
 from fractoscope.errors import InvalidInputError
 from fractoscope.mesh.levels import Simplification
-from fractoscope.mesh.pipeline import EncodedTile, MeshingOptions
+from fractoscope.mesh.outline import Unmeasured
+from fractoscope.mesh.pipeline import EncodedTile, MeshingOptions, MeshReport
 from fractoscope.rpc import wire
 from fractoscope.stereo.geometry import validate_pixel_size_um
-from fractoscope.surface.filtering import FilterReport
 from fractoscope.v1 import common_pb2, meshing_pb2
 
 _METHODS = {
@@ -20,6 +20,13 @@ _METHODS = {
     meshing_pb2.SIMPLIFICATION_METHOD_VERTEX_CLUSTERING: Simplification.VERTEX_CLUSTERING,
     meshing_pb2.SIMPLIFICATION_METHOD_QUADRIC: Simplification.QUADRIC,
 }
+UNMEASURED = {
+    common_pb2.UNMEASURED_AREAS_UNSPECIFIED: Unmeasured.ABSENT,
+    common_pb2.UNMEASURED_AREAS_ABSENT: Unmeasured.ABSENT,
+    common_pb2.UNMEASURED_AREAS_FLAT: Unmeasured.FLAT,
+}
+UNMEASURED_CODES = {kind: code for code, kind in UNMEASURED.items() if code}
+MAX_MARGIN_CELLS = 16
 
 
 def options_from_request(request: meshing_pb2.BuildMeshRequest) -> MeshingOptions:
@@ -34,6 +41,9 @@ def options_from_request(request: meshing_pb2.BuildMeshRequest) -> MeshingOption
         level_count=request.level_count or None,
         plain_glb=request.plain_glb,
         max_slope=request.max_slope or None,
+        unmeasured=UNMEASURED.get(request.unmeasured) or _invalid("unmeasured", f"unknown value {request.unmeasured}"),
+        min_island_px=request.min_island_px if request.HasField("min_island_px") else defaults.min_island_px,
+        margin_cells=request.margin_cells,
     )
     if not options.outlier_threshold_sigma > 0:
         _invalid("filter.outlier_threshold_sigma", "must be > 0")
@@ -45,6 +55,14 @@ def options_from_request(request: meshing_pb2.BuildMeshRequest) -> MeshingOption
         _invalid("level_count", "must be 0 (automatic) to 16")
     if not (np.isfinite(request.max_slope) and request.max_slope >= 0):
         _invalid("max_slope", f"must be 0 (no walls) or positive, got {request.max_slope}")
+    if not (np.isfinite(options.min_island_px) and options.min_island_px >= 0):
+        _invalid("min_island_px", f"must be 0 (keep every island) or positive, got {options.min_island_px} px")
+    if not 0 <= request.margin_cells <= MAX_MARGIN_CELLS:
+        _invalid("margin_cells", f"must be 0 to {MAX_MARGIN_CELLS}, got {request.margin_cells}")
+    if request.margin_cells and request.level_count != 1:
+        _invalid(
+            "margin_cells", f"needs level_count 1 (a margin is one level's), got level_count {request.level_count}"
+        )
     return options
 
 
@@ -108,17 +126,19 @@ def tile_response(tile: EncodedTile) -> meshing_pb2.BuildMeshResponse:
             vertex_count=tile.vertex_count,
             triangle_count=tile.triangle_count,
             wall_triangle_count=tile.wall_triangle_count,
+            level_error_m=tile.level_error_m,
         )
     )
     response.tile.glb = tile.glb  # set in place: nesting a message copies it
     return response
 
 
-def filter_report_response(report: FilterReport) -> meshing_pb2.BuildMeshResponse:
+def filter_report_response(report: MeshReport) -> meshing_pb2.BuildMeshResponse:
     return meshing_pb2.BuildMeshResponse(
         filter_report=meshing_pb2.FilterReport(
-            outliers_removed=report.outliers_removed,
-            holes_filled=report.holes_filled,
-            points_smoothed=report.points_smoothed,
+            outliers_removed=report.filtered.outliers_removed,
+            holes_filled=report.filtered.holes_filled,
+            points_smoothed=report.filtered.points_smoothed,
+            islands_dropped=report.islands_dropped,
         )
     )

@@ -4,13 +4,12 @@ from __future__ import annotations
 
 import logging
 
-from fractoscope.mesh.pipeline import EncodedTile, mesh_height_map
+from fractoscope.mesh.pipeline import EncodedTile, MeshReport, mesh_height_map
 from fractoscope.meshing import messages as rpc_meshing
 from fractoscope.progress import ProgressCallback
 from fractoscope.rpc.status import abort_on_error
 from fractoscope.runtime import budget
 from fractoscope.runtime.jobs import JobRunner
-from fractoscope.surface.filtering import FilterReport
 from fractoscope.v1 import common_pb2, meshing_pb2, meshing_pb2_grpc
 
 _log = logging.getLogger("fractoscope.meshing")
@@ -40,7 +39,7 @@ class MeshingServicer(meshing_pb2_grpc.MeshingServiceServicer):
 
     def mesh(
         self, request: meshing_pb2.BuildMeshRequest, progress: ProgressCallback
-    ) -> tuple[list[EncodedTile], FilterReport]:
+    ) -> tuple[list[EncodedTile], MeshReport]:
         """BuildMesh's work, in the thread of a job (this call's, or a specimen build's that calls it
         in-process): the tiles, finest level first, and the filter report."""
         return mesh_height_map(**_mesh_arguments(request), progress=progress)

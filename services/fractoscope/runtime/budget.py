@@ -53,7 +53,8 @@ def height_map_bytes(
     strip_pixels: int = matching.DEFAULT_STRIP_PIXELS,
 ) -> int:
     """Estimated peak bytes of a height map of `views` images of `shape` (rows, cols): the full
-    images on the canvas that turns the tilt axis vertical, and the largest strip the matcher cuts."""
+    images on the canvas that turns the tilt axis vertical, and the largest strip the matcher cuts times
+    the strips it matches at once (matching.strip_workers)."""
     _, canvas = alignment.rotation_to_vertical_axis(shape, tilt_axis_deg)
     disparity = max_disparity_px or matching.default_max_disparity_px(canvas[1])
     strips = matching.strip_bounds(canvas, window_px=window_px, max_disparity_px=disparity, strip_pixels=strip_pixels)
@@ -62,7 +63,7 @@ def height_map_bytes(
     return (
         BASE_BYTES
         + HEIGHT_MAP_BYTES_PER_PIXEL * full_pixels * max(views - 1, 1)
-        + STRIP_BYTES_PER_PIXEL * strip_pixels_max
+        + STRIP_BYTES_PER_PIXEL * strip_pixels_max * min(matching.strip_workers(), len(strips))
     )
 
 

@@ -5,8 +5,9 @@ way), FRACTO_WORKERS (threads answering queries), FRACTO_BUILD_WORKERS and FRACT
 (builds, height maps and meshes run at once and waiting; strips matched for peers likewise, on
 threads of their own), FRACTO_MAX_REQUEST_MB (memory one such request may take; default: 60 % of
 the server's memory over the build workers), FRACTO_LOG_LEVEL, FRACTO_DATA_DIR (where specimens are
-kept), FRACTO_MATCHING_ADDRESS and FRACTO_MESHING_ADDRESS (the services the tile service calls;
-default: this process's own, called in-process), FRACTO_STRIP_PEERS (matching replicas that match
+kept), FRACTO_STORE (s3://bucket/prefix: specimens in object storage instead),
+FRACTO_MATCHING_ADDRESS and FRACTO_MESHING_ADDRESS (the services the tile service calls; default:
+this process's own, called in-process), FRACTO_STRIP_PEERS (matching replicas that match
 the strips of large pairs, e.g. the headless Service of the matching Deployment; empty = match
 here), FRACTO_STRIP_PIXELS and FRACTO_STRIP_IN_FLIGHT, FRACTO_HTTP_ADDRESS (host:port of the
 plain-HTTP tile endpoint; empty = off). Tokens (FRACTO_TOKENS, see auth) and TLS (FRACTO_TLS_CERT,
@@ -70,6 +71,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--log-level", default=os.environ.get("FRACTO_LOG_LEVEL", "INFO"))
     parser.add_argument(
         "--data", default=os.environ.get("FRACTO_DATA_DIR", DEFAULT_DATA_DIR), help="specimen directory"
+    )
+    parser.add_argument(
+        "--store",
+        default=os.environ.get("FRACTO_STORE") or None,
+        help="s3://BUCKET/PREFIX: specimens, jobs and leases in object storage, shared by tile replicas (endpoint "
+        "and keys from AWS_ENDPOINT_URL, AWS_ACCESS_KEY_ID, AWS_SECRET_ACCESS_KEY, AWS_REGION; --data keeps "
+        "scratch files); default: the folder --data",
     )
     parser.add_argument(
         "--matching-address",

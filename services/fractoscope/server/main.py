@@ -13,6 +13,10 @@ from collections.abc import Iterator
 from concurrent import futures
 from pathlib import Path
 
+# gRPC core reads this once, when grpc is imported: it would log transport events (GOAWAY when a
+# client or peer goes away) at INFO on stderr, between the JSON log lines. GRPC_VERBOSITY set in
+# the environment still wins, for debugging.
+os.environ.setdefault("GRPC_VERBOSITY", "ERROR")
 import grpc
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
@@ -33,8 +37,9 @@ from fractoscope.server.config import (
     build_parser,
     default_build_workers,
 )
-from fractoscope.specimen.store import SpecimenStore
+from fractoscope.specimen.store import SpecimenStore, StoredSpecimens
 from fractoscope.stereo.matching import DEFAULT_STRIP_PIXELS
+from fractoscope.store.specimens import open_specimen_store
 from fractoscope.tiles.http import start_http_server
 from fractoscope.tiles.servicer import SerializedGetTile, TileServicer
 from fractoscope.v1 import matching_pb2, matching_pb2_grpc, meshing_pb2, meshing_pb2_grpc, tiles_pb2, tiles_pb2_grpc
@@ -72,7 +77,7 @@ def create_server(
     build_queue: int = DEFAULT_BUILD_QUEUE,
     max_request_mb: int | None = None,
     data_dir: str | Path = DEFAULT_DATA_DIR,
-    store: SpecimenStore | None = None,
+    store: StoredSpecimens | None = None,
     matching_address: str | None = None,
     meshing_address: str | None = None,
     tokens: TokenTable | None = None,
@@ -132,7 +137,7 @@ def _check_known(services: tuple[str, ...]) -> None:
 
 
 def _tile_servicer(
-    store: SpecimenStore,
+    store: StoredSpecimens,
     builds: JobRunner,
     memory: MemoryBudget,
     servicers: dict,
@@ -234,10 +239,12 @@ def embedded_server(
     host: str = "127.0.0.1",
     port: int = 0,
     store: SpecimenStore | None = None,
+    services: tuple[str, ...] = SERVICE_NAMES,
 ) -> Iterator[str]:
-    """Runs all services in this process on `host:port` (port 0: a free one) for the block's
-    duration, with specimens kept in `store` (default: under `data_dir`); yields the address."""
-    server, bound = create_server(f"{host}:{port}", data_dir=data_dir, store=store)
+    """Runs `services` (default: all) in this process on `host:port` (port 0: a free one) for the
+    block's duration, the tile service keeping specimens in `store` (default: under `data_dir`,
+    which only the tile service touches); yields the address."""
+    server, bound = create_server(f"{host}:{port}", services=services, data_dir=data_dir, store=store)
     server.start()
     try:
         yield f"{host}:{bound}"
@@ -251,7 +258,7 @@ def main(argv: list[str] | None = None) -> None:
     keep_freed_memory()
     tokens = TokenTable.from_environment()
     services = tuple(name.strip() for name in args.services.split(",") if name.strip())
-    store = SpecimenStore(Path(args.data)) if "tiles" in services else None
+    store = open_specimen_store(args.store, Path(args.data)) if "tiles" in services else None
     server, port = create_server(
         args.address,
         services=services,
@@ -297,6 +304,12 @@ def main(argv: list[str] | None = None) -> None:
     signal.signal(signal.SIGTERM, stop)
     signal.signal(signal.SIGINT, stop)
     stopped.wait()
+    # A build whose call is gone may still run on a job pool's thread; the interpreter's exit
+    # would tear that thread down inside native code (abort: "terminate called without an active
+    # exception", exit status -6). The process ends here instead, as a kill would end it, which
+    # both stores are made for (a folder's SpecimenStore.recover; a bucket's lease and sweep).
+    logging.shutdown()
+    os._exit(0)
 
 
 if __name__ == "__main__":

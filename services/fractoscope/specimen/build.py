@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fractoscope.errors import InvalidInputError
+from fractoscope.mesh.outline import Unmeasured
 from fractoscope.progress import ProgressCallback, silent
 from fractoscope.specimen import registration
 from fractoscope.specimen.fusion import FusedSurface, PlacedRoi
@@ -103,10 +104,11 @@ def reconstruct_specimen(
     request_id: str = "",
     request_digest: str = "",
     progress: ProgressCallback | None = None,
+    unmeasured: Unmeasured = Unmeasured.ABSENT,
 ) -> Specimen:
     """Builds and stores a specimen, with the id and the content digest of the request it builds
     (see Specimen.request_digest); returns it as stored. Errors name the ROI by its index in
-    `rois` (`rois[1].center_um`)."""
+    `rois` (`rois[1].center_um`). `unmeasured`: how the tiles show what nothing measured."""
     report = progress or silent
     validate_id(specimen_id, field="specimen_id")
     ordered = ordered_rois(rois)
@@ -124,7 +126,7 @@ def reconstruct_specimen(
     surface = FusedSurface(list(placed.values()))
     layout = QuadtreeLayout.covering(surface)
     with store.writing(specimen_id) as staging:
-        records = _write_tiles(staging, surface, layout, mesh_tile, report)
+        records = _write_tiles(staging, surface, layout, mesh_tile, report, unmeasured=unmeasured)
         for roi in placed.values():
             write_roi_arrays(staging, roi)
         for roi, entry in zip(ordered, entries):
@@ -267,23 +269,27 @@ def _matching_sigma(
 
 
 def _write_tiles(
-    staging, surface: FusedSurface, layout: QuadtreeLayout, mesh_tile: TileMesher, report
+    staging, surface: FusedSurface, layout: QuadtreeLayout, mesh_tile: TileMesher, report, *, unmeasured: Unmeasured
 ) -> dict[TileKey, TileRecord]:
     """Walks the quadtree, meshes its tiles two at a time and writes their GLBs under `staging`;
     the first failed tile stops the walk."""
     meshers = ThreadPoolExecutor(max_workers=2)
     pending, failures = [], []
 
+    def _record_failure(done) -> None:
+        if not done.cancelled() and done.exception() is not None:  # cancelled: the build is stopping anyway
+            failures.append(done.exception())
+
     def emit(key: TileKey, samples: TileSamples) -> None:
         if failures:  # fail fast: a mesher that cannot be reached will not come back mid-build
             raise failures[0]
         job = meshers.submit(mesh_tile, samples)
-        job.add_done_callback(lambda done: done.exception() and failures.append(done.exception()))
+        job.add_done_callback(_record_failure)
         pending.append((key, job))
         report(0.65 + 0.3 * (1 - 0.5 ** (len(pending) / 16)), f"tile {key.uri}")
 
     try:
-        records = build_tiles(surface, layout, emit)
+        records = build_tiles(surface, layout, emit, unmeasured=unmeasured)
         for key, glb in pending:
             path = staging / key.uri
             path.parent.mkdir(parents=True, exist_ok=True)

@@ -22,6 +22,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from fractoscope.mesh.outline import DEFAULT_MIN_ISLAND_PX, Unmeasured
 from fractoscope.mesh.walls import WALL_SIGMA_FACTOR, grid_wall_triangles, wall_vertices, within_distance
 from fractoscope.specimen.fusion import FusedSurface, PlacedRoi, overlaps
 
@@ -29,6 +30,9 @@ OPTICAL, DIGITAL = "optical", "digital"
 # 64 x 64 cells keep a textured tile near 200 KB, small enough to stream many per second; the
 # quadtree gets deeper instead.
 QUADTREE_TILE_CELLS = 64
+# Each tile is sampled one vertex beyond its border all round, so that the normals of its border
+# vertices see its neighbours' heights: tiles meshed apart shade their shared border alike.
+MESH_MARGIN_CELLS = 1
 _REFINE_RATIO = math.sqrt(2)
 # A tile URI's one form: numbers of up to 6 ASCII digits without leading zeros.
 _NUMBER = r"(0|[1-9][0-9]{0,5})"
@@ -77,10 +81,11 @@ class QuadtreeLayout:
         x0, y0 = self.origin_um[0] + key.col * side, self.origin_um[1] + key.row * side
         return x0, y0, x0 + side, y0 + side
 
-    def vertex_grid_um(self, key: TileKey) -> tuple[np.ndarray, np.ndarray]:
-        """(x, y) of a tile's (QUADTREE_TILE_CELLS + 1)² vertices, µm, rows down."""
+    def vertex_grid_um(self, key: TileKey, margin: int = 0) -> tuple[np.ndarray, np.ndarray]:
+        """(x, y) of a tile's (QUADTREE_TILE_CELLS + 1)² vertices and `margin` more all round, µm,
+        rows down."""
         x0, y0, x1, y1 = self.bounds_um(key)
-        steps = np.arange(QUADTREE_TILE_CELLS + 1) * self.cell_um(key.level)
+        steps = np.arange(-margin, QUADTREE_TILE_CELLS + 1 + margin) * self.cell_um(key.level)
         return np.meshgrid(x0 + steps, y0 + steps)
 
     @classmethod
@@ -122,9 +127,10 @@ class TileRecord:
 
 @dataclass(frozen=True)
 class TileSamples:
-    """What a tile is meshed from: heights (QUADTREE_TILE_CELLS + 1)² µm (NaN unknown) and grey
-    texture on its vertex grid, the cell size µm, the position of vertex (0, 0) (x, y) µm, and the
-    wall settings of the ROI that shows most of it (see PlacedRoi)."""
+    """What a tile is meshed from: heights (QUADTREE_TILE_CELLS + 1 + 2 MESH_MARGIN_CELLS)² µm
+    (NaN unknown) and grey texture on its vertex grid and margin, the cell size µm, the position of
+    the tile's vertex (0, 0) (x, y) µm, the wall settings of the ROI that shows most of it (see
+    PlacedRoi), the least island area in cells (mesh.outline) and how unmeasured areas are drawn."""
 
     z_um: np.ndarray
     texture: np.ndarray
@@ -132,19 +138,38 @@ class TileSamples:
     origin_um: tuple[float, float]
     max_slope: float | None
     noise_um: float
+    min_island_cells: float = 0.0
+    unmeasured: Unmeasured = Unmeasured.ABSENT
+
+    @property
+    def core_z_um(self) -> np.ndarray:
+        """The heights of the tile's own (QUADTREE_TILE_CELLS + 1)² vertices."""
+        return self.z_um[MESH_MARGIN_CELLS:-MESH_MARGIN_CELLS, MESH_MARGIN_CELLS:-MESH_MARGIN_CELLS]
+
+    @property
+    def grid_origin_um(self) -> tuple[float, float]:
+        """The position of the sampled grid's first point, margin included, (x, y) µm."""
+        shift = MESH_MARGIN_CELLS * self.cell_um
+        return self.origin_um[0] - shift, self.origin_um[1] - shift
 
 
 TileSink = Callable[[TileKey, TileSamples], None]
 
 
 def build_tiles(
-    surface: FusedSurface, layout: QuadtreeLayout, emit: TileSink, *, progress: Callable[[str], None] | None = None
+    surface: FusedSurface,
+    layout: QuadtreeLayout,
+    emit: TileSink,
+    *,
+    progress: Callable[[str], None] | None = None,
+    unmeasured: Unmeasured = Unmeasured.ABSENT,
 ) -> dict[TileKey, TileRecord]:
     """Walks the quadtree depth first, samples each tile's heights and texture from the fused
     surface and hands them to `emit(key, TileSamples)` (the mesher); returns the records. Tiles
     without four neighbouring measured vertices are left out. A tile's geometric error is the
     larger of its measured height error (`_deviation_um`) and its cell size (the detail of the SEM
-    image it shows), and above its children's; leaves have none."""
+    image it shows), and above its children's; leaves have none. Each tile drops islands smaller
+    than mesh.outline's least area in its dominant ROI's pixels; `unmeasured` is handed on."""
     records: dict[TileKey, TileRecord] = {}
     announce = progress or (lambda message: None)
 
@@ -154,11 +179,12 @@ def build_tiles(
         if not below:
             return False
         cell_um = layout.cell_um(key.level)
-        x_um, y_um = layout.vertex_grid_um(key)
+        x_um, y_um = layout.vertex_grid_um(key, MESH_MARGIN_CELLS)
         samples = surface.sample(x_um, y_um, cell_um=cell_um)
-        if not _has_a_quad(samples.z_um):
+        core = (slice(MESH_MARGIN_CELLS, -MESH_MARGIN_CELLS),) * 2
+        if not _has_a_quad(samples.z_um[core]):
             return False
-        shown = surface.rois[_dominant_source(samples.source, below, surface)]
+        shown = surface.rois[_dominant_source(samples.source[core], below, surface)]
         tile = TileSamples(
             samples.z_um,
             np.clip(samples.texture, 0, 255).astype(np.uint8),
@@ -166,6 +192,8 @@ def build_tiles(
             (bounds[0], bounds[1]),
             shown.max_slope,
             shown.noise_um,
+            DEFAULT_MIN_ISLAND_PX * min(shown.pixel_size_um / cell_um, 1.0) ** 2,
+            unmeasured,
         )
         emit(key, tile)
         announce(f"tile {key.uri}")
@@ -193,15 +221,16 @@ _ERROR_LEVELS = 4
 
 def _leaf_record(key: TileKey, shown: PlacedRoi, tile: TileSamples) -> TileRecord:
     """The record of a tile meshed from `tile` and shown by the ROI `shown`, as if it had no
-    children: no geometric error, the height range of its own vertices."""
+    children: no geometric error, the height range of its own vertices (and zero, with a floor)."""
+    floor = tile.unmeasured is Unmeasured.FLAT
     return TileRecord(
         key=key,
         roi=shown.id,
         magnification=shown.magnification,
         zoom=OPTICAL if shown.pixel_size_um <= tile.cell_um * _REFINE_RATIO else DIGITAL,
         geometric_error_um=0.0,
-        z_min_um=float(np.nanmin(tile.z_um)),
-        z_max_um=float(np.nanmax(tile.z_um)),
+        z_min_um=float(min(np.nanmin(tile.core_z_um), 0.0 if floor else np.inf)),
+        z_max_um=float(max(np.nanmax(tile.core_z_um), 0.0 if floor else -np.inf)),
     )
 
 
@@ -254,7 +283,7 @@ def _deviation_um(
     offset = position - quad
     rows, cols = np.meshgrid(quad, quad, indexing="ij")
     v, u = np.meshgrid(offset, offset, indexing="ij")
-    z = tile.z_um
+    z = tile.core_z_um
     a, b, c, d = z[rows, cols], z[rows, cols + 1], z[rows + 1, cols], z[rows + 1, cols + 1]
     in_upper = u + v <= 1.0
     coarse = np.where(in_upper, a + u * (b - a) + v * (c - a), d + (1 - u) * (c - d) + (1 - v) * (b - d))

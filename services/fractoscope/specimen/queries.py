@@ -202,12 +202,13 @@ def roughness_of(
     specimen: Specimen, *, roi: str | None = None, region_um=None, chain: ChainRequest = ChainRequest()
 ) -> roughness.SurfaceAnalysis:
     """The surface texture chain on one ROI as measured (the overview when neither is given), or on
-    a region of the fused surface (clipped to the specimen) sampled at the finest pixel size there
-    (coarser if that would exceed MAX_REGION_SAMPLES; `surface_area`). The matching noise is each ROI's stored sigma
+    a region of the fused surface (clipped to the specimen) sampled at the finest pixel size of the
+    ROIs that hold all of it (coarser if that would exceed MAX_REGION_SAMPLES), not at that of a finer
+    ROI that meets a part of it, which would upsample the rest. The matching noise is each ROI's stored sigma
     map (for a region: fused as the heights are; the median where a measured point has none), the tilt
     uncertainty that of the ROI (for a region: the largest of those it draws on)."""
     if region_um is not None:
-        area = surface_area(specimen, region_um=region_um)
+        area = surface_area(specimen, region_um=region_um, pixel_size_um=_holding_cell_um(specimen, region_um))
         z_um, pixel_size_um, origin_um = area.z_um, area.pixel_size_um, area.origin_um
         x0, y0 = origin_um
         rows, cols = z_um.shape
@@ -238,6 +239,19 @@ def roughness_of(
         chain=chain,
         default_window_px=max(1.0, window_px),
     )
+
+
+def _holding_cell_um(specimen: Specimen, region_um) -> float:
+    """The finest pixel size of the ROIs whose regions hold all of a region (clipped to the
+    specimen; the overview's if none does), coarser where that would exceed MAX_REGION_SAMPLES, µm."""
+    x0, y0, x1, y1 = _within_specimen(specimen, checked_region(region_um))
+    holding = [
+        roi.pixel_size_um
+        for roi in specimen.rois
+        if roi.region_um[0] <= x0 and roi.region_um[1] <= y0 and roi.region_um[2] >= x1 and roi.region_um[3] >= y1
+    ]
+    cell_um = min(holding) if holding else specimen.rois[0].pixel_size_um
+    return max(cell_um, math.sqrt((x1 - x0) * (y1 - y0) / MAX_REGION_SAMPLES))
 
 
 def roughness_of_map(

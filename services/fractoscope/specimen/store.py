@@ -14,6 +14,7 @@ killed processes when a store of that data is made.
 from __future__ import annotations
 
 import contextlib
+import io
 import json
 import math
 import os
@@ -22,7 +23,7 @@ import shutil
 import tempfile
 import threading
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -75,13 +76,18 @@ class RoiEntry:
         return footprint_um(self.origin_um, self.shape, self.pixel_size_um)
 
 
-class Specimen:
-    """A stored specimen: ROIs (overview first), tile layout and records, lazily loaded surface.
-    `version` tells builds of one id apart (the description's modification time, ns), so caches
-    key on (id, version) without holding the specimen, and its surface, alive."""
+# A stored specimen's file by its path in the specimen (e.g. "tiles/0/0/0.glb"); FileNotFoundError when gone.
+ReadFile = Callable[[str], bytes]
 
-    def __init__(self, directory: Path, description: dict, version: int = 0):
-        self.directory = directory
+
+class Specimen:
+    """A stored specimen: ROIs (overview first), tile layout and records, lazily loaded surface,
+    its files read by `read` (from a folder or from object storage). `version` tells builds of
+    one id apart (the description's modification time, ns, or the build id in object storage),
+    so caches key on (id, version) without holding the specimen, and its surface, alive."""
+
+    def __init__(self, read: ReadFile, description: dict, version: int | str = 0):
+        self.read = read
         self.version = version
         self.id: str = description["id"]
         self.request_id: str = description.get("request_id", "")
@@ -124,7 +130,7 @@ class Specimen:
     def surface(self) -> FusedSurface:
         placed = []
         for roi in self.rois:
-            with self._stored_file(), np.load(self.directory / "rois" / f"{roi.id}.npz") as arrays:
+            with self._stored_file(), np.load(io.BytesIO(self.read(f"rois/{roi.id}.npz"))) as arrays:
                 # Specimens built before it was kept have none.
                 sigma_um = arrays["sigma_um"] if "sigma_um" in arrays else None
                 placed.append(
@@ -143,7 +149,7 @@ class Specimen:
     @cached_property
     def tileset_bytes(self) -> bytes:
         with self._stored_file():
-            return (self.directory / "tileset.json").read_bytes()
+            return self.read("tileset.json")
 
     def tile_record(self, uri: str) -> TileRecord:
         try:
@@ -160,13 +166,13 @@ class Specimen:
         if not 0 <= index < len(views):
             raise NotFoundError(f"ROI {roi_id!r} of specimen {self.id!r} keeps no view {index}")
         with self._stored_file():
-            return (self.directory / views[index]["file"]).read_bytes()
+            return self.read(views[index]["file"])
 
     def tile_bytes(self, uri: str) -> bytes:
         """The GLB of a tile named as in tileset.json."""
         record = self.tile_record(uri)
         with self._stored_file():
-            return (self.directory / record.key.uri).read_bytes()
+            return self.read(record.key.uri)
 
     @contextlib.contextmanager
     def _stored_file(self) -> Iterator[None]:
@@ -180,7 +186,44 @@ class Specimen:
             ) from None
 
 
-class SpecimenStore:
+class StoredSpecimens:
+    """What every specimen store does alike, over its `load`: this folder store and the object
+    store's (fractoscope.store.specimens). `objects` is the object storage that replicas share
+    (None: this process alone owns the store)."""
+
+    objects = None
+
+    def load(self, specimen_id: str) -> Specimen:
+        raise NotImplementedError
+
+    def building(self, specimen_id: str) -> contextlib.AbstractContextManager[None]:
+        """Held for the whole of one build of `specimen_id`: a process that owns its store builds
+        alone, its job runner keeping builds of one request apart."""
+        return contextlib.nullcontext()
+
+    def built_by(self, specimen_id: str, request_id: str, digest: str) -> Specimen | None:
+        """The stored specimen that a request with `request_id` and content `digest` (a digest of
+        the request without its id) built, if any; AlreadyExistsError naming request_id when that
+        id built it from other content. A request without an id built nothing."""
+        if not request_id:
+            return None
+        try:
+            existing = self.load(specimen_id)
+        except NotFoundError:
+            return None
+        if existing.request_id != request_id:
+            return None
+        # A specimen built before digests were kept has none: its content cannot be compared.
+        if existing.request_digest and existing.request_digest != digest:
+            raise AlreadyExistsError(
+                f"request_id {request_id!r} built specimen {specimen_id!r} from other content; give this request a "
+                "new request_id",
+                field="request_id",
+            )
+        return existing
+
+
+class SpecimenStore(StoredSpecimens):
     """The specimens under `root/specimens`, cached in memory once read. A process makes one store
     per directory and hands it to everything that serves it (the tile service and the HTTP
     endpoint), so a specimen's surface is read and held once."""
@@ -221,27 +264,6 @@ class SpecimenStore:
             if p.is_dir() and _ID.fullmatch(p.name) and (p / "specimen.json").is_file()
         )
 
-    def built_by(self, specimen_id: str, request_id: str, digest: str) -> Specimen | None:
-        """The stored specimen that a request with `request_id` and content `digest` (a digest of
-        the request without its id) built, if any; AlreadyExistsError naming request_id when that
-        id built it from other content. A request without an id built nothing."""
-        if not request_id:
-            return None
-        try:
-            existing = self.load(specimen_id)
-        except NotFoundError:
-            return None
-        if existing.request_id != request_id:
-            return None
-        # A specimen built before digests were kept has none: its content cannot be compared.
-        if existing.request_digest and existing.request_digest != digest:
-            raise AlreadyExistsError(
-                f"request_id {request_id!r} built specimen {specimen_id!r} from other content; give this request a "
-                "new request_id",
-                field="request_id",
-            )
-        return existing
-
     def load(self, specimen_id: str) -> Specimen:
         validate_id(specimen_id, field="specimen_id")
         description_path = self.root / specimen_id / "specimen.json"
@@ -253,7 +275,10 @@ class SpecimenStore:
             cached = self._cache.get(specimen_id)
             if cached and cached[0] == stamp:
                 return cached[1]
-        specimen = Specimen(self.root / specimen_id, json.loads(description_path.read_text()), version=stamp)
+        folder = self.root / specimen_id
+        specimen = Specimen(
+            lambda relative: (folder / relative).read_bytes(), json.loads(description_path.read_text()), version=stamp
+        )
         with self._lock:
             self._cache[specimen_id] = (stamp, specimen)
         return specimen

@@ -3,10 +3,16 @@ shading (`local_contrast`), cut into overlapping strips of rows (`strip_bounds`,
 along rows, so a strip is a complete stereo problem), the strips are matched here or by peers
 (`StripMatcher`) and stitched (`match_disparity`). The method that matches one strip is the
 task's (`_METHODS`): `tgv_zncc`, `window_zncc` or `optical_flow` (FAST).
+
+Cores: a strip's layout depends on the image and `strip_pixels` only, never on the machine, and
+each strip is matched by the same code whatever runs beside it, so the result is the same on any
+number of cores. Here strips are matched `strip_workers()` at a time on threads (the kernels are
+OpenCV's and numba's, which release the GIL); each strip also runs its own work on two threads.
 """
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 
@@ -57,8 +63,8 @@ def match_disparity(
 
     Large images are matched in overlapping strips of rows of about `strip_pixels` pixels each,
     which bounds memory; parallax runs along rows, so a strip is a complete stereo problem.
-    `strip_matcher` matches them: one after another here by default (`match_strips`), or in
-    parallel elsewhere; the result is the same either way."""
+    `strip_matcher` matches them: here by default, `strip_workers()` at a time (`match_strips`),
+    or by peers; the result is the same either way."""
     if left.shape != right.shape or left.ndim != 2:
         raise ValueError(f"left and right must be 2D of one shape, got {left.shape} and {right.shape}")
     if window_px < 3 or window_px % 2 == 0:
@@ -148,9 +154,24 @@ def match_strip(task: StripTask) -> DisparityResult:
     return _METHODS[task.method](task)
 
 
-def match_strips(tasks: Iterable[StripTask]) -> Iterator[DisparityResult]:
-    """Matches strips one after another in this process."""
-    return map(match_strip, tasks)
+def strip_workers() -> int:
+    """How many strips this process matches at once: one per two of the CPUs it may run on (each
+    strip keeps about two busy, its two directions on threads of their own), at least one."""
+    return max(1, len(os.sched_getaffinity(0)) // 2)
+
+
+def match_strips(tasks: Iterable[StripTask], *, workers: int | None = None) -> Iterator[DisparityResult]:
+    """Matches strips in this process, `workers` at a time (default `strip_workers()`), yielding
+    their results in the order of `tasks`. The result does not depend on `workers`; peak memory
+    grows with it (one strip's per worker)."""
+    workers = strip_workers() if workers is None else workers
+    if workers < 1:
+        raise ValueError(f"workers must be at least 1, got {workers}")
+    if workers == 1:
+        yield from map(match_strip, tasks)
+        return
+    with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="fractoscope-strip") as pool:
+        yield from pool.map(match_strip, tasks)
 
 
 def local_contrast(image: np.ndarray) -> np.ndarray:

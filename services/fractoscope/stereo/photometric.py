@@ -2,33 +2,35 @@
 point tells its slope along the tilt direction, which a correlation window averages away. The
 slopes are fused with the stereo disparities along each row.
 
-Physics. Secondary-electron yield follows the secant law of the beam's incidence angle θ,
-I ∝ sec^k θ. For a surface z(x, y) tilted by t about the y axis, cos θ = (cos t + p sin t) / N
-with p = ∂z/∂x and N = √(1 + p² + q²), so the ratio of two views' yields at one point depends on
-p alone (N cancels), and what both views share (material contrast, the detector's view of the
-facet) cancels too. At a left pixel x matched to x + d in the right image, with s = ∂d/∂x:
+Physics. Secondary-electron yield depends on the beam's incidence angle θ (the secant law
+sec^k θ of our renderer; other laws, detectors and edge contrast elsewhere). For a surface
+z(x, y) tilted by t about the y axis, cos θ = (cos t + p sin t) / N with p = ∂z/∂x and
+N = √(1 + p² + q²); what both views share (material contrast, edges) cancels in the ratio of
+their yields, which depends mostly on p. At a left pixel x matched to x + d in the right image,
+with s = ∂d/∂x:
 
-    R(x + d) = L(x) a(s) + b(s),   a and b quadratic in s,
+    R(x + d) = L(x) a(s) + b(s),   a and b polynomials in s,
 
-the two images' gains and black levels and the exponent k folded into the six coefficients. They
-are fitted to the pair itself by least squares against the stereo's slopes, both sides averaged
-over 4 px, and the model inverted about the stereo's slope (smoothed over 1.5 px) gives each
-pixel's photometric slope, with a variance from the images'
-noise (J. Immerkær, "Fast noise variance estimation", Comput. Vis. Image Underst. 64 (1996)
-300-302, doi:10.1006/cviu.1996.0060) and from the stereo's disparity sigma (a mislocated sample
-of a textured image).
+the two images' gains and black levels and the law's form and strength folded into the
+coefficients. The law is learned from the pair itself, not assumed: fitted by least squares
+against the stereo's slopes, both sides averaged over 4 px, its degree (1 to 4) the one that
+best predicts the brightness of image blocks it was not fitted on (two folds of a checkerboard).
+The model inverted about the stereo's slope (smoothed over 1.5 px) gives each pixel's
+photometric slope, with a variance from the images' noise (J. Immerkær, "Fast noise variance
+estimation", Comput. Vis. Image Underst. 64 (1996) 300-302, doi:10.1006/cviu.1996.0060) and
+from the stereo's disparity sigma (a mislocated sample of a textured image).
+
+How far to trust it. On the held-out blocks the slopes the brightness alone tells (the model
+inverted without the stereo's slope) are compared with the stereo's; the share of the stereo
+slopes' variance they explain, clipped to [0, 1], weights the photometric slopes' precision, and
+under `MIN_WEIGHT` nothing is fused: flat facets (cleavage), pure material contrast or shading
+shaped by something other than the slopes leave the stereo's disparities as they are.
 
 Fusion. Each row's disparities minimise
     Σ_j κ (d_j - ď_j)² / σ_j² + Σ_j (d_{j+1} - d_j - s_{j+½})² / v_{j+½},
 ď the stereo's disparities, σ their sigma and κ `_STEREO_WEIGHT`, s the photometric slopes (averaged over σ = 1.4 px,
 weighted by precision) and v their variance: the stereo keeps the long wavelengths, the slopes
 add the short ones. A tridiagonal system per row.
-
-Used only where the shading does tell slopes: when, averaged over 4 px, the slopes the
-brightness alone tells (the model linearized about a flat surface, so independent of the
-stereo's) correlate with the stereo's by at least `MIN_AGREEMENT`; elsewhere (flat facets, or
-shading shaped by edge contrast rather than the secant law) nothing changes. Measured agreements:
-docs/matching-notes.md.
 
 Convention: disparity d at left pixel (row, col) means it matches right pixel (row, col + d).
 """
@@ -40,13 +42,17 @@ from dataclasses import dataclass
 import cv2
 import numba
 import numpy as np
+from numpy.polynomial import chebyshev
 from scipy.linalg import solve_banded
 
 from fractoscope.stereo import correlation
 
-# The photometric slopes must correlate with the stereo's this well, both averaged over
-# `_AGREEMENT_SIGMA_PX`, to be used (see the module docstring for what surfaces measure).
-MIN_AGREEMENT = 0.7
+# Below this weight the slopes are not fused at all.
+MIN_WEIGHT = 0.05
+# The shading law's highest degree in the slope that the cross-validation may choose, and its blocks.
+_MAX_DEGREE = 4
+_BLOCK_PX = 64
+_NEWTON_STEPS = 6
 _AGREEMENT_SIGMA_PX = 4.0
 # The stereo slope the model is fitted against and inverted about: disparities smoothed over 1.5 px.
 _STEREO_SLOPE_SIGMA_PX = 1.5
@@ -67,8 +73,10 @@ _SLOPE_SIGMA_PX = 1.4
 # fused 3.32 % against 3.30 %): its error is the images' noise (3.30 % with 2 % noise, 2.20 % with
 # 1 %, 1.43 % without), not the shading.
 _STEREO_WEIGHT = 3.0
-# Every pixel's model fit uses one in this many of the matched pixels, less 8 px of border.
+# The model's fit uses one in this many of the matched pixels, less 8 px of border, and at most
+# about `_MAX_FIT_SAMPLES` of them (fitting five laws twice each on more only costs time).
 _FIT_STRIDE = 3
+_MAX_FIT_SAMPLES = 50_000
 # The fit's averaging of brightness and stereo slopes alike.
 _FIT_SIGMA_PX = 4.0
 _FIT_BORDER_PX = 8
@@ -88,12 +96,16 @@ class Fusion:
     ratio of the fused posterior's standard deviation to the stereo term's alone, at most the
     stereo's (`_POSTERIOR_SCALE`).
     agreement: correlation of photometric and stereo slopes over 4 px (NaN: too little matched).
-    used: whether the slopes were fused (agreement at least MIN_AGREEMENT)."""
+    used: whether the slopes were fused (weight at least MIN_WEIGHT).
+    explained: the shading model's cross-validated explained share (`ShadingModel.explained`).
+    weight: the factor on the photometric slopes' precision, 0 to 1 (0: the stereo alone)."""
 
     disparity_px: np.ndarray
     sigma_px: np.ndarray
     agreement: float
     used: bool
+    explained: float = float("nan")
+    weight: float = 0.0
 
 
 def fused_disparity(
@@ -101,7 +113,8 @@ def fused_disparity(
 ) -> Fusion:
     """The stereo `disparity_px` ((rows, cols), NaN unknown, sigma `sigma_px`) of `left` against
     `right` ((rows, cols) grey images as taken, right placed on left's grid), with the
-    photometric slopes fused in where they agree with the stereo's (see the module docstring).
+    photometric slopes fused in, weighted by how well the pair's learned shading model explains
+    the stereo's slopes (see the module docstring).
     `noise_grey`: the standard deviation of both images' noise, grey levels
     (`noise_sigma` of each, combined in quadrature)."""
     valid = np.isfinite(disparity_px)
@@ -112,16 +125,17 @@ def fused_disparity(
     left = left.astype(np.float32, copy=False)
     warped = correlation.warp_along_rows(right.astype(np.float32, copy=False), filled)
     stereo_slope = np.gradient(cv2.GaussianBlur(filled, (0, 0), _STEREO_SLOPE_SIGMA_PX), axis=1)
-    coefficients = _fitted_model(left, warped, stereo_slope, valid)
-    if coefficients is None:
+    model = _fitted_model(left, warped, stereo_slope, valid)
+    if model is None:
         return unchanged
-    agreement = _agreement(_told_slope(left, warped, coefficients), np.gradient(filled, axis=1), valid)
-    if not agreement >= MIN_AGREEMENT:
-        return Fusion(disparity_px, sigma_px, agreement, False)
+    agreement = _agreement(_told_slope(left, warped, model), np.gradient(filled, axis=1), valid)
+    weight = float(np.clip(model.explained, 0.0, 1.0))
+    if not weight >= MIN_WEIGHT:
+        return Fusion(disparity_px, sigma_px, agreement, False, model.explained, 0.0)
     stereo_sigma_px = np.nan_to_num(sigma_px, nan=1.0)
-    slope, precision = _slopes(left, warped, stereo_slope, coefficients, valid, stereo_sigma_px, noise_grey)
+    slope, precision = _slopes(left, warped, stereo_slope, model, valid, stereo_sigma_px, noise_grey)
     del warped, stereo_slope
-    slope, precision = _averaged(slope, precision, _SLOPE_SIGMA_PX)
+    slope, precision = _averaged(slope, precision * np.float32(weight), _SLOPE_SIGMA_PX)
     stereo_precision = np.where(valid, _STEREO_WEIGHT / np.maximum(stereo_sigma_px, 1e-3) ** 2, 0.0)
     fused, variance_ratio = np.empty_like(filled), np.empty_like(filled)
     for top in range(0, filled.shape[0], _ROWS_PER_SOLVE):
@@ -132,18 +146,18 @@ def fused_disparity(
     # Rounding can leave a ratio out of (0, 1] where a row's pixels are barely tied (canvas corners).
     variance_ratio = np.where((variance_ratio > 0) & (variance_ratio <= 1), variance_ratio, np.float32(1.0))
     sigma_ratio = np.minimum(_POSTERIOR_SCALE * np.sqrt(variance_ratio), np.float32(1.0))
-    return Fusion(np.where(valid, fused, np.float32(np.nan)), sigma_px * sigma_ratio, agreement, True)
+    return Fusion(
+        np.where(valid, fused, np.float32(np.nan)), sigma_px * sigma_ratio, agreement, True, model.explained, weight
+    )
 
 
-def _slopes(left, warped, stereo_slope, coefficients, valid, stereo_sigma_px, noise_grey):
+def _slopes(left, warped, stereo_slope, model, valid, stereo_sigma_px, noise_grey):
     """Each pixel's photometric slope, the model inverted about the stereo's slope, and its
     precision (1 / variance, 0 where unknown): (rows, cols) float32 each. `stereo_sigma_px` has
     no NaN (1 px where the stereo has none)."""
-    a0, a1, a2, b0, b1, b2 = coefficients.tolist()  # Python floats keep the arrays float32
-    residual = warped - (
-        left * (a0 + stereo_slope * (a1 + a2 * stereo_slope)) + b0 + stereo_slope * (b1 + b2 * stereo_slope)
-    )
-    derivative = left * (a1 + 2 * a2 * stereo_slope) + b1 + 2 * b2 * stereo_slope
+    predicted, derivative = model.predicted(left, stereo_slope)
+    residual = warped - predicted
+    del predicted
     usable = valid & (np.abs(derivative) > 1e-3)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         slope = np.where(usable, stereo_slope + residual / derivative, np.float32(0.0))
@@ -177,13 +191,79 @@ def _filled_along_rows(disparity_px: np.ndarray, valid: np.ndarray) -> np.ndarra
     return np.where(valid, disparity_px, np.where((before < 0) & (after >= cols), 0.0, filled)).astype(np.float32)
 
 
-def _fitted_model(left, warped, stereo_slope, valid) -> np.ndarray | None:
-    """The six coefficients (a0, a1, a2, b0, b1, b2) of R = L a(s) + b(s), least squares over
-    one in `_FIT_STRIDE` matched pixels, refitted without those more than three robust sigmas
-    off; None where the fit is degenerate. Both sides are averaged over `_FIT_SIGMA_PX` first:
-    the stereo's slopes lack the fine relief that the brightness has, and a fit at full
-    resolution would take that lack for a weaker shading (on a surface of 12 px ripples, slopes
-    told 13 % too small)."""
+@dataclass(frozen=True)
+class ShadingModel:
+    """R = L a(u) + b(u), u = s / slope_scale (the fitted range is ±1), a and b Chebyshev series of
+    `degree` (coefficients (2, degree + 1): a's, then b's); `explained`: the cross-validated share
+    of the stereo's slopes' variance that the slopes the brightness tells through the model
+    explain (1 - mean squared difference / variance, both averaged over `_FIT_SIGMA_PX`)."""
+
+    coefficients: np.ndarray
+    slope_scale: float
+    explained: float
+
+    def predicted(self, left, slope):
+        """The right view's brightness (rows, cols) float32 at `left`'s brightness and `slope`,
+        and its derivative in the slope; continued linearly beyond the fitted range (|u| > 1)."""
+        u = slope / np.float32(self.slope_scale)
+        within = np.clip(u, -1.0, 1.0)
+        a, b = self.coefficients.astype(np.float32)
+        value = left * chebyshev.chebval(within, a) + chebyshev.chebval(within, b)
+        derivative = left * chebyshev.chebval(within, chebyshev.chebder(a)) + chebyshev.chebval(
+            within, chebyshev.chebder(b)
+        )
+        return value + derivative * (u - within), derivative / np.float32(self.slope_scale)
+
+
+def _fitted_model(left, warped, stereo_slope, valid) -> ShadingModel | None:
+    """The shading model of the pair (see `_fit_samples` for the data): of laws of degree 1 to
+    `_MAX_DEGREE`, the one that best predicts the right view's brightness on image blocks it was
+    not fitted on (two folds of a checkerboard of `_BLOCK_PX` blocks), refitted on all blocks,
+    with the share of the stereo slopes' variance that it explains there. None where too little
+    is matched."""
+    samples = _fit_samples(left, warped, stereo_slope, valid)
+    if samples is None:
+        return None
+    brightness, slope, target, fold = samples
+    slope_scale = float(np.percentile(np.abs(slope), 99)) + 1e-6
+    u = np.clip(slope / slope_scale, -1.0, 1.0)
+    explained, misfit = {}, {}
+    for degree in range(1, _MAX_DEGREE + 1):
+        design = _design(brightness, u, degree)
+        errors, residuals = [], []
+        for test in (0, 1):
+            coefficients = _robust_lstsq(design[fold != test], target[fold != test])
+            residuals.append(target[fold == test] - design[fold == test] @ coefficients)
+            told = _inverted(coefficients.reshape(2, degree + 1), brightness[fold == test], target[fold == test])
+            errors.append(told - u[fold == test])
+        explained[degree] = 1.0 - float(np.mean(np.concatenate(errors) ** 2) / np.var(u))
+        misfit[degree] = float(np.mean(np.concatenate(residuals) ** 2))
+    degree = min(misfit, key=misfit.get)
+    coefficients = _robust_lstsq(_design(brightness, u, degree), target)
+    return ShadingModel(coefficients.reshape(2, degree + 1), slope_scale, explained[degree])
+
+
+def _inverted(coefficients, brightness, target):
+    """The scaled slopes u (within ±1) at which the law of `coefficients` (2, degree + 1) takes
+    each left `brightness` to its right `target`: Newton's method from a flat surface."""
+    a, b = coefficients
+    slope_a, slope_b = chebyshev.chebder(a), chebyshev.chebder(b)
+    u = np.zeros_like(brightness)
+    for _ in range(_NEWTON_STEPS):
+        value = brightness * chebyshev.chebval(u, a) + chebyshev.chebval(u, b) - target
+        derivative = brightness * chebyshev.chebval(u, slope_a) + chebyshev.chebval(u, slope_b)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = np.clip(np.nan_to_num(u - value / derivative), -1.0, 1.0)
+    return u
+
+
+def _fit_samples(left, warped, stereo_slope, valid):
+    """One in `_FIT_STRIDE` (or more, `_MAX_FIT_SAMPLES`) matched pixels away from the border: the left brightness, the
+    stereo's slope and the right brightness there, each averaged over `_FIT_SIGMA_PX` (the
+    stereo's slopes lack the fine relief that the brightness has, and a fit at full resolution
+    would take that lack for a weaker shading: on a surface of 12 px ripples, slopes told 13 %
+    too small), and each sample's fold (0 or 1, a checkerboard of `_BLOCK_PX` blocks); None
+    where fewer than 100 samples fall in either fold."""
     total = np.maximum(_gaussian(valid.astype(np.float32), _FIT_SIGMA_PX), 1e-6)
 
     def averaged(values):
@@ -192,29 +272,41 @@ def _fitted_model(left, warped, stereo_slope, valid) -> np.ndarray | None:
     inner = valid & (total > 0.9)
     inner[:_FIT_BORDER_PX] = inner[-_FIT_BORDER_PX:] = False
     inner[:, :_FIT_BORDER_PX] = inner[:, -_FIT_BORDER_PX:] = False
-    picked = np.flatnonzero(inner.ravel())[::_FIT_STRIDE]
-    if picked.size < 100:
+    picked = np.flatnonzero(inner.ravel())
+    picked = picked[:: max(_FIT_STRIDE, picked.size // _MAX_FIT_SAMPLES)]
+    rows, cols = np.divmod(picked, valid.shape[1])
+    fold = (rows // _BLOCK_PX + cols // _BLOCK_PX) % 2
+    if min(np.sum(fold == 0), np.sum(fold == 1)) < 100:
         return None
-    slope = np.where(valid, stereo_slope, 0.0)
-    columns = [left, left * slope, left * slope**2, np.ones_like(left), slope, slope**2]
-    design = np.column_stack([averaged(column)[picked] for column in columns]).astype(np.float64)
-    target = averaged(warped)[picked].astype(np.float64)
-    coefficients = np.linalg.lstsq(design, target, rcond=None)[0]
-    residual = target - design @ coefficients
-    kept = np.abs(residual) <= 3.0 * 1.4826 * np.median(np.abs(residual))
-    if kept.sum() < 100:
-        return None
-    coefficients, _, rank, _ = np.linalg.lstsq(design[kept], target[kept], rcond=None)
-    return coefficients if rank == design.shape[1] else None
+    values = [averaged(field)[picked].astype(np.float64) for field in (left, stereo_slope, warped)]
+    return (*values, fold)
 
 
-def _told_slope(left, warped, coefficients) -> np.ndarray:
+def _design(brightness, u, degree):
+    """Columns L T_k(u) and T_k(u), k = 0 .. degree, of the least-squares fit."""
+    powers = chebyshev.chebvander(u, degree)
+    return np.hstack([brightness[:, None] * powers, powers])
+
+
+def _robust_lstsq(design, target):
+    """Least squares (by the normal equations: a few columns, many rows), refitted without the
+    samples more than three robust sigmas off."""
+
+    def solved(rows):
+        return np.linalg.lstsq(design[rows].T @ design[rows], design[rows].T @ target[rows], rcond=None)[0]
+
+    coefficients = solved(slice(None))
+    residual = np.abs(target - design @ coefficients)
+    return solved(residual <= 3.0 * 1.4826 * np.median(residual) + 1e-12)
+
+
+def _told_slope(left, warped, model: ShadingModel) -> np.ndarray:
     """The slope the brightness alone tells, the model linearized about a flat surface, (rows,
     cols) float32: independent of the stereo's slope, unlike the fused slopes, which are the
     stereo's plus a correction."""
-    a0, a1, _, b0, b1, _ = coefficients.tolist()
+    flat, derivative = model.predicted(left, np.zeros_like(left))
     with np.errstate(divide="ignore", invalid="ignore"):
-        told = (warped - (left * a0 + b0)) / (left * a1 + b1)
+        told = (warped - flat) / derivative
     return np.where(np.isfinite(told), told, 0.0).astype(np.float32)
 
 

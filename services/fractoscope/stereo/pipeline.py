@@ -58,12 +58,14 @@ class HeightMapResult:
     z_um: heights in µm, relative (arbitrary constant offset), NaN where unknown.
     sigma_um: one-sigma uncertainty in µm, NaN where z_um is NaN.
     confidence: peak ZNCC, 0 to 1.
+    views_used: uint8, how many views each height rests on, the first included (0 where z_um is NaN).
     report: alignment and quality figures (see MatchingReport in the protobuf API).
     """
 
     z_um: np.ndarray
     sigma_um: np.ndarray
     confidence: np.ndarray
+    views_used: np.ndarray
     report: dict = field(default_factory=dict)
 
 
@@ -102,12 +104,12 @@ def compute_series_height_map(
 ) -> HeightMapResult:
     """Heights of the surface seen in `images[0]` from a tilt series (two or more views about one
     axis): every view is aligned to and densely matched with the first, and each pixel's height is
-    the least-squares solution over all views that matched it. With `options.calibrate_tilt` and
-    three or more views the tilts of all but the first are estimated from the images first
-    (see tilt_series). Explicit `tilt_deg` entries and `pixel_size_um` override the files; the tilt
-    axis is DEFAULT_TILT_AXIS_DEG unless given. Dense
-    matching runs in strips of rows (`options.strip_pixels`), matched by `strip_matcher` (default:
-    here, one after another; see stereo.matching)."""
+    the least-squares solution over all views that matched it, each weighted by its disparity's
+    1/σ² (`tilt_series.heights_px`). With `options.calibrate_tilt` and three or more views the
+    tilts of all but the first are estimated from the images first (see tilt_series). Explicit
+    `tilt_deg` entries and `pixel_size_um` override the files; the tilt axis is
+    DEFAULT_TILT_AXIS_DEG unless given. Dense matching runs in strips of rows
+    (`options.strip_pixels`), matched by `strip_matcher` (default: here, one after another)."""
     started = time.perf_counter()
     report_progress = progress or silent
     sources = {"tilt_axis_source": DEFAULT if tilt_axis_deg is None else ARGUMENT}
@@ -122,7 +124,7 @@ def compute_series_height_map(
     if calibration:  # the reference keeps its tilt: only differences are observable
         sources["tilt_source"][1:] = [TILT_CALIBRATION] * (len(images) - 1)
     report_progress(0.92, "heights")
-    z_px, _ = tilt_series.heights_px(rectified.x1_px, matched.disparities, tilts, offsets_px=offsets)
+    z_px, views_used = _weighted_heights(rectified.x1_px, matched, tilts, offsets)
     z_px, tilts, sign_report = _oriented(rectified, z_px, tilts, options, warnings)
     warnings += _disagreeing_views(rectified.x1_px, matched, tilts, offsets, z_px)
     z_um = (z_px * pixel_size).astype(np.float32)
@@ -131,7 +133,7 @@ def compute_series_height_map(
     sigma_um = geometry.height_sigma_um(
         z_um, matched.sigmas, tilt_deg=tilts, pixel_size_um=pixel_size, tilt_uncertainty_deg=tilt_uncertainty
     )
-    z_um, sigma_um, confidence = _on_stored_grid(rectified, images[0], z_um, sigma_um, matched.best_confidence())
+    z_um, sigma_um, confidence, views_used = _stored_maps(rectified, images[0], z_um, sigma_um, matched, views_used)
     axis_estimated = _estimated_tilt_axis_deg(matched.placements, tilt_axis_deg, warnings)
     report = _report(
         tilts=tilts,
@@ -149,7 +151,25 @@ def compute_series_height_map(
     report.update(sign_report)
     report["method"] = MatchingMethod(options.method).value
     report_progress(1.0, "done")
-    return HeightMapResult(z_um, sigma_um, np.nan_to_num(confidence).astype(np.float32), report)
+    return HeightMapResult(z_um, sigma_um, confidence, views_used, report)
+
+
+def _weighted_heights(x1_px, matched: _MatchedViews, tilts, offsets) -> tuple[np.ndarray, np.ndarray]:
+    """Heights (px) with each view's equation weighted by its disparity's 1/σ², and how many views
+    each rests on (uint8), on the rectified grid (`tilt_series.heights_px`, `views_used`)."""
+    sigmas = np.stack([np.ones_like(matched.sigmas[0]), *matched.sigmas])  # the reference's row is ignored
+    z_px, _ = tilt_series.heights_px(x1_px, matched.disparities, tilts, offsets_px=offsets, sigmas_px=sigmas)
+    return z_px, tilt_series.views_used(matched.disparities, sigmas_px=sigmas)
+
+
+def _stored_maps(rectified: _Rectified, first: SemImage, z_um, sigma_um, matched: _MatchedViews, views_used):
+    """The result's maps on the first image's grid as stored (`_on_stored_grid`): heights and
+    sigma, the best confidence (0 where unknown) and the views count (uint8, 0 where no height)."""
+    z_um, sigma_um, confidence, views_used = _on_stored_grid(
+        rectified, first, z_um, sigma_um, matched.best_confidence(), views_used
+    )
+    views_used = np.where(np.isfinite(z_um), np.nan_to_num(views_used), 0).round().astype(np.uint8)
+    return z_um, sigma_um, np.nan_to_num(confidence).astype(np.float32), views_used
 
 
 def _calibration(images, tilt_deg, pixel_size_um, tilt_axis_deg, options) -> tuple[list[float], float, dict]:
@@ -468,15 +488,16 @@ def _tilt_uncertainty_deg(options: MatchingOptions, calibration: dict, warnings:
     return options.tilt_uncertainty_deg
 
 
-def _on_stored_grid(rectified: _Rectified, first: SemImage, z_um, sigma_um, confidence):
-    """The maps turned back onto the first image's grid as stored, NaN rows where its data bar was."""
+def _on_stored_grid(rectified: _Rectified, first: SemImage, *maps):
+    """The maps (rows, cols) turned back onto the first image's grid as stored, float32, NaN rows
+    where its data bar was."""
     if rectified.rotated:
         back = (first.pixels.shape[0] - rectified.bar_rows, first.pixels.shape[1])
-        z_um, sigma_um, confidence = (
+        maps = [
             alignment.apply_affine(values.astype(np.float32), rectified.to_rectified, back, inverse=True, fill=np.nan)
-            for values in (z_um, sigma_um, confidence)
-        )
-    return tuple(_pad_rows(values, rectified.bar_rows) for values in (z_um, sigma_um, confidence))
+            for values in maps
+        ]
+    return tuple(_pad_rows(values, rectified.bar_rows) for values in maps)
 
 
 def _estimated_tilt_axis_deg(placements: list[alignment.Alignment], tilt_axis_deg: float, warnings: list[str]) -> float:

@@ -46,37 +46,63 @@ def coefficients(tilt_deg, *, reference: int = 0) -> tuple[np.ndarray, np.ndarra
 
 
 def heights_px(
-    x_px: np.ndarray, disparities_px: np.ndarray, tilt_deg, *, reference: int = 0, offsets_px=None
+    x_px: np.ndarray, disparities_px: np.ndarray, tilt_deg, *, reference: int = 0, offsets_px=None, sigmas_px=None
 ) -> tuple[np.ndarray, np.ndarray]:
     """Least-squares heights (px) of points seen at `x_px` in the reference (any shape, from the
     tilt axis) from the disparities of every other view to the reference (views first:
     (N, *shape), the reference's row ignored; NaN = unmatched), and the RMS residual per point
-    (px; NaN with fewer than two matched views)."""
+    (px; NaN with fewer than two matched views).
+
+    `sigmas_px` (N, *shape), optional: each disparity's one-sigma uncertainty (the reference's row
+    ignored). Given, each view's equation is weighted by 1/σ², so a view counts by its
+    information on the height, b²/σ² (as stereo.geometry.height_sigma_um combines them); a
+    disparity whose sigma is not finite and positive is left out. Without, all weigh the same."""
     a, b = coefficients(tilt_deg, reference=reference)
     offsets = np.zeros(len(a)) if offsets_px is None else np.asarray(offsets_px, np.float64)
     others = [view for view in range(len(a)) if view != reference]
-    if len(others) == 1:  # a pair: the one equation solved directly, no residual to speak of
+    if len(others) == 1 and sigmas_px is None:  # a pair: the one equation solved directly, no residual to speak of
         (view,) = others
         z = (disparities_px[view] - x_px * a[view] - offsets[view]) / b[view]
         return z, np.full(np.shape(x_px), np.nan)
     numerator = np.zeros(np.shape(x_px))
     denominator = np.zeros(np.shape(x_px))
     rests = []
-    for view in range(len(a)):
-        if view == reference:
-            continue
-        delta_sin = b[view]
+    for view in others:
         rest = disparities_px[view] - x_px * a[view] - offsets[view]
+        weight = 1.0 if sigmas_px is None else _weight(sigmas_px[view])
+        rest = np.where(np.isfinite(weight), rest, np.nan)
         known = np.isfinite(rest)
-        numerator += np.where(known, delta_sin * rest, 0.0)
-        denominator += np.where(known, delta_sin**2, 0.0)
-        rests.append((delta_sin, rest))
+        numerator += np.where(known, weight * b[view] * rest, 0.0)
+        denominator += np.where(known, weight * b[view] ** 2, 0.0)
+        rests.append((b[view], rest))
     with np.errstate(invalid="ignore", divide="ignore"):
         z = np.where(denominator > 0, numerator / denominator, np.nan)
         squares = sum(np.where(np.isfinite(rest), (rest - delta_sin * z) ** 2, 0.0) for delta_sin, rest in rests)
         counts = sum(np.isfinite(rest).astype(int) for _, rest in rests)
         residual = np.where(counts >= 2, np.sqrt(squares / np.maximum(counts, 1)), np.nan)
     return z, residual
+
+
+def _weight(sigma_px: np.ndarray) -> np.ndarray:
+    """1/σ² (1/px²), NaN where the sigma is not finite and positive."""
+    sigma = np.asarray(sigma_px, np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(np.isfinite(sigma) & (sigma > 0), 1.0 / sigma**2, np.nan)
+
+
+def views_used(disparities_px: np.ndarray, *, reference: int = 0, sigmas_px=None) -> np.ndarray:
+    """How many views each height rests on, the reference's included, (*shape) uint8: 1 plus the
+    other views whose disparity (N, *shape) is known there (and, with `sigmas_px`, its sigma
+    finite and positive, as heights_px uses them); 1 means no height."""
+    count = np.ones(disparities_px.shape[1:], np.uint8)
+    for view in range(len(disparities_px)):
+        if view == reference:
+            continue
+        known = np.isfinite(disparities_px[view])
+        if sigmas_px is not None:
+            known &= np.isfinite(_weight(sigmas_px[view]))
+        count += known.astype(np.uint8)
+    return count
 
 
 def view_residuals_px(x_px, disparities_px, tilt_deg, z_px, *, reference: int = 0, offsets_px=None) -> np.ndarray:

@@ -1,8 +1,10 @@
 """Synthetic fracture surfaces and the SEM images they give: the known truth for tests, benchmarks
 and the demo. `surfaces` makes height fields, `rendering` the SEM views of them, `metrics` scores
-a measured height map against the truth, `examples` writes the demo specimen as a user gives it."""
+a measured height map against the truth, `examples` writes the demo specimen as a user gives it;
+`physics` says how a surface makes an image (the default renderer and its variants)."""
 
 from fractoscope.synthetic.metrics import HeightErrors, height_errors, hidden_in_second_view
+from fractoscope.synthetic.physics import DEFAULT_PHYSICS, PHYSICS_VARIANTS, SemPhysics
 from fractoscope.synthetic.rendering import (
     MultiscaleSpecimen,
     RenderedView,
@@ -24,12 +26,15 @@ from fractoscope.synthetic.surfaces import (
 )
 
 __all__ = [
+    "DEFAULT_PHYSICS",
     "HeightErrors",
     "MultiscaleSpecimen",
     "OVERVIEW_PIXEL_SIZE_UM",
+    "PHYSICS_VARIANTS",
     "REFERENCE_PIXEL_SIZE_UM",
     "REFERENCE_SURFACES",
     "RenderedView",
+    "SemPhysics",
     "StereoPair",
     "cleavage_surface",
     "dimple_surface",

@@ -5,8 +5,9 @@ Surfaces are (rows, cols) float64 height fields in micrometres on a square grid 
 `pixel_size_um` (see surfaces). Images are rendered by parallel projection at a stage tilt about the vertical
 (column) axis through the image centre: a surface point at column offset x (pixels from the centre
 column) and height z appears at column offset ``x cos t + (z / pixel_size) sin t``. Contrast follows
-the secondary-electron secant law of the beam incidence angle, lit by a side detector, plus a weak
-material contrast and Gaussian noise.
+`physics`: by default the secondary-electron secant law of the beam incidence angle, lit by a side
+detector, plus a weak material contrast; other yield laws, edge contrast, detectors and textures
+are `physics.PHYSICS_VARIANTS`. Gaussian noise on top.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from fractoscope.synthetic.physics import DEFAULT_PHYSICS, SemPhysics, material_contrast, secondary_electron_yield
 from fractoscope.synthetic.surfaces import self_affine_surface
 
 _SUPERSAMPLING = 2
@@ -44,6 +46,7 @@ def render_sem_view(
     material: np.ndarray | None = None,
     bits: int = 8,
     shading_tilt_deg: float | None = None,
+    physics: SemPhysics = DEFAULT_PHYSICS,
 ) -> RenderedView:
     """Renders `z_um` (rows, cols, µm) seen at stage tilt `tilt_deg` about the vertical axis.
 
@@ -53,7 +56,8 @@ def render_sem_view(
     `material_seed`; all views of one surface must share it. The secondary-electron shading
     depends on the beam's incidence, so on the tilt, as in a microscope; a `shading_tilt_deg`
     given for every view instead makes it a fixed property of the surface like the material
-    contrast, which tells how much of a matching error that dependence causes.
+    contrast, which tells how much of a matching error that dependence causes. `physics`: the
+    yield law, edge contrast, detector and the drawn material contrast's spectrum.
     """
     # Render on a finer grid and average down: the finite probe blurs detail below one pixel.
     fine_um = cv2.resize(z_um, None, fx=_SUPERSAMPLING, fy=_SUPERSAMPLING, interpolation=cv2.INTER_CUBIC)
@@ -61,13 +65,11 @@ def render_sem_view(
     rows, cols = fine_um.shape
     tilt_rad = np.radians(tilt_deg)
     if material is None:
-        fine_material = self_affine_surface(
-            fine_um.shape, hurst=0.3, rms_um=0.15, seed=material_seed, min_wavelength_px=4.0
-        )
+        fine_material = material_contrast(fine_um.shape, physics, seed=material_seed)
     else:
         fine_material = cv2.resize(material, None, fx=_SUPERSAMPLING, fy=_SUPERSAMPLING, interpolation=cv2.INTER_CUBIC)
     shading_rad = tilt_rad if shading_tilt_deg is None else np.radians(shading_tilt_deg)
-    shading = _secondary_electron_yield(fine_um, fine_pixel_um, shading_rad, fine_material)
+    shading = secondary_electron_yield(fine_um, fine_pixel_um, shading_rad, fine_material, physics)
     x_px = np.arange(cols) - (cols - 1) / 2.0
     projected = x_px[None, :] * np.cos(tilt_rad) + fine_um / fine_pixel_um * np.sin(tilt_rad)
     projected = visible_sheet_px(projected, tilt_rad)
@@ -98,22 +100,6 @@ def visible_sheet_px(projected_px: np.ndarray, tilt_rad: float) -> np.ndarray:
     return np.minimum.accumulate(projected_px[:, ::-1], axis=1)[:, ::-1]
 
 
-def _secondary_electron_yield(
-    z_um: np.ndarray, pixel_size_um: float, tilt_rad: float, material: np.ndarray
-) -> np.ndarray:
-    """SE1 electrons follow the secant law of the incidence angle; SE2 electrons (excited by
-    backscattered electrons, about half the signal) hardly depend on it. Both are modulated by
-    the side detector's view of the facet and by material contrast."""
-    slope_rows, slope_cols = np.gradient(z_um, pixel_size_um)
-    normal = np.stack([-slope_cols, -slope_rows, np.ones_like(z_um)])
-    normal /= np.linalg.norm(normal, axis=0)
-    beam = np.array([-np.sin(tilt_rad), 0.0, np.cos(tilt_rad)])
-    cos_incidence = np.clip(np.tensordot(beam, normal, axes=1), 0.15, 1.0)
-    detector = np.array([0.0, -0.6, 0.8])  # side detector towards the top of the image
-    facing = np.clip(np.tensordot(detector, normal, axes=1), 0.0, 1.0)
-    return (0.5 / cos_incidence + 0.5) * (0.55 + 0.45 * facing) * (1.0 + material)
-
-
 @dataclass(frozen=True)
 class StereoPair:
     """A rendered pair: both images (rows, cols) and the truth on the first image's grid, µm."""
@@ -137,12 +123,13 @@ def render_stereo_pair(
     material: np.ndarray | None = None,
     bits: int = 8,
     shading_tilt_deg: float | None = None,
+    physics: SemPhysics = DEFAULT_PHYSICS,
 ) -> StereoPair:
     """Renders `z_um` at both tilts about an axis at `tilt_axis_deg` in the image (counter-clockwise
     from the column axis as displayed), then misplaces the second image by a rotation about its
     centre and a (column, row) shift, as an imperfect stage does. `z_um` must be larger than
     `output_shape` to leave room for the rotation; the centre of the canvas is kept. See
-    `render_sem_view` for `shading_tilt_deg`."""
+    `render_sem_view` for `shading_tilt_deg` and `physics`."""
     views = [
         render_sem_view(
             z_um,
@@ -153,6 +140,7 @@ def render_stereo_pair(
             material=material,
             bits=bits,
             shading_tilt_deg=shading_tilt_deg,
+            physics=physics,
         )
         for i, t in enumerate(tilt_deg)
     ]
@@ -271,11 +259,14 @@ def render_tilt_series(
     output_shape: tuple[int, int],
     noise_fraction: float = 0.02,
     seed: int = 0,
+    physics: SemPhysics = DEFAULT_PHYSICS,
 ) -> tuple[list[np.ndarray], np.ndarray]:
     """Views of `z_um` at every tilt about a vertical axis (centre crops of `output_shape`), and the
-    truth: heights seen at each pixel of the first view, µm."""
+    truth: heights seen at each pixel of the first view, µm. See `render_sem_view` for `physics`."""
     views = [
-        render_sem_view(z_um, pixel_size_um=pixel_size_um, tilt_deg=t, noise_fraction=noise_fraction, seed=seed + i)
+        render_sem_view(
+            z_um, pixel_size_um=pixel_size_um, tilt_deg=t, noise_fraction=noise_fraction, seed=seed + i, physics=physics
+        )
         for i, t in enumerate(tilt_deg)
     ]
     rows, cols = z_um.shape

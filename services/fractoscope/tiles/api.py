@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from http import HTTPStatus
 from pathlib import Path
 
+import cv2
 from aiohttp import web
 from google.protobuf import json_format
 
@@ -34,6 +35,7 @@ from fractoscope.stereo.geometry import validate_pixel_size_um
 from fractoscope.tiles import openapi
 from fractoscope.tiles.build_jobs import DEFAULT_ANALYSIS_WORKERS, DEFAULT_QUEUED_ANALYSES, Analyses, BuildJobs
 from fractoscope.tiles.http_json import (
+    CORS_HEADERS,
     JSON_TYPE,
     ApiError,
     failure_response,
@@ -69,6 +71,8 @@ from fractoscope.tiles.uploads import DEFAULT_MAX_UPLOAD_BYTES, Uploads
 from fractoscope.v1 import tiles_pb2
 
 _log = logging.getLogger(__name__)
+# The specimen list's pictures: the overview's SEM image this wide, px.
+THUMBNAIL_WIDTH_PX = 160
 
 
 @dataclass(frozen=True)
@@ -90,9 +94,11 @@ _ROUTES = [
     _Route("GET", re.compile(r"/api/specimens/(?P<specimen_id>[^/]+)/zoom"), "zoom", READ),
     _Route("GET", re.compile(r"/api/specimens/(?P<specimen_id>[^/]+)/export"), "export_area", READ),
     _Route("GET", re.compile(r"/api/specimens/(?P<specimen_id>[^/]+)/report"), "report", READ),
+    _Route("GET", re.compile(r"/api/specimens/(?P<specimen_id>[^/]+)/thumbnail"), "thumbnail", READ),
     _Route("POST", re.compile(r"/api/exports"), "export_height_map", READ),
     _Route("POST", re.compile(r"/api/uploads"), "upload", WRITE),
     _Route("DELETE", re.compile(r"/api/uploads/(?P<upload_id>[^/]+)"), "delete_upload", WRITE),
+    _Route("GET", re.compile(r"/api/jobs"), "list_jobs", READ),
     _Route("POST", re.compile(r"/api/jobs"), "submit_job", WRITE),
     _Route("GET", re.compile(r"/api/jobs/(?P<job_id>[^/]+)"), "get_job", READ),
 ]
@@ -117,8 +123,8 @@ class JsonApi:
     ):
         self.store = store
         self.tokens = tokens
-        self.uploads = Uploads(uploads_root, max_upload_bytes)
-        self.jobs = BuildJobs(grpc_address, workers=build_workers, queue_limit=queued_builds)
+        self.uploads = Uploads(uploads_root, max_upload_bytes, objects=store.objects)
+        self.jobs = BuildJobs(grpc_address, workers=build_workers, queue_limit=queued_builds, objects=store.objects)
         self.analyses = Analyses(workers=analysis_workers, queue_limit=queued_analyses)
 
     async def handle(self, request: web.Request) -> web.StreamResponse:
@@ -341,6 +347,17 @@ class JsonApi:
         job = self.jobs.submit(specimen_id, rois, request_id=request_id or "", token=token, upload_id=upload_id)
         return json_response(job.as_dict(), status=HTTPStatus.ACCEPTED, Location=f"/api/jobs/{job.id}")
 
+    async def list_jobs(self, request, match, grant):
+        query_parameters(request, set())
+        return json_response({"jobs": [job.as_dict() for job in await off_loop(self.jobs.listed)]})
+
+    async def thumbnail(self, request, match, grant):
+        query_parameters(request, set())
+        png = await off_loop(lambda: _thumbnail_png(self._specimen(match)))
+        headers = {"Content-Type": "image/png", "Cache-Control": "no-cache"}
+        disposition = f'inline; filename="{match["specimen_id"]}-thumbnail.png"'
+        return web.Response(body=png, headers={**CORS_HEADERS, **headers, "Content-Disposition": disposition})
+
     async def get_job(self, request, match, grant):
         query_parameters(request, set())
         return json_response(self.jobs.get(match["job_id"]).as_dict())
@@ -372,6 +389,15 @@ def _summary(specimen) -> dict:
     return json_format.MessageToDict(
         specimen_message(specimen), preserving_proto_field_name=True, always_print_fields_with_no_presence=True
     )
+
+
+def _thumbnail_png(specimen, width_px: int = THUMBNAIL_WIDTH_PX) -> bytes:
+    """The overview's SEM image `width_px` wide (area-averaged, aspect kept) as a PNG."""
+    texture = specimen.heights(specimen.rois[0].id).texture
+    rows, cols = texture.shape
+    size = (min(width_px, cols), max(1, round(rows * min(width_px, cols) / cols)))
+    _, encoded = cv2.imencode(".png", cv2.resize(texture, size, interpolation=cv2.INTER_AREA))
+    return encoded.tobytes()
 
 
 def _tile(message: tiles_pb2.Tile) -> dict:

@@ -1,9 +1,17 @@
 """Work the HTTP API runs for its callers: reconstructions (ReconstructSpecimen calls on this
-server's own gRPC endpoint, followed as jobs) and analyses on a bounded pool."""
+server's own gRPC endpoint, followed as jobs) and analyses on a bounded pool.
+
+With object storage (a store shared by replicas), each job's state is also written to
+`jobs/{job_id}.json` there as it changes, and at least every JOB_LOST_AFTER_S / 6 while it waits or
+runs, so any replica answers for a job another one runs; one whose record went unwritten for
+JOB_LOST_AFTER_S is reported failed (UNAVAILABLE): the replica that ran it stopped."""
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import json
+import logging
 import os
 import re
 import threading
@@ -16,9 +24,10 @@ from http import HTTPStatus
 
 from google.protobuf import json_format
 
-from fractoscope.errors import InvalidInputError, NotFoundError
+from fractoscope.errors import FractoscopeError, InvalidInputError, NotFoundError
 from fractoscope.rpc.channel import open_channel
 from fractoscope.rpc.status import ClientError, raised_as_client_errors
+from fractoscope.store.objects import ObjectMissing, S3Objects
 from fractoscope.tiles.http_json import ApiError
 from fractoscope.v1 import tiles_pb2, tiles_pb2_grpc
 
@@ -27,6 +36,13 @@ DEFAULT_ANALYSIS_WORKERS = len(os.sched_getaffinity(0))
 
 
 DEFAULT_QUEUED_ANALYSES = 16
+# How often a running job's progress is written to object storage at most, s.
+_PROGRESS_WRITE_S = 1.0
+# How long another replica's unfinished job may go without its record being rewritten before it
+# is reported failed, s (its replica rewrites it six times as often).
+JOB_LOST_AFTER_S = 60.0
+_UNFINISHED = ("queued", "running")
+logger = logging.getLogger(__name__)
 
 
 @dataclass
@@ -44,6 +60,7 @@ class HttpBuildJob:
     finished_s: float | None = None
     specimen: dict | None = None
     error: dict | None = None
+    updated_s: float = field(default_factory=time.time)  # when its record was last written
 
     def as_dict(self) -> dict:
         return {
@@ -58,6 +75,43 @@ class HttpBuildJob:
             "specimen": self.specimen,
             "error": self.error,
         }
+
+    def record(self) -> bytes:
+        """The job as written to object storage now (as_dict with its times in seconds)."""
+        self.updated_s = time.time()
+        times = {"created_s": self.created_s, "finished_s": self.finished_s, "updated_s": self.updated_s}
+        return json.dumps({**self.as_dict(), **times}).encode()
+
+    @classmethod
+    def from_record(cls, data: bytes) -> HttpBuildJob:
+        record = json.loads(data)
+        return cls(
+            record["job_id"],
+            record["specimen_id"],
+            record["request_id"],
+            record["upload_id"],
+            state=record["state"],
+            fraction=record["progress"]["fraction"],
+            message=record["progress"]["message"],
+            created_s=record["created_s"],
+            finished_s=record["finished_s"],
+            specimen=record["specimen"],
+            error=record["error"],
+            updated_s=record.get("updated_s", record["created_s"]),
+        )
+
+    def lost(self, *, after_s: float) -> HttpBuildJob:
+        """This job as read from another replica's record: failed (UNAVAILABLE) when it is
+        unfinished and the record went unwritten for `after_s`."""
+        silent_s = time.time() - self.updated_s
+        if self.state in _UNFINISHED and silent_s > after_s:
+            self.state, self.finished_s = "failed", self.updated_s
+            self.error = {
+                "error": f"the replica running this job stopped ({silent_s:.0f} s without word); submit it again",
+                "field": None,
+                "code": "UNAVAILABLE",
+            }
+        return self
 
 
 class Analyses:
@@ -94,12 +148,23 @@ class Analyses:
 class BuildJobs:
     """Builds submitted over HTTP, each a ReconstructSpecimen call on `address` (this server's gRPC
     endpoint) with the submitter's token, at most `workers` at once and `queue_limit` waiting
-    (more get 429); the last `keep` jobs stay queryable."""
+    (more get 429); the last `keep` jobs stay queryable here, and in `objects` (when given) all
+    of them, for every replica, another replica's unfinished job reported failed once its record
+    went unwritten for `lost_after_s`."""
 
     def __init__(
-        self, address: str | None, *, workers: int, queue_limit: int, keep: int = 1000, timeout_s: float = 3600.0
+        self,
+        address: str | None,
+        *,
+        workers: int,
+        queue_limit: int,
+        keep: int = 1000,
+        timeout_s: float = 3600.0,
+        objects: S3Objects | None = None,
+        lost_after_s: float = JOB_LOST_AFTER_S,
     ):
         self.address = address
+        self.objects = objects
         self.queue_limit = queue_limit
         self.timeout_s = timeout_s
         self._pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="fractoscope-http-build")
@@ -107,6 +172,10 @@ class BuildJobs:
         self._keep = keep
         self._lock = threading.Lock()
         self._calls: set = set()  # the ReconstructSpecimen calls under way, cancelled by close()
+        self.lost_after_s = lost_after_s
+        self._closed = threading.Event()
+        if objects is not None:
+            threading.Thread(target=self._keep_records_fresh, name="fractoscope-job-records", daemon=True).start()
 
     @property
     def enabled(self) -> bool:
@@ -126,20 +195,44 @@ class BuildJobs:
             self._jobs[job.id] = job
             while len(self._jobs) > self._keep:
                 self._jobs.popitem(last=False)
+        self._write(job)
         self._pool.submit(self._run, job, rois, token)
         return job
+
+    def _write(self, job: HttpBuildJob) -> None:
+        """The job's state to object storage, for the other replicas (when there is one)."""
+        if self.objects is not None:
+            self.objects.put(f"jobs/{job.id}.json", job.record())
+
+    def listed(self) -> list[HttpBuildJob]:
+        """Every job known here and, with object storage, every replica's, oldest first."""
+        with self._lock:
+            jobs = dict(self._jobs)
+        if self.objects is not None:
+            for listed in self.objects.list("jobs/"):
+                job_id = listed.key[len("jobs/") : -len(".json")]
+                if job_id not in jobs:
+                    with contextlib.suppress(ObjectMissing):
+                        record = self.objects.get(listed.key).data
+                        jobs[job_id] = HttpBuildJob.from_record(record).lost(after_s=self.lost_after_s)
+        return sorted(jobs.values(), key=lambda job: job.created_s)
 
     def get(self, job_id: str) -> HttpBuildJob:
         if not re.fullmatch(r"[0-9a-f]{32}", job_id):
             raise InvalidInputError("job_id", "is not a job id (32 hexadecimal digits)")
         with self._lock:
             job = self._jobs.get(job_id)
+        if job is None and self.objects is not None:  # another replica's
+            with contextlib.suppress(ObjectMissing):
+                record = self.objects.get(f"jobs/{job_id}.json").data
+                job = HttpBuildJob.from_record(record).lost(after_s=self.lost_after_s)
         if job is None:
             raise NotFoundError(f"no job {job_id!r}", field="job_id")
         return job
 
     def close(self) -> None:
         """Queued jobs never start; running ones are cancelled; returns once their threads end."""
+        self._closed.set()
         self._pool.shutdown(wait=False, cancel_futures=True)
         with self._lock:
             calls = list(self._calls)
@@ -147,8 +240,21 @@ class BuildJobs:
             call.cancel()
         self._pool.shutdown(wait=True)
 
+    def _keep_records_fresh(self) -> None:
+        """Rewrites this replica's unfinished jobs' records, so that other replicas know it lives."""
+        while not self._closed.wait(self.lost_after_s / 6):
+            with self._lock:
+                unfinished = [job for job in self._jobs.values() if job.state in _UNFINISHED]
+            for job in unfinished:
+                try:
+                    self._write(job)
+                except FractoscopeError as error:  # the store unreachable: the next round tries again
+                    logger.warning("job %s: its record could not be rewritten: %s", job.id, error)
+
     def _run(self, job: HttpBuildJob, rois, token: str | None) -> None:
         job.state = "running"
+        self._write(job)
+        written_s = time.monotonic()
         request = tiles_pb2.ReconstructSpecimenRequest(
             specimen_id=job.specimen_id, rois=rois, request_id=job.request_id
         )
@@ -161,6 +267,9 @@ class BuildJobs:
                 for response in call:
                     if response.HasField("progress"):
                         job.fraction, job.message = response.progress.fraction, response.progress.message
+                        if time.monotonic() - written_s > _PROGRESS_WRITE_S:
+                            self._write(job)
+                            written_s = time.monotonic()
                     else:
                         job.specimen = json_format.MessageToDict(
                             response.specimen,
@@ -177,6 +286,7 @@ class BuildJobs:
             job.finished_s = time.time()
             with self._lock:
                 self._calls.discard(call)
+            self._write(job)
 
 
 def _iso(seconds: float) -> str:

@@ -15,11 +15,13 @@ from __future__ import annotations
 import asyncio
 import gzip
 import hashlib
+import json
 import logging
 import os
 import re
 import sys
 import threading
+import urllib.parse
 from http import HTTPStatus
 from pathlib import Path
 
@@ -126,7 +128,7 @@ class _TileApp:
         try:
             specimen = self.store.load(route["specimen"])
             content = (
-                (lambda: specimen.tileset_bytes)
+                (lambda: versioned_tileset(specimen.tileset_bytes, specimen.version))
                 if relative == "tileset.json"
                 else (lambda: specimen.tile_bytes(relative))
             )
@@ -137,7 +139,11 @@ class _TileApp:
             return _plain(HTTPStatus.NOT_FOUND, "not found\n")
         except FractoscopeError as error:
             return _plain(HTTPStatus.BAD_REQUEST, f"{error}\n")
-        return _body_response(request, body, _TYPES[relative[relative.rfind(".") :]])
+        if relative == "tileset.json" or request.query.get("v") != str(specimen.version):
+            caching = _SHORT_CACHING
+        else:
+            caching = _TILE_CACHING
+        return _body_response(request, body, _TYPES[relative[relative.rfind(".") :]], caching)
 
     async def _static(self, request: web.Request, area: str, relative: str) -> web.StreamResponse:
         if area == "viewer":
@@ -154,18 +160,39 @@ class _TileApp:
 
 
 _CORS = {"Access-Control-Allow-Origin": "*", "Access-Control-Expose-Headers": "ETag, Content-Encoding"}
+# A tile's bytes never change within a build: tileset.json names each tile with its build
+# (`?v=`, see versioned_tileset), and a tile asked for under its current build is cached for good.
+# tileset.json itself, and a tile asked for without the current build, are looked at again soon.
+_TILE_CACHING = "public, max-age=31536000, immutable"
+_SHORT_CACHING = "public, max-age=10"
+
+
+def versioned_tileset(tileset: bytes, version: int | str) -> bytes:
+    """tileset.json with each content URI tagged with its build (`tiles/0/0/0.glb?v=VERSION`):
+    a rebuild names other URLs, so no cache serves a tile of the last build under the new tileset."""
+    document = json.loads(tileset)
+    nodes = [document["root"]] if "root" in document else []
+    tag = "?v=" + urllib.parse.quote(str(version), safe="")
+    while nodes:
+        node = nodes.pop()
+        if "content" in node:
+            node["content"]["uri"] += tag
+        nodes += node.get("children", [])
+    return json.dumps(document, separators=(",", ":")).encode()
 
 
 async def _off_loop(function, *args):
     return await asyncio.get_running_loop().run_in_executor(None, function, *args)
 
 
-def _body_response(request: web.Request, body: _Body, content_type: str) -> web.Response:
+def _body_response(
+    request: web.Request, body: _Body, content_type: str, cache_control: str = "no-cache"
+) -> web.Response:
     """The raw or gzip representation as Accept-Encoding chooses, or 304 when If-None-Match names
     its ETag; the 304 carries the headers a 200 would validate (RFC 9110, 15.4.5)."""
     gzipped = accepts_gzip(",".join(request.headers.getall("Accept-Encoding", [])))
     etag = body.gzip_etag if gzipped else body.etag
-    headers = {**_CORS, "ETag": etag, "Cache-Control": "no-cache", "Vary": "Accept-Encoding"}
+    headers = {**_CORS, "ETag": etag, "Cache-Control": cache_control, "Vary": "Accept-Encoding"}
     if not_modified(",".join(request.headers.getall("If-None-Match", [])), etag):
         return web.Response(status=HTTPStatus.NOT_MODIFIED, headers=headers)
     headers["Content-Type"] = content_type
@@ -297,7 +324,7 @@ def start_http_server(
         store,
         tokens,
         grpc_address=grpc_address,
-        uploads_root=store.root.parent / "uploads",
+        uploads_root=store.scratch_root.parent / "uploads",
         max_upload_bytes=max_upload_bytes,
         analysis_workers=analysis_workers,
         queued_analyses=queued_analyses,

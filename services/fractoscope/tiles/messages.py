@@ -387,11 +387,14 @@ def export_grid(exported: ExportedFile) -> tiles_pb2.ExportGrid:
 def request_digest(request: tiles_pb2.ReconstructSpecimenRequest) -> str:
     """What identifies a build request's content: the SHA-256 (hex) of the request serialized
     deterministically with its request_id cleared. It is fed the specimen id, then one ROI at a
-    time (the same bytes: a message's encoding is its fields' in turn, a repeated field's its
-    elements'), so a request of hundreds of MB of images is never copied whole."""
+    time, then the build options (the same bytes: a message's encoding is its fields' in turn by
+    number, a repeated field's its elements'), so a request of hundreds of MB of images is never
+    copied whole."""
     digest = hashlib.sha256(
         tiles_pb2.ReconstructSpecimenRequest(specimen_id=request.specimen_id).SerializeToString(deterministic=True)
     )
     for roi in request.rois:
         digest.update(tiles_pb2.ReconstructSpecimenRequest(rois=[roi]).SerializeToString(deterministic=True))
+    options = tiles_pb2.ReconstructSpecimenRequest(unmeasured=request.unmeasured)
+    digest.update(options.SerializeToString(deterministic=True))
     return digest.hexdigest()

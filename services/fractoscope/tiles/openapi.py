@@ -276,6 +276,9 @@ def _specimen_area_paths() -> dict:
             _file_ok("The report.", ["text/html; charset=utf-8", "application/pdf"]),
             analysis=True,
         ),
+        "/api/specimens/{specimen_id}/thumbnail": _specimen_get(
+            "getThumbnail", "The overview's SEM image, 160 px wide.", [], _file_ok("A PNG.", ["image/png"])
+        ),
     }
 
 
@@ -335,6 +338,11 @@ def _job_paths() -> dict:
     """Reconstruction jobs."""
     return {
         "/api/jobs": {
+            "get": {
+                "operationId": "listJobs",
+                "summary": "Every build job, oldest first: with object storage, those of every replica.",
+                "responses": _json_ok("The jobs.", "JobList") | _error_responses("400", "401"),
+            },
             "post": {
                 "operationId": "submitJob",
                 "summary": "Builds a specimen: from a stored upload (JSON) or from a manifest and images sent along "
@@ -366,7 +374,7 @@ def _job_paths() -> dict:
                         "503": "This endpoint runs no builds.",
                     },
                 ),
-            }
+            },
         },
         "/api/jobs/{job_id}": {
             "get": {
@@ -563,6 +571,11 @@ def _job_schemas() -> dict:
                 "upload_id": {"type": "string", "pattern": "^[0-9a-f]{32}$"},
                 "request_id": {"type": "string", "maxLength": 128},
             },
+        },
+        "JobList": {
+            "type": "object",
+            "required": ["jobs"],
+            "properties": {"jobs": {"type": "array", "items": {"$ref": "#/components/schemas/Job"}}},
         },
         "Job": {
             "type": "object",

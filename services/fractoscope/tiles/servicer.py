@@ -19,7 +19,9 @@ from fractoscope.errors import (
     error_of_code,
 )
 from fractoscope.formats.exports import MEDIA_TYPES
-from fractoscope.mesh.pipeline import EncodedTile
+from fractoscope.mesh.outline import Unmeasured
+from fractoscope.mesh.pipeline import EncodedTile, MeshReport
+from fractoscope.meshing import messages as rpc_meshing
 from fractoscope.progress import ProgressCallback, silent
 from fractoscope.rpc import calls, wire
 from fractoscope.rpc.channel import open_channel
@@ -30,10 +32,9 @@ from fractoscope.runtime.jobs import Job, JobRunner
 from fractoscope.specimen import quadtree
 from fractoscope.specimen import queries as specimen_queries
 from fractoscope.specimen.build import MeasuredHeights, RoiRequest, reconstruct_specimen
-from fractoscope.specimen.quadtree import TileSamples
+from fractoscope.specimen.quadtree import MESH_MARGIN_CELLS, TileSamples
 from fractoscope.specimen.store import Specimen, SpecimenStore, scratch_folder, validate_id
 from fractoscope.stereo.pipeline import HeightMapResult
-from fractoscope.surface.filtering import FilterReport
 from fractoscope.tiles import messages as rpc_tiles
 from fractoscope.v1 import (
     common_pb2,
@@ -64,7 +65,7 @@ class LocalMeshing(Protocol):
 
     def mesh(
         self, request: meshing_pb2.BuildMeshRequest, progress: ProgressCallback
-    ) -> tuple[list[EncodedTile], FilterReport]: ...
+    ) -> tuple[list[EncodedTile], MeshReport]: ...
 
 
 # One ROI's heights for a build: its ComputeHeightMap request, the build's job, the progress callback.
@@ -312,6 +313,7 @@ class TileServicer(tiles_pb2_grpc.TileServiceServicer):
         indices = {spec.id: index for index, spec in enumerate(request.rois)}
         with (
             self._claims.claimed(request.specimen_id, request.request_id, digest),
+            self.store.building(request.specimen_id),  # one replica at a time builds a specimen
             self._matching.connected() as measure_heights,
             self._meshing.connected() as mesh,
         ):
@@ -330,6 +332,7 @@ class TileServicer(tiles_pb2_grpc.TileServiceServicer):
                 request_id=request.request_id,
                 request_digest=digest,
                 progress=job.progress,
+                unmeasured=rpc_meshing.UNMEASURED.get(request.unmeasured, Unmeasured.ABSENT),
             )
 
     @abort_on_error
@@ -455,15 +458,19 @@ class SerializedGetTile(grpc.ServerInterceptor):
 
 
 def _mesh_request(tile: TileSamples) -> meshing_pb2.BuildMeshRequest:
-    """BuildMesh of one tile of a specimen, at one level, its heights' uncertainty the tile's noise."""
+    """BuildMesh of one tile of a specimen, at one level with its margin, its heights' uncertainty
+    the tile's noise."""
     return calls.mesh_request(
         tile.z_um,
         tile.texture,
         pixel_size_um=tile.cell_um,
-        origin_um=tile.origin_um,
+        origin_um=tile.grid_origin_um,
         level_count=1,
         max_slope=tile.max_slope or 0.0,
         sigma_um=np.full(tile.z_um.shape, tile.noise_um, np.float32),
+        margin_cells=MESH_MARGIN_CELLS,
+        min_island_px=tile.min_island_cells,
+        unmeasured=rpc_meshing.UNMEASURED_CODES[tile.unmeasured],
     )
 
 

@@ -1,5 +1,9 @@
 """Uploads of the HTTP API: a manifest and its images, checked at receipt as the build will check
-them, kept until a build takes them, they are deleted or they expire."""
+them, kept until a build takes them, they are deleted or they expire.
+
+With object storage (replicas sharing a bucket), each upload is also copied to
+`uploads/{upload_id}/` there, its `complete` marker written last, so that a build submitted to any
+replica finds it: a replica copies it to its own folder when first asked for it."""
 
 from __future__ import annotations
 
@@ -21,6 +25,7 @@ from fractoscope.rpc.manifest import manifest_field, parse_manifest
 from fractoscope.sem.image import read_sem_image
 from fractoscope.specimen.store import validate_id
 from fractoscope.stereo.inputs import resolve_calibration
+from fractoscope.store.objects import S3Objects
 from fractoscope.tiles.http_json import ApiError, off_loop
 from fractoscope.tiles.http_requests import form_parts, multipart_reader, read_chunk
 from fractoscope.tiles.messages import check_child_centres, checked_rois, in_roi
@@ -28,6 +33,8 @@ from fractoscope.v1 import tiles_pb2
 
 _FILE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,127}")
 _UPLOAD_ID = re.compile(r"[0-9a-f]{32}")
+# The object written last when an upload is copied to object storage: without it, it is incomplete.
+_COMPLETE = "complete"
 
 DEFAULT_MAX_UPLOAD_BYTES = 512 * 1024 * 1024
 # Long enough to submit a build the next day; short enough that abandoned uploads do not fill the disk.
@@ -38,11 +45,13 @@ class Uploads:
     """Uploaded manifests and their images under `root/{upload_id}/`, each written in a staging
     folder and renamed into place once complete and valid: never half of one. Uploads older than
     `max_age_s` (default FRACTO_UPLOAD_MAX_AGE_S, else DEFAULT_MAX_AGE_S) are removed at start and
-    whenever an upload is received; until then they are not found."""
+    whenever an upload is received; until then they are not found. With `objects`, uploads are
+    shared through object storage (see the module docstring)."""
 
-    def __init__(self, root: Path, max_bytes: int, *, max_age_s: float | None = None):
+    def __init__(self, root: Path, max_bytes: int, *, max_age_s: float | None = None, objects: S3Objects | None = None):
         self.root = Path(root)
         self.max_bytes = max_bytes
+        self.objects = objects
         if max_age_s is None:
             max_age_s = float(os.environ.get("FRACTO_UPLOAD_MAX_AGE_S", DEFAULT_MAX_AGE_S))
         self.max_age_s = max_age_s
@@ -52,10 +61,18 @@ class Uploads:
         self.sweep()
 
     def sweep(self) -> None:
-        """Removes the uploads older than max_age_s."""
+        """Removes the uploads older than max_age_s, here and in object storage."""
         for directory in self.root.iterdir():
             if _UPLOAD_ID.fullmatch(directory.name) and self._expired(directory):
                 shutil.rmtree(directory, ignore_errors=True)
+        if self.objects is not None:
+            newest: dict[str, float] = {}
+            for item in self.objects.list("uploads/"):
+                upload_id = item.key.split("/")[1]
+                newest[upload_id] = max(newest.get(upload_id, 0.0), item.modified_s)
+            for upload_id, modified_s in newest.items():
+                if modified_s < time.time() - self.max_age_s:
+                    self._unshare(upload_id)
 
     def _expired(self, directory: Path) -> bool:
         """Whether an upload is older than max_age_s: its folder last changed when it was stored."""
@@ -79,7 +96,50 @@ class Uploads:
             staging.rename(self.root / upload_id)
         finally:
             shutil.rmtree(staging, ignore_errors=True)
+        if self.objects is not None:
+            await off_loop(self._share, upload_id)
         return upload_id, specimen_id, rois
+
+    def _share(self, upload_id: str) -> None:
+        """Copies a stored upload to object storage, its `complete` marker last."""
+        directory = self.root / upload_id
+        for path in sorted(path for path in directory.rglob("*") if path.is_file()):
+            self.objects.put_file(f"uploads/{upload_id}/{path.relative_to(directory).as_posix()}", path)
+        self.objects.put(f"uploads/{upload_id}/{_COMPLETE}", b"")
+
+    def _synchronize(self, upload_id: str) -> None:
+        """Makes root's copy of an upload agree with object storage: removed when it was deleted
+        there (through another replica), copied from there when missing here (through a staging
+        folder, renamed into place) if it is complete and unexpired."""
+        prefix = f"uploads/{upload_id}/"
+        listed = {item.key[len(prefix) :]: item.modified_s for item in self.objects.list(prefix)}
+        if _COMPLETE not in listed:
+            self._remove_here(upload_id)
+            return
+        if (self.root / upload_id).is_dir() or listed[_COMPLETE] < time.time() - self.max_age_s:
+            return
+        staging = self.root / f".staging-{uuid.uuid4().hex}"
+        try:
+            staging.mkdir()
+            for relative in listed.keys() - {_COMPLETE}:
+                if not all(_FILE_NAME.fullmatch(part) for part in relative.split("/")):
+                    continue  # not a file an upload writes
+                target = staging / relative
+                target.parent.mkdir(exist_ok=True)
+                self.objects.get_file(prefix + relative, target)
+            os.utime(staging, (listed[_COMPLETE], listed[_COMPLETE]))  # its age is the upload's
+            with contextlib.suppress(OSError):  # fetched by another thread meanwhile
+                staging.rename(self.root / upload_id)
+        finally:
+            shutil.rmtree(staging, ignore_errors=True)
+
+    def _unshare(self, upload_id: str) -> bool:
+        """Removes an upload from object storage, its marker first; whether it was there."""
+        keys = [item.key for item in self.objects.list(f"uploads/{upload_id}/")]
+        if keys:
+            self.objects.delete(f"uploads/{upload_id}/{_COMPLETE}")
+            self.objects.delete_many(keys)
+        return bool(keys)
 
     async def _receive_parts(self, reader, staging: Path) -> None:
         total, fields = 0, {}
@@ -153,21 +213,30 @@ class Uploads:
         return specimen_id, rois
 
     def delete(self, upload_id: str) -> None:
-        """Removes an upload (NotFoundError naming upload_id when there is none)."""
-        directory = self._directory(upload_id)
-        # Renamed first, so that a build loading it meanwhile finds all of it or nothing; a leftover
-        # of a failed removal is a staging folder, removed at start.
-        doomed = self.root / f".staging-deleted-{upload_id}"
+        """Removes an upload, here and in object storage (NotFoundError naming upload_id when
+        there is none)."""
+        _check_upload_id(upload_id)
+        shared = self.objects is not None and self._unshare(upload_id)
+        if not self._remove_here(upload_id) and not shared:  # received by another replica, deleted or expired
+            raise NotFoundError(f"no upload {upload_id!r}", field="upload_id")
+
+    def _remove_here(self, upload_id: str) -> bool:
+        """Removes root's copy of an upload; whether there was one. Renamed first, so that a build
+        loading it meanwhile finds all of it or nothing; a leftover of a failed removal is a
+        staging folder, removed at start."""
+        doomed = self.root / f".staging-deleted-{uuid.uuid4().hex}"
         try:
-            directory.rename(doomed)
-        except FileNotFoundError:  # deleted or expired meanwhile
-            raise NotFoundError(f"no upload {upload_id!r}", field="upload_id") from None
+            (self.root / upload_id).rename(doomed)
+        except FileNotFoundError:
+            return False
         shutil.rmtree(doomed, ignore_errors=True)
+        return True
 
     def _directory(self, upload_id: str) -> Path:
-        if not _UPLOAD_ID.fullmatch(upload_id or ""):
-            raise InvalidInputError("upload_id", "is not an upload id (32 hexadecimal digits)")
+        _check_upload_id(upload_id)
         directory = self.root / upload_id
+        if self.objects is not None:
+            self._synchronize(upload_id)
         if not directory.is_dir() or self._expired(directory):
             raise NotFoundError(f"no upload {upload_id!r}", field="upload_id")
         return directory
@@ -175,6 +244,11 @@ class Uploads:
     def field(self, upload_id: str, name: str) -> str:
         path = self.root / upload_id / f"{name}.field"
         return path.read_text(encoding="utf-8") if path.is_file() else ""
+
+
+def _check_upload_id(upload_id: str) -> None:
+    if not _UPLOAD_ID.fullmatch(upload_id or ""):
+        raise InvalidInputError("upload_id", "is not an upload id (32 hexadecimal digits)")
 
 
 async def _request_id(part) -> str:

@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pygltflib
 import pytest
 import tifffile
 from conftest import fracture_pair
@@ -290,7 +291,7 @@ def test_specimen_commands_from_a_manifest(tmp_path):
 
     write_multiscale_specimen(tmp_path / "input")
     data = tmp_path / "data"
-    built = _run("reconstruct", tmp_path / "input" / "manifest.json", "--data", data)
+    built = _run("reconstruct", tmp_path / "input" / "manifest.json", "--data", data, "--unmeasured", "flat")
     assert built.returncode == 0, built.stderr
     assert built.stdout.strip() == "synthetic"
     profile = _run(
@@ -320,6 +321,12 @@ def test_specimen_commands_from_a_manifest(tmp_path):
     assert {tile["zoom"] for tile in json.loads(zoom.stdout)["tiles"]} == {"optical"}
     tiles = _run("tiles", "synthetic", "-o", tmp_path / "download", "--data", data)
     assert tiles.returncode == 0 and (tmp_path / "download" / "tileset.json").is_file()
+    materials = {
+        material.name
+        for glb in (tmp_path / "download").rglob("*.glb")
+        for material in pygltflib.GLTF2.load_from_bytes(glb.read_bytes()).materials
+    }
+    assert "unmeasured" in materials  # --unmeasured flat: a floor where nothing was measured
     missing = _run("roughness", "nothing", "--data", data)
     assert missing.returncode == 4 and missing.stderr.count("\n") == 1
 

@@ -18,7 +18,7 @@ async function newPage() {
   const page = await browser.newPage({ viewport: { width: 1100, height: 700 } });
   await addPageHelpers(page);
   page.on("pageerror", (error) => result.errors.push(String(error)));
-  page.on("request", (request) => { if (request.url().endsWith(".glb")) result.tileRequests++; });
+  page.on("request", (request) => { if (new URL(request.url()).pathname.endsWith(".glb")) result.tileRequests++; });
   return page;
 }
 
@@ -41,7 +41,7 @@ try {
   await missing.waitForFunction(() => window.viewer?.status?.error, null, { timeout: 30000 });
   result.missing = await missing.evaluate(() => ({
     error: window.viewer.status.error, message: document.getElementById("message").textContent,
-    shown: !document.getElementById("message").hidden, chosen: document.getElementById("specimen").value,
+    shown: !document.getElementById("message").hidden, chosen: document.querySelector("#specimens .current")?.dataset.specimen ?? "",
   }));
   result.missingTileRequests = result.tileRequests;
   await writeFile(join(outDir, "missing.png"), await missing.screenshot());
@@ -96,7 +96,7 @@ try {
   await page.waitForFunction(() => window.viewer.roughness !== null, null, { timeout: 120000 });  // slow on a busy machine
   result.roughness = await page.evaluate(() => window.viewer.roughness);
   result.roughnessText = await page.evaluate(() => document.getElementById("roughness-stats").textContent);
-  result.scaleBar = await page.evaluate(() => document.getElementById("scale-label").textContent);
+  result.scaleBar = await page.evaluate(() => ({ hidden: document.getElementById("scale-bar").hidden, hint: !document.getElementById("scale-hint").hidden }));
 
   // Height colours, then closer in (tiles of the overview drop out of the scene into the cache),
   // back to the SEM image there, and out again: the cached tiles come back with the new style.

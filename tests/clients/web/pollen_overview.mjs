@@ -18,7 +18,7 @@ try {
   await addPageHelpers(page);
   page.on("pageerror", (error) => result.errors.push(String(error)));
   page.on("console", (message) => { if (message.type() === "error") result.errors.push(message.text()); });
-  page.on("request", (request) => { if (request.url().endsWith(".glb")) result.tileRequests++; });
+  page.on("request", (request) => { if (new URL(request.url()).pathname.endsWith(".glb")) result.tileRequests++; });
   const started = Date.now();
   await page.goto(viewerUrl);
   result.status = await waitUntilSettled(page, Number(timeoutS) * 1000);

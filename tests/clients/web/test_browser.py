@@ -11,6 +11,7 @@ from urllib.parse import parse_qs, urlparse
 
 import numpy as np
 import pytest
+from conftest import tile_seams_grey_levels
 
 from fractoscope.client import FractoscopeClient
 from fractoscope.client.manifest import load_manifest
@@ -120,7 +121,7 @@ def test_web_viewer_tools_styles_permalink_and_snapshot(built):
     ), panel
     assert f"chain: form {rough['chain']['form']}, no filters, " in panel and panel.count("µm/px") == 1, panel
     assert "Hurst " in panel and " µm)" in panel, panel
-    assert result["scaleBar"].endswith("µm")
+    assert result["scaleBar"] == {"hidden": True, "hint": True}  # perspective: no bar, but how to get one
     assert result["heightColourSpread"] > 0.3  # heights from the dequantized positions span the ramp
     assert (
         result["restyledSpread"] < 0.5 * result["heightColourSpread"]
@@ -208,3 +209,58 @@ def test_the_pollen_specimen_keeps_its_magnification_and_datum(pollen_data):
     assert cell_um == pytest.approx(overview.pixel_size_um / 2)
     chosen = tiles_in_region(specimen.layout, specimen.tiles, (20.0, 20.0, 40.0, 40.0), cell_um=cell_um)
     assert chosen and all(upsampled for _, upsampled in chosen)  # 2000x is beyond the data: digital zoom
+
+
+# An exponent in a number as text: "1.2e+2".
+_EXPONENT = re.compile(r"\d[eE][+-]?\d")
+
+
+def _check_workbench(data: Path, specimen_id: str, out: Path) -> dict:
+    """Issue 38's viewer on one specimen (workbench.mjs): a clean console; the orthographic top view
+    with a scale bar true within 2 % against the overview's field of view (the surface's width on
+    screen) and against two points picked a bar's length apart; no bar where it cannot be true;
+    "Reset view" back to the first view; numbers without exponents; the snapshot's texts inside it; the
+    specimen list with thumbnails; the roughness of the view at the overview's pixel size."""
+    result = _in_chromium("workbench.mjs", data, "{base}", specimen_id, str(out))
+    (out / "result.json").write_text(json.dumps(result, indent=1))
+    assert result["console"] == [], result["console"]
+    overview = SpecimenStore(data).load(specimen_id).rois[0]
+    assert result["projection"] == "orthographic"
+    top = result["topBar"]
+    assert not top["hidden"] and not top["hintShown"] and top["label"].endswith(" µm"), top
+    bar_um_per_px = _numbers_in(top["label"])[0] / top["lengthPx"]
+    x0, _, x1, _ = overview.region_um
+    assert (x1 - x0) / result["surfaceWidthPx"] == pytest.approx(bar_um_per_px, rel=0.02)
+    assert result["pickedHorizontalUm"] == pytest.approx(_numbers_in(top["label"])[0], rel=0.02)
+    for hidden in (result["perspectiveBar"], result["topPerspectiveBar"], result["sideBar"]):
+        assert hidden["hidden"] and hidden["hintShown"], hidden  # perspective, or not from above
+    np.testing.assert_allclose(result["resetDirection"], np.array([0, -0.18, 0.98]) / np.hypot(0.18, 0.98), atol=1e-3)
+    assert not _EXPONENT.search(result["pageText"]), result["pageText"]
+    assert result["formatted"] and not [text for text in result["formatted"] if "e" in text]
+    assert "Hurst" in result["pageText"] and "Profile 2:" in result["pageText"]
+    assert all(0 <= text["left"] and text["right"] <= result["viewWidthPx"] for text in result["snapshotTexts"])
+    assert any(text["text"] == "height" for text in result["snapshotTexts"])  # the colour bar's title
+    entry = next(entry for entry in result["list"] if entry["id"] == specimen_id)
+    assert entry["current"] and entry["state"] == "built" and entry["thumbnailPx"] > 0, result["list"]
+    assert result["roughness"]["pixelSizeUm"] == pytest.approx(overview.pixel_size_um)
+    shown = re.search(r"([\d.]+) µm/px", result["roughness"]["text"])
+    assert shown and float(shown[1]) == pytest.approx(overview.pixel_size_um, rel=0.01), result["roughness"]["text"]
+    return result
+
+
+def test_the_workbench_on_the_demo_specimen(built):
+    _, _, data, _ = built
+    _check_workbench(data, "synthetic", _artefacts("workbench-synthetic"))
+
+
+@pytest.mark.real_data
+def test_the_workbench_on_the_pollen_specimen(pollen_data):
+    _check_workbench(pollen_data, "pollen", _artefacts("workbench-pollen"))
+
+
+@pytest.mark.real_data
+def test_the_pollen_tiles_show_no_seams(pollen_data):
+    """Neighbouring tiles of the real pollen pair's specimen agree along their shared borders
+    within 2 grey levels: the texture is normalized per ROI, never per tile."""
+    worst = tile_seams_grey_levels(pollen_data / "specimens" / "pollen")
+    assert len(worst) > 4 and max(worst) <= 2, worst

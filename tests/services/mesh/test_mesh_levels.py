@@ -61,7 +61,7 @@ def test_tiles_share_borders_and_every_glb_is_valid(method, tmp_path):
     z, texture = rough_with_hole()
     options = pipeline.MeshingOptions(method=method)
     tiles, report = pipeline.mesh_height_map(z, texture, pixel_size_um=PIXEL_SIZE_UM, options=options)
-    assert report.holes_filled > 0
+    assert report.filtered.holes_filled > 0
     reports = validate_glbs([tile.glb for tile in tiles], tmp_path)
     assert [r["errors"] for r in reports] == [0] * len(tiles), [r["messages"] for r in reports if r["errors"]][:3]
     by_key = {(t.level, t.tile_row, t.tile_col): _decode_vertices(t.glb) for t in tiles}

@@ -41,7 +41,8 @@ def test_meshing_service_streams_tiles_and_rejects_bad_input(client):
     assert [(t.level, t.tile_row, t.tile_col, t.triangle_count) for t in tiles] == [
         (t.level, t.tile_row, t.tile_col, t.triangle_count) for t in local
     ]
-    assert report["holes_filled"] == local_report.holes_filled
+    assert report["holes_filled"] == local_report.filtered.holes_filled
+    assert report["islands_dropped"] == local_report.islands_dropped
     with pytest.raises(ClientError) as error:
         client.build_mesh(z, texture[:100], pixel_size_um=PIXEL_SIZE_UM)
     assert error.value.code == grpc.StatusCode.INVALID_ARGUMENT and error.value.field == "height_map.texture"

@@ -334,7 +334,7 @@ def test_a_remote_matching_call_gets_the_callers_deadline_and_is_cancelled_with_
         request = tiles_pb2.ReconstructSpecimenRequest(specimen_id="remote", rois=[_specimen_roi(128, 7)])
         call = tiles_pb2_grpc.TileServiceStub(channel).ReconstructSpecimen(request, timeout=60)
         assert stalled.called.wait(30)
-        assert 0 < stalled.time_remaining_s <= 60
+        assert 0 < stalled.time_remaining_s < 90  # the caller's 60 s (gRPC rounds it up a little), not 1,800 s
         call.cancel()
         assert stalled.cancelled.wait(15)  # long before the deadline
     finally:

@@ -1,5 +1,6 @@
-"""The specimen store on disk: atomic replacement that survives a kill at any step, loading,
-caching by version, and its errors."""
+"""The specimen stores: the same contract on the folder and on a real S3 server (loading,
+rebuilding, failed builds, deletion, errors), then each one's own crash safety: the folder's
+renames that survive a kill at any step, the object store's pointer, sweep and build lease."""
 
 import json
 import os
@@ -15,12 +16,20 @@ from conftest import write_small_specimen
 from fractoscope.errors import InvalidInputError, NotFoundError
 from fractoscope.specimen.quadtree import OPTICAL, QuadtreeLayout, TileKey
 from fractoscope.specimen.store import SpecimenStore
+from fractoscope.store.specimens import ObjectSpecimenStore
 
 ROOT_TILE = TileKey(0, 0, 0)
 
 
-def test_a_written_specimen_loads_with_everything_it_was_given(tmp_path):
-    store = SpecimenStore(tmp_path)
+@pytest.fixture(params=["folder", "s3"])
+def store(request, tmp_path):
+    """Each backend, empty; the object store looks at its pointers on every load."""
+    if request.param == "folder":
+        return SpecimenStore(tmp_path)
+    return ObjectSpecimenStore(request.getfixturevalue("s3_objects"), tmp_path / "tmp", pointer_ttl_s=0.0)
+
+
+def test_a_written_specimen_loads_with_everything_it_was_given(store):
     write_small_specimen(store, "steel-1", height_um=3.0)
     assert store.ids() == ["steel-1"]
     specimen = store.load("steel-1")
@@ -48,13 +57,40 @@ def test_loading_is_cached_until_the_specimen_is_rebuilt(tmp_path):
     assert rebuilt.tile_bytes(ROOT_TILE.uri) == b"glTF\x02"
 
 
-def test_a_failed_build_leaves_the_stored_specimen_as_it_was(tmp_path):
+def test_a_rebuild_replaces_the_whole_specimen_and_a_deletion_removes_it(store):
+    write_small_specimen(store, "steel-1", height_um=1.0, request_id="build-1")
+    first = store.load("steel-1")
+    write_small_specimen(store, "steel-1", height_um=2.0, request_id="build-2")
+    rebuilt = store.load("steel-1")
+    assert rebuilt.version != first.version and rebuilt.request_id == "build-2"
+    assert rebuilt.tile_bytes(ROOT_TILE.uri) == b"glTF\x02"
+    np.testing.assert_array_equal(rebuilt.heights("overview").z_um, np.full((16, 24), 2.0, np.float32))
+    store.delete("steel-1")
+    assert store.ids() == []
+    with pytest.raises(NotFoundError):
+        store.load("steel-1")
+    with pytest.raises(NotFoundError) as again:
+        store.delete("steel-1")
+    assert again.value.field == "specimen_id"
+
+
+def test_a_failed_build_leaves_the_stored_specimen_as_it_was(store):
+    write_small_specimen(store, "steel-1", height_um=1.0)
+    with pytest.raises(RuntimeError), store.writing("steel-1") as staging:
+        (staging / "specimen.json").write_text("half")
+        raise RuntimeError("mesher gone")
+    with pytest.raises(RuntimeError), store.writing("steel-2") as staging:
+        raise RuntimeError("matcher gone")
+    assert store.load("steel-1").tile_bytes(ROOT_TILE.uri) == b"glTF\x01"
+    assert store.ids() == ["steel-1"]
+
+
+def test_a_failed_folder_build_leaves_no_files(tmp_path):
     store = SpecimenStore(tmp_path)
     write_small_specimen(store, "steel-1", height_um=1.0)
     with pytest.raises(RuntimeError), store.writing("steel-1") as staging:
         (staging / "specimen.json").write_text("half")
         raise RuntimeError("mesher gone")
-    assert store.load("steel-1").tile_bytes(ROOT_TILE.uri) == b"glTF\x01"
     assert sorted(p.name for p in (tmp_path / "specimens").iterdir()) == ["steel-1"]
 
 
@@ -163,8 +199,14 @@ def test_every_file_and_folder_is_fsynced_before_its_rename_and_the_renames_afte
         assert journal[index + 1] == ("fsync", specimens)
 
 
-def test_unknown_and_malformed_names_are_told_apart(tmp_path):
-    store = SpecimenStore(tmp_path)
+def test_a_request_id_finds_the_specimen_it_built(store):
+    write_small_specimen(store, "steel-1", request_id="lims-7")
+    assert store.built_by("steel-1", "lims-7", "digest").request_id == "lims-7"
+    assert store.built_by("steel-1", "lims-8", "digest") is None and store.built_by("steel-2", "lims-7", "") is None
+    assert store.built_by("steel-1", "", "") is None  # a request without an id built nothing
+
+
+def test_unknown_and_malformed_names_are_told_apart(store):
     write_small_specimen(store, "steel-1")
     with pytest.raises(NotFoundError):
         store.load("steel-2")

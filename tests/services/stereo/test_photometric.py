@@ -7,6 +7,8 @@ from conftest import cleavage_pair, dimple_pair
 from fractoscope import synthetic
 from fractoscope.sem.image import SemImage
 from fractoscope.stereo import photometric
+from fractoscope.stereo.disparity import MatchingMethod
+from fractoscope.stereo.inputs import MatchingOptions
 from fractoscope.stereo.pipeline import compute_height_map
 
 ROWS, COLS = 96, 400
@@ -44,7 +46,7 @@ def test_slopes_from_the_shading_restore_relief_finer_than_the_stereo_resolves()
     stereo[10:14, 50:60] = np.nan  # a masked patch stays masked
     sigma = np.where(np.isfinite(stereo), np.float32(0.3), np.float32(np.nan))  # as a matcher gives it
     fusion = photometric.fused_disparity(left, right, stereo, sigma, noise_grey=np.sqrt(2.0))
-    assert fusion.used and fusion.agreement >= photometric.MIN_AGREEMENT
+    assert fusion.used and fusion.weight > 0.8 and fusion.weight == pytest.approx(fusion.explained)
     inner = (slice(4, -4), slice(20, -20))
     known = np.isfinite(fusion.disparity_px)
     assert np.array_equal(known, np.isfinite(stereo))
@@ -65,7 +67,7 @@ def test_shading_that_tells_nothing_of_the_slopes_leaves_the_disparities_alone()
     _, unrelated = _secant_law_pair(truth, slope_gain=0.0, seed=7)
     stereo = truth.astype(np.float32)
     fusion = photometric.fused_disparity(left, unrelated, stereo, np.full(truth.shape, 0.3, np.float32), noise_grey=1.4)
-    assert not fusion.used and fusion.agreement < photometric.MIN_AGREEMENT
+    assert not fusion.used and fusion.weight == 0.0 and fusion.explained < photometric.MIN_WEIGHT
     assert fusion.disparity_px is stereo and fusion.sigma_px is not None
 
 
@@ -98,11 +100,49 @@ def test_the_default_method_fuses_dimples_slopes_and_leaves_cleavage_alone(monke
     assert fused.report["photometric_slopes_used"] == [True]
     assert fused.report["photometric_agreement"][0] > 0.9
     fused_rms = synthetic.height_errors(fused.z_um, dimples.z_seen_um).rms_of_range
-    monkeypatch.setattr(photometric, "MIN_AGREEMENT", 2.0)  # never agrees: the stereo alone
+    monkeypatch.setattr(photometric, "MIN_WEIGHT", 2.0)  # never reached: the stereo alone
     alone = _reconstruct(dimples)
     assert alone.report["photometric_slopes_used"] == [False]
     assert fused_rms < 0.7 * synthetic.height_errors(alone.z_um, dimples.z_seen_um).rms_of_range
     monkeypatch.undo()
     cleavage = _reconstruct(cleavage_pair())
     assert cleavage.report["photometric_slopes_used"] == [False]
-    assert cleavage.report["photometric_agreement"][0] < 0.3
+
+
+def _variant_pair(name, size_px=320):
+    return dimple_pair(size_px=size_px, physics=synthetic.PHYSICS_VARIANTS[name])
+
+
+def _errors(pair, name, method=MatchingMethod.TGV_ZNCC):
+    """The full height-map request on `pair`, told where the variant's detector is, as a user would."""
+    physics = synthetic.PHYSICS_VARIANTS[name]
+    options = MatchingOptions(method=method, detector_from_tilt_axis_deg=physics.detector_azimuth_deg - 90.0)
+    first, second = (SemImage(image, None, None, 0) for image in (pair.first, pair.second))
+    result = compute_height_map(first, second, tilt_deg=(-5.0, 5.0), pixel_size_um=0.1, options=options)
+    return synthetic.height_errors(result.z_um, pair.z_seen_um).rms_of_range, result.report
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["lambert", "secant_k1.6_side_detector"])
+def test_on_renderers_it_was_not_tuned_on_the_default_beats_window_correlation(name):
+    """Other yield laws and detectors (synthetic.PHYSICS_VARIANTS) on 320² dimples at ±5°: the
+    learned shading model is fitted and used, and the default method's RMS error stays under
+    5 % of the range (measured 1.6-3.1 %; window correlation's 3.8-6.6 %; the bound leaves
+    room for seeds while catching a wrong fused slope, which costs several points)."""
+    pair = _variant_pair(name)
+    default, report = _errors(pair, name)
+    window, _ = _errors(pair, name, MatchingMethod.WINDOW_ZNCC)
+    assert report["photometric_slopes_used"] == [True]
+    assert default < window and default < 0.05
+
+
+def test_shading_without_slope_information_gets_no_weight():
+    """A renderer with no yield law (material contrast only): the model explains nothing of the
+    stereo's slopes, and the disparities are the stereo's alone."""
+    pair = _variant_pair("texture_only", size_px=256)
+    left, right = pair.first.astype(np.float32), pair.second.astype(np.float32)
+    truth_px = pair.z_seen_um / 0.1 * 2.0 * np.sin(np.radians(5.0))
+    stereo = (truth_px - truth_px.mean()).astype(np.float32)
+    fusion = photometric.fused_disparity(left, right, stereo, np.full(stereo.shape, 0.3, np.float32), noise_grey=3.0)
+    assert fusion.explained < photometric.MIN_WEIGHT and fusion.weight == 0.0 and not fusion.used
+    assert fusion.disparity_px is stereo

@@ -8,7 +8,7 @@ import sys
 import numpy as np
 import pytest
 
-from fractoscope.stereo import matching, tgv_refinement, window_zncc
+from fractoscope.stereo import correlation, matching, tgv_refinement, window_zncc
 from fractoscope.stereo.disparity import MatchingMethod, StripTask
 from fractoscope.synthetic import self_affine_surface
 
@@ -112,3 +112,18 @@ def test_code_compiled_afresh_and_code_from_the_cache_agree_to_the_bit(tmp_path)
     assert any((tmp_path / "numba-cache").rglob("*.nbi")), "the first process stored no compiled code"
     compiled, cached = (np.load(output) for output in outputs)
     np.testing.assert_array_equal(compiled, cached)
+
+
+def test_the_data_term_trusts_cleaner_images_more():
+    """The data term's weight is its peak's precision from the images' measured decorrelation
+    (noise): the same texture with a quarter of the noise is weighted several times as much, so
+    the refinement smooths less where the images are cleaner."""
+    shift = np.full(SHAPE, 2.0, np.float32)
+    precisions = []
+    for noise in (2.0, 8.0):
+        left, right = (matching.local_contrast(image) for image in _pair(shift, noise=noise, seed=5))
+        left, right = correlation.normalized(left), correlation.normalized(right)
+        stats = correlation.window_stats(left, tgv_refinement.DATA_WINDOW_PX)
+        _, precision = tgv_refinement.data_term(left, stats, right, shift, tgv_refinement.DATA_WINDOW_PX)
+        precisions.append(float(np.median(precision[INNER])))
+    assert precisions[0] > 4.0 * precisions[1]

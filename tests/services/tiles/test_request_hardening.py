@@ -37,7 +37,7 @@ from fractoscope.tiles import messages as tile_messages
 from fractoscope.tiles import servicer as tile_servicer
 from fractoscope.tiles.http import start_http_server
 from fractoscope.tiles.http_json import file_response, off_loop
-from fractoscope.v1 import tiles_pb2
+from fractoscope.v1 import common_pb2, tiles_pb2
 
 ROOT_TILE = TileKey(0, 0, 0)
 
@@ -61,6 +61,7 @@ def test_the_content_digest_is_that_of_the_whole_request_without_its_id():
     request = tiles_pb2.ReconstructSpecimenRequest(specimen_id="steel-1", request_id="lims-1")
     request.rois.add(id="overview", pixel_size_um=0.1, magnification=100.0)
     request.rois.add(id="zoom", parent="overview", magnification=400.0).images.add(tilt_deg=5.0)
+    request.unmeasured = common_pb2.UNMEASURED_AREAS_FLAT
     whole = tiles_pb2.ReconstructSpecimenRequest()
     whole.CopyFrom(request)
     whole.ClearField("request_id")
@@ -70,6 +71,7 @@ def test_the_content_digest_is_that_of_the_whole_request_without_its_id():
         "specimen_id",
         "rois",
         "request_id",
+        "unmeasured",
     }, "request_digest feeds specimen_id and rois: feed a new field too"
     request.rois[1].magnification = 401.0
     assert tile_messages.request_digest(request) != expected

@@ -114,6 +114,24 @@ def test_gzip_is_sent_only_where_accept_encoding_weighs_it_above_zero(endpoint):
         assert headers["Vary"] == "Accept-Encoding"
 
 
+def test_tiles_are_cached_for_good_only_under_their_build(endpoint, tmp_path):
+    """tileset.json names each tile with its build; such a URL never changes its bytes, so it is
+    immutable. After a rebuild the tileset names new URLs, and an old one is only briefly cached."""
+    tileset = {"asset": {"version": "1.1"}, "root": {"content": {"uri": "tiles/0/0/0.glb"}, "children": []}}
+    store = SpecimenStore(tmp_path / "data")
+    (store.root / "steel-1" / "tileset.json").write_text(json.dumps(tileset))
+    version = str(store.load("steel-1").version)
+    status, headers, body = _get(endpoint, "/specimens/steel-1/tileset.json")
+    assert status == 200 and headers["Cache-Control"] == "public, max-age=10"
+    uri = json.loads(body)["root"]["content"]["uri"]
+    assert uri == f"tiles/0/0/0.glb?v={urllib.parse.quote(version, safe='')}"
+    status, headers, _ = _get(endpoint, f"/specimens/steel-1/{uri}")
+    assert status == 200 and headers["Cache-Control"] == "public, max-age=31536000, immutable"
+    for stale in ("tiles/0/0/0.glb", "tiles/0/0/0.glb?v=1", "tiles/0/0/0.glb?v="):
+        status, headers, _ = _get(endpoint, f"/specimens/steel-1/{stale}")
+        assert status == 200 and headers["Cache-Control"] == "public, max-age=10", stale
+
+
 def test_if_none_match_compares_entity_tags_weakly(endpoint):
     path = "/specimens/steel-1/tiles/0/0/0.glb"
     _, raw, _ = _get(endpoint, path)
@@ -123,7 +141,9 @@ def test_if_none_match_compares_entity_tags_weakly(endpoint):
     for if_none_match in (raw_tag, f"W/{raw_tag}", f'"other", {raw_tag}', f'W/"other",W/{raw_tag}', "*"):
         status, headers, body = _get(endpoint, path, **{"If-None-Match": if_none_match})
         assert (status, body, headers["ETag"]) == (304, b"", raw_tag), if_none_match
-        assert headers["Vary"] == "Accept-Encoding" and headers["Cache-Control"] == "no-cache"
+        assert (
+            headers["Vary"] == "Accept-Encoding" and headers["Cache-Control"] == "public, max-age=10"
+        )  # asked for without its build: looked at again soon
     assert _get(endpoint, path, **{"If-None-Match": gzip_tag, "Accept-Encoding": "gzip"})[0] == 304
     for if_none_match in (
         gzip_tag,

@@ -20,6 +20,7 @@ from fractoscope import strict_json
 from fractoscope.client import FractoscopeClient
 from fractoscope.errors import InvalidInputError
 from fractoscope.rpc.manifest import image_entry, image_names, manifest_field
+from fractoscope.v1 import common_pb2
 
 err = Console(stderr=True)
 SERVER_HELP = "HOST:PORT of a Fractoscope server (default: FRACTO_SERVER, else in-process)"
@@ -35,9 +36,10 @@ def server_address(explicit: str | None) -> str | None:
 
 
 @contextlib.contextmanager
-def connected(server: str | None, data_dir: str = "./data") -> Iterator[FractoscopeClient]:
-    """A client to `server`, FRACTO_SERVER, or services started in-process for this command (with
-    specimens kept in `data_dir`)."""
+def connected(server: str | None, data_dir: str | None = None) -> Iterator[FractoscopeClient]:
+    """A client to `server`, FRACTO_SERVER, or services started in-process for this command: with
+    `data_dir` all of them, specimens kept there; without, matching and meshing only, which write
+    nothing to disk."""
     address = server_address(server)
     if address:
         with FractoscopeClient(address) as client:
@@ -47,7 +49,8 @@ def connected(server: str | None, data_dir: str = "./data") -> Iterator[Fractosc
     from fractoscope.server.main import embedded_server
 
     keep_freed_memory()  # as fracto-server does: the services run in this process
-    with embedded_server(data_dir) as local, FractoscopeClient(local) as client:
+    services = embedded_server(data_dir) if data_dir is not None else embedded_server(services=("matching", "meshing"))
+    with services as local, FractoscopeClient(local) as client:
         yield client
 
 
@@ -239,6 +242,11 @@ def _manifest_entry(path: Path, field: str) -> str:
     )
 
 
+# gRPC's own words for a connection that closed during a call (the server stopped or restarted:
+# its GOAWAY's text, or the socket's), as opposed to one that never opened.
+_WENT_AWAY = ("cancelling all calls", "goaway", "connection reset")
+
+
 def is_connection_failure(message: str) -> bool:
     """Whether an UNAVAILABLE status is gRPC's own (no connection), not one a service sent."""
     lowered = message.lower()
@@ -250,19 +258,23 @@ def is_connection_failure(message: str) -> bool:
             "dns resolution failed",
             "socket closed",
             "connections to all backends failing",
+            *_WENT_AWAY,
         )
     )
 
 
-def unavailable_sentence(server: str | None) -> str:
-    """What to say when the server cannot be reached, in one plain sentence."""
+def unavailable_sentence(server: str | None, message: str = "") -> str:
+    """What to say when the server cannot be reached, or went away during the call (`message`,
+    gRPC's, tells which), in one plain sentence instead of gRPC's transport terms."""
     address = server_address(server)
-    if address:
-        return (
-            f"the Fractoscope server at {address} cannot be reached; start it (fracto-server) or point --server or "
-            "FRACTO_SERVER at a running one"
-        )
-    return "the in-process Fractoscope services stopped answering; try again"
+    if not address:
+        return "the in-process Fractoscope services stopped answering; try again"
+    if any(text in message.lower() for text in _WENT_AWAY):
+        return f"the Fractoscope server at {address} closed the connection during the call (stopped?); try again"
+    return (
+        f"the Fractoscope server at {address} cannot be reached; start it (fracto-server) or point --server or "
+        "FRACTO_SERVER at a running one"
+    )
 
 
 class SuggestingParser(argparse.ArgumentParser):
@@ -308,3 +320,16 @@ def region_argument(text: str) -> tuple[float, float, float, float]:
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected X0,Y0,X1,Y1 in µm, got {text!r}") from None
     return x0, y0, x1, y1
+
+
+UNMEASURED = {"absent": common_pb2.UNMEASURED_AREAS_ABSENT, "flat": common_pb2.UNMEASURED_AREAS_FLAT}
+
+
+def add_unmeasured_argument(parser: argparse.ArgumentParser) -> None:
+    """`--unmeasured absent|flat`, read back through UNMEASURED (UnmeasuredAreas)."""
+    parser.add_argument(
+        "--unmeasured",
+        choices=tuple(UNMEASURED),
+        default="absent",
+        help="where nothing was measured: draw nothing (absent, the default) or a flat grey floor at height zero",
+    )

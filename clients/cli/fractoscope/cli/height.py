@@ -4,6 +4,7 @@ calibration they were computed with (formats.height_npz)."""
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -194,6 +195,7 @@ def command_height(args) -> int:
         z_um=result.z_um,
         sigma_um=result.sigma_um,
         confidence=result.confidence,
+        views_used=result.views_used,
         local_sigma_um=local_sigma_um,
         calibration=Calibration.from_report(report),
         record={
@@ -242,7 +244,7 @@ def _levelled(
         raise UsageError(f"{flag}: {error}") from None
     if plane.warning:
         print(f"warning: {flag}: {plane.warning}", file=sys.stderr)
-    levelled = HeightMap(z_um, result.sigma_um, result.confidence, result.texture, result.pixel_size_um, result.report)
+    levelled = dataclasses.replace(result, z_um=z_um)
     return levelled, plane
 
 
@@ -253,6 +255,8 @@ def _print_summary(summary: dict, shape: tuple[int, ...], *, with_tilts: bool) -
         f"{summary['z_max_um']:.3f} µm, {100 * summary['valid_fraction']:.1f} % valid, median sigma "
         f"{summary['median_sigma_um']:.3f} µm"
     )
+    if len(summary["report"].get("tilt_deg", ())) > 2 and "all_views_fraction" in summary:
+        print(f"{100 * summary['all_views_fraction']:.1f} % of the heights rest on all the views")
     if relief := relief_sign_sentence(summary["report"]):
         print(relief)
     if with_tilts:
@@ -318,4 +322,13 @@ def height_summary(result: HeightMap) -> dict:
         "valid_fraction": float(valid.mean()),
         "median_sigma_um": float(np.median(result.sigma_um[valid])) if z.size else float("nan"),
         "report": result.report,
-    }
+    } | _views_summary(result, valid)
+
+
+def _views_summary(result: HeightMap, valid: np.ndarray) -> dict:
+    """The share of the heights that rest on every view of the series (none from servers that do
+    not count them)."""
+    if result.views_used is None or not valid.any():
+        return {}
+    views = len(result.report.get("tilt_deg", ()))
+    return {"all_views_fraction": float(np.mean(result.views_used[valid] >= views))}

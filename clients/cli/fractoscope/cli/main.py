@@ -50,7 +50,7 @@ def main(argv: list[str] | None = None) -> None:
         )
     except ClientError as error:
         if error.code.name == "UNAVAILABLE" and is_connection_failure(str(error)):
-            message = unavailable_sentence(getattr(args, "server", None))
+            message = unavailable_sentence(getattr(args, "server", None), str(error))
         else:
             message = in_command_line_terms(error.field, str(error), args)
         code = _failed(message, outcome_of_code(error.code.name).exit_code)

@@ -3,12 +3,15 @@ reads back), written as level_L/ROW_COL.glb."""
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from fractoscope.cli.common import (
     SERVER_HELP,
+    UNMEASURED,
     UsageError,
+    add_unmeasured_argument,
     connected,
     err,
     existing_file,
@@ -49,6 +52,12 @@ def add_parsers(commands) -> None:
         help="triangulate across height jumps steeper than the pair can measure too (default: such triangles "
         "are walls, a primitive of their own, left out of the geometric error)",
     )
+    add_unmeasured_argument(mesh)
+    mesh.add_argument(
+        "--min-island-px",
+        type=float,
+        help="drop measured patches smaller than this many pixels (default 225: a 15 x 15 matching window; 0: none)",
+    )
     mesh.add_argument("--server", help=SERVER_HELP)
     mesh.add_argument("--json", action="store_true", help="print a JSON summary instead of text")
     mesh.set_defaults(run=command_mesh)
@@ -80,12 +89,15 @@ def command_mesh(args) -> int:
             plain_glb=args.plain_glb,
             max_slope=max_slope,
             sigma_um=heights.local_sigma_um if max_slope else None,
+            unmeasured=UNMEASURED[args.unmeasured],
+            min_island_px=args.min_island_px,
         )
     write_tiles(tiles, out)
     summary = {
         "output": args.output,
         "pixel_size_um": pixel_size_um,
         "max_slope": max_slope or None,
+        "unmeasured": args.unmeasured,
         "filter": report,
         "levels": _level_rows(tiles),
     }
@@ -107,13 +119,16 @@ def _texture_of(path: str, shape: tuple[int, ...]) -> np.ndarray:
 
 
 def _level_rows(tiles) -> list[dict]:
-    """Per level of detail, finest first: its tiles, triangles, walls and largest geometric error."""
+    """Per level of detail, finest first: its tiles, triangles, walls, its own largest error (the
+    level's distance from the full-resolution surface) and the largest geometric error its tiles
+    carry (at least the finer levels' own, as 3D Tiles wants)."""
     return [
         {
             "level": level,
             "tiles": sum(1 for t in tiles if t.level == level),
             "triangles": sum(t.triangle_count for t in tiles if t.level == level),
             "wall_triangles": sum(t.wall_triangle_count for t in tiles if t.level == level),
+            "level_error_m": max(t.level_error_m for t in tiles if t.level == level),
             "geometric_error_m": max(t.geometric_error_m for t in tiles if t.level == level),
         }
         for level in sorted({tile.level for tile in tiles})
@@ -123,16 +138,26 @@ def _level_rows(tiles) -> list[dict]:
 def _print_summary(summary: dict, *, tile_count: int) -> None:
     """The summary of `tile_count` tiles written, as text."""
     max_slope = summary["max_slope"]
+    walls = (
+        f"; walls: slopes steeper than {max_slope:.1f} µm per µm ({math.degrees(math.atan(max_slope)):.0f}°) set apart"
+        if max_slope
+        else ""
+    )
     print(
-        f"wrote {tile_count} GLB tiles in {len(summary['levels'])} levels to {summary['output']} "
-        f"({summary['pixel_size_um']:g} µm/px"
-        + (f"; walls steeper than {max_slope:.1f} set apart)" if max_slope else ")")
+        f"wrote {_count(tile_count, 'GLB tile')} in {_count(len(summary['levels']), 'level')} to {summary['output']} "
+        f"({summary['pixel_size_um']:g} µm/px{walls}; unmeasured areas {summary['unmeasured']}; "
+        f"{_count(summary['filter'].get('islands_dropped', 0), 'island')} dropped)"
     )
     for row in summary["levels"]:
         print(
-            f"  level {row['level']}: {row['tiles']} tiles, {row['triangles']} triangles "
-            f"({row['wall_triangles']} walls), geometric error {row['geometric_error_m'] * 1e6:.3f} µm"
+            f"  level {row['level']}: {_count(row['tiles'], 'tile')}, {_count(row['triangles'], 'triangle')} "
+            f"({row['wall_triangles']} walls), error {row['level_error_m'] * 1e6:.3f} µm "
+            f"(geometric error {row['geometric_error_m'] * 1e6:.3f} µm with the finer levels')"
         )
+
+
+def _count(number: int, noun: str) -> str:
+    return f"{number} {noun}" + ("" if number == 1 else "s")
 
 
 def write_tiles(tiles, directory: Path) -> None:

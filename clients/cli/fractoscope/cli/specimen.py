@@ -12,7 +12,9 @@ import numpy as np
 from fractoscope.cli.common import (
     PICTURE_SUFFIXES,
     SERVER_HELP,
+    UNMEASURED,
     UsageError,
+    add_unmeasured_argument,
     calibrated_tilts,
     connected,
     datum_sentence,
@@ -51,6 +53,7 @@ def add_parsers(commands) -> None:
     reconstruct.add_argument(
         "--request-id", help="repeat-safe id: a second request with it returns the first one's specimen"
     )
+    add_unmeasured_argument(reconstruct)
 
     profile = specimen_command(
         "profile", "surface profile along a line and its ISO 21920 roughness parameters", command_profile
@@ -152,7 +155,13 @@ def command_reconstruct(args) -> int:
         connected(args.server, args.data) as client,
         progress_bar("reconstructing", enabled=not args.json and err.is_terminal) as advance,
     ):
-        summary = client.reconstruct_specimen(specimen_id, rois, request_id=args.request_id or "", on_progress=advance)
+        summary = client.reconstruct_specimen(
+            specimen_id,
+            rois,
+            request_id=args.request_id or "",
+            on_progress=advance,
+            unmeasured=UNMEASURED[args.unmeasured],
+        )
     if args.json:
         print_json(summary)
         return 0

@@ -153,6 +153,8 @@ class FractoscopeClient(ChannelOwner):
         plain_glb: bool = False,
         max_slope: float = 0.0,
         sigma_um: np.ndarray | None = None,
+        unmeasured: int = 0,
+        min_island_px: float | None = None,
     ) -> tuple[list[meshing_pb2.MeshTile], dict]:
         """GLB levels of detail of a height map ((rows, cols) µm, NaN unknown) textured with a grey
         image of the same shape, pixel (0, 0) placed at `origin_um` (x, y); returns the tiles (finest
@@ -161,7 +163,8 @@ class FractoscopeClient(ChannelOwner):
         out) and the filter report. `plain_glb`: float32 GLBs without extensions, for tools that
         lack a meshopt decoder (about five times larger). `max_slope` (the steepest slope the
         heights' measurement supports) with `sigma_um` (each height's local uncertainty, µm)
-        marks the triangles across steeper jumps as walls (see BuildMeshRequest)."""
+        marks the triangles across steeper jumps as walls (see BuildMeshRequest). `unmeasured`
+        (UnmeasuredAreas) and `min_island_px` (None: the server's default) as BuildMeshRequest says."""
         request = calls.mesh_request(
             z_um,
             texture,
@@ -174,6 +177,8 @@ class FractoscopeClient(ChannelOwner):
             request_id=request_id,
             plain_glb=plain_glb,
             max_slope=max_slope,
+            unmeasured=unmeasured,
+            **({} if min_island_px is None else {"min_island_px": min_island_px}),
         )
         with raised_as_client_errors():
             return calls.read_mesh(self._meshing.BuildMesh(request, timeout=self._timeout_s), on_progress)
@@ -185,9 +190,13 @@ class FractoscopeClient(ChannelOwner):
         *,
         request_id: str = "",
         on_progress: ProgressCallback | None = None,
+        unmeasured: int = 0,
     ) -> dict:
-        """Builds a specimen from its ROIs (see `client.manifest.load_manifest`); returns its summary."""
-        request = tiles_pb2.ReconstructSpecimenRequest(specimen_id=specimen_id, rois=rois, request_id=request_id)
+        """Builds a specimen from its ROIs (see `client.manifest.load_manifest`); returns its summary.
+        `unmeasured` (UnmeasuredAreas): how its tiles show what nothing measured."""
+        request = tiles_pb2.ReconstructSpecimenRequest(
+            specimen_id=specimen_id, rois=rois, request_id=request_id, unmeasured=unmeasured
+        )
         with raised_as_client_errors():
             final = calls.read_final(
                 self._tiles.ReconstructSpecimen(request, timeout=self._timeout_s), on_progress, missing="a specimen"

@@ -19,7 +19,8 @@ from fractoscope.v1 import common_pb2, matching_pb2, meshing_pb2
 
 @dataclass(frozen=True)
 class HeightMap:
-    """A height map on the first image's grid: arrays (rows, cols) float32, heights in µm."""
+    """A height map on the first image's grid: arrays (rows, cols) float32, heights in µm;
+    `views_used` (uint8) how many views each height rests on, None from servers without it."""
 
     z_um: np.ndarray
     sigma_um: np.ndarray
@@ -27,6 +28,7 @@ class HeightMap:
     texture: np.ndarray
     pixel_size_um: float
     report: dict
+    views_used: np.ndarray | None = None
 
 
 def height_map_request(
@@ -81,6 +83,7 @@ def read_height_map(
         texture=wire.raster_to_array(height_map.texture),
         pixel_size_um=height_map.pixel_size_um,
         report=wire.message_to_report(final.report),
+        views_used=wire.raster_to_array(height_map.views_used) if height_map.HasField("views_used") else None,
     )
 
 
@@ -109,7 +112,7 @@ def mesh_request(
     return request
 
 
-FILTER_COUNTS = ("outliers_removed", "holes_filled", "points_smoothed")
+FILTER_COUNTS = ("outliers_removed", "holes_filled", "points_smoothed", "islands_dropped")
 
 
 def read_mesh(

@@ -1,0 +1,120 @@
+"""A real S3 server for the tests: SeaweedFS (`weed mini`, built by `make .tools/bin/weed`) on
+loopback ports of its own, its data in a temporary folder, started once per test session."""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import time
+import uuid
+from pathlib import Path
+
+import pytest
+
+from fractoscope.store.objects import S3Objects
+
+REPOSITORY = Path(__file__).resolve().parents[1]
+WEED = REPOSITORY / ".tools" / "bin" / "weed"
+BUCKET = "fractoscope-tests"
+CREDENTIALS = {"AWS_ACCESS_KEY_ID": "fractoscope-test", "AWS_SECRET_ACCESS_KEY": "fractoscope-test-secret"}
+# The servers `weed mini` runs, each on a free port of its own (the defaults would collide with other tests).
+_PORTS = (
+    "master.port",
+    "master.port.grpc",
+    "volume.port",
+    "volume.port.grpc",
+    "filer.port",
+    "filer.port.grpc",
+    "s3.port",
+    "s3.port.grpc",
+    "s3.port.iceberg",
+    "s3.port.lance",
+    "admin.port",
+    "admin.port.grpc",
+    "webdav.port",
+)
+
+
+def _weed() -> Path:
+    """The weed binary, built when missing; the test is skipped only when it cannot be built."""
+    if not WEED.is_file():
+        built = subprocess.run(
+            ["make", "--no-print-directory", str(WEED.relative_to(REPOSITORY))],
+            cwd=REPOSITORY,
+            capture_output=True,
+            text=True,
+            timeout=1800,
+        )
+        if built.returncode != 0:
+            pytest.skip(f"SeaweedFS could not be built (make .tools/bin/weed): {built.stderr[-500:]}")
+    return WEED
+
+
+def _free_ports(count: int) -> list[int]:
+    sockets = [socket.socket() for _ in range(count)]
+    try:
+        for each in sockets:
+            each.bind(("127.0.0.1", 0))
+        return [each.getsockname()[1] for each in sockets]
+    finally:
+        for each in sockets:
+            each.close()
+
+
+@pytest.fixture(scope="session")
+def s3_endpoint(tmp_path_factory) -> str:
+    """The S3 endpoint URL of a SeaweedFS server with BUCKET, its keys and endpoint set in the
+    environment (AWS_*) for this process and the servers it starts."""
+    ports = dict(zip(_PORTS, _free_ports(len(_PORTS)), strict=True))
+    directory = tmp_path_factory.mktemp("seaweedfs")
+    arguments = [
+        str(_weed()),
+        "mini",
+        f"-dir={directory}",
+        "-ip=127.0.0.1",
+        "-ip.bind=127.0.0.1",
+        "-admin.ui=false",
+        "-admin.port.legacy=0",
+        "-webdav=false",
+        f"-bucket={BUCKET}",
+        *(f"-{name}={port}" for name, port in ports.items()),
+    ]
+    endpoint = f"http://127.0.0.1:{ports['s3.port']}"
+    environment = {**CREDENTIALS, "AWS_ENDPOINT_URL": endpoint, "AWS_REGION": "us-east-1"}
+    saved = {name: os.environ.get(name) for name in environment}
+    os.environ.update(environment)
+    with open(directory / "weed.log", "wb") as log:
+        server = subprocess.Popen(arguments, env={**os.environ}, stdout=log, stderr=subprocess.STDOUT)
+    try:
+        _wait_for_bucket(server, directory / "weed.log")
+        yield endpoint
+    finally:
+        server.terminate()
+        server.wait(timeout=30)
+        for name, value in saved.items():
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value
+
+
+def _wait_for_bucket(server: subprocess.Popen, log: Path, timeout_s: float = 120.0) -> None:
+    """Until the bucket takes a write (the S3 gateway answers once the filer and volumes are up)."""
+    objects = S3Objects(BUCKET, "startup")
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if server.poll() is not None:
+            raise RuntimeError(f"weed mini exited with {server.returncode}: {log.read_text()[-2000:]}")
+        try:
+            objects.put("probe", b"")
+            return
+        except Exception:  # not up yet: connection refused, or the bucket not made yet
+            time.sleep(0.5)
+    raise RuntimeError(f"weed mini did not serve S3 within {timeout_s} s: {log.read_text()[-2000:]}")
+
+
+@pytest.fixture
+def s3_objects(s3_endpoint) -> S3Objects:
+    """The objects under a new prefix of the test bucket, for one test."""
+    return S3Objects(BUCKET, f"test-{uuid.uuid4().hex}")
