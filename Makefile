@@ -113,12 +113,14 @@ bench: install $(WRK) $(GHZ)
 	$(BIN)/python -m benchmarks.exports --out bench-results
 	$(BIN)/python -m benchmarks.surface_analysis --out bench-results
 	$(BIN)/python -m benchmarks.serving --out bench-results
+	$(BIN)/python -m benchmarks.replicas --out bench-results
 	$(BIN)/python -m benchmarks.scale_out --out bench-results --one-cpu-per-replica --peers 1 2
 	$(BIN)/python -m benchmarks.page_faults --out bench-results
 
-## load: tiles over HTTP (wrk) and tiles, zooms and profiles over gRPC (ghz) at concurrency 50 for 60 s each, into bench-results/load.json
+## load: tiles over HTTP (wrk) and tiles, zooms and profiles over gRPC (ghz) at concurrency 50 for 60 s each, into bench-results/load.json; then one tile replica against two (bench-results/replicas.json)
 load: install $(WRK) $(GHZ)
 	$(BIN)/python -m benchmarks.serving --out bench-results --name load --concurrency 50 --duration-s 60
+	$(BIN)/python -m benchmarks.replicas --out bench-results --concurrency 50 --duration-s 60
 
 ## lint: formatting, lint rules and the import layering
 lint: install

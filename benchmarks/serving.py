@@ -93,7 +93,8 @@ def split_cpus() -> tuple[set[int] | None, set[int] | None]:
     return set(cpus[:half]), set(cpus[half:])
 
 
-def _pinned(cpus: set[int] | None):
+def pinned(cpus: set[int] | None):
+    """A preexec_fn that pins a child process to `cpus` (None: no pinning)."""
     return None if cpus is None else (lambda: os.sched_setaffinity(0, cpus))
 
 
@@ -139,7 +140,7 @@ def http_tiles(base_url: str, paths: list[str], *, concurrency: int, duration_s:
         str(script),
         base_url,
     ]
-    output = subprocess.run(command, capture_output=True, text=True, check=True, preexec_fn=_pinned(cpus)).stdout
+    output = subprocess.run(command, capture_output=True, text=True, check=True, preexec_fn=pinned(cpus)).stdout
     figures = json.loads(output.strip().splitlines()[-1])
     return {
         "requests_per_s": figures["requests"] / (figures["duration_us"] / 1e6),
@@ -215,7 +216,7 @@ def _ghz(arguments: list[str], cpus) -> dict:
     if cpus is not None:
         command[1:1] = ["--cpus", str(len(cpus))]
     report = json.loads(
-        subprocess.run(command, capture_output=True, text=True, check=True, preexec_fn=_pinned(cpus)).stdout
+        subprocess.run(command, capture_output=True, text=True, check=True, preexec_fn=pinned(cpus)).stdout
     )
     latency = {entry["percentage"]: entry["latency"] / 1e6 for entry in report["latencyDistribution"] or []}
     ok = report.get("statusCodeDistribution", {}).get("OK", 0)
@@ -329,12 +330,12 @@ def main() -> None:
             "WARNING",
         ],
         env={**os.environ, "GRPC_VERBOSITY": "ERROR"},
-        preexec_fn=_pinned(server_cpus),
+        preexec_fn=pinned(server_cpus),
     )
     address = f"127.0.0.1:{grpc_port}"
     try:
         with FractoscopeClient(address, timeout_s=600) as client:
-            _wait_until_serving(client)
+            wait_until_serving(client)
             specimen_id, rois = load_manifest(scratch / "input" / "manifest.json")
             started = time.perf_counter()
             client.reconstruct_specimen(specimen_id, rois)
@@ -439,7 +440,7 @@ def _bare_server_floor(tile_bytes: int, load: dict, server_cpus) -> dict:
     bare = subprocess.Popen(
         [sys.executable, "-m", "benchmarks.bare_grpc_server", "--address", address, "--tile-bytes", str(tile_bytes)],
         env={**os.environ, "GRPC_VERBOSITY": "ERROR"},
-        preexec_fn=_pinned(server_cpus),
+        preexec_fn=pinned(server_cpus),
     )
     try:
         with grpc.insecure_channel(address) as channel:
@@ -452,7 +453,8 @@ def _bare_server_floor(tile_bytes: int, load: dict, server_cpus) -> dict:
         bare.wait(timeout=30)
 
 
-def _wait_until_serving(client: FractoscopeClient, timeout_s: float = 60.0) -> None:
+def wait_until_serving(client: FractoscopeClient, timeout_s: float = 60.0) -> None:
+    """Returns once the server answers a call; raises its last error after `timeout_s`."""
     deadline = time.monotonic() + timeout_s
     while True:
         try:

@@ -3,11 +3,13 @@ loopback ports of its own, its data in a temporary folder, started once per test
 
 from __future__ import annotations
 
+import contextlib
 import os
 import socket
 import subprocess
 import time
 import uuid
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -62,36 +64,63 @@ def _free_ports(count: int) -> list[int]:
             each.close()
 
 
+class SeaweedFs:
+    """`weed mini` with its data in `directory` on loopback ports of its own, kept across restarts
+    (`stop`, `start`), so that a restarted server holds what the stopped one stored."""
+
+    def __init__(self, directory: Path):
+        self.directory = directory
+        self.ports = dict(zip(_PORTS, _free_ports(len(_PORTS)), strict=True))
+        self.endpoint = f"http://127.0.0.1:{self.ports['s3.port']}"
+        self.environment = {**CREDENTIALS, "AWS_ENDPOINT_URL": self.endpoint, "AWS_REGION": "us-east-1"}
+        self.process: subprocess.Popen | None = None
+
+    def start(self) -> None:
+        arguments = [
+            str(_weed()),
+            "mini",
+            f"-dir={self.directory}",
+            "-ip=127.0.0.1",
+            "-ip.bind=127.0.0.1",
+            "-admin.ui=false",
+            "-admin.port.legacy=0",
+            "-webdav=false",
+            f"-bucket={BUCKET}",
+            *(f"-{name}={port}" for name, port in self.ports.items()),
+        ]
+        with open(self.directory / "weed.log", "ab") as log:
+            self.process = subprocess.Popen(
+                arguments, env={**os.environ, **self.environment}, stdout=log, stderr=subprocess.STDOUT
+            )
+        _wait_for_bucket(self.process, self.directory / "weed.log", self.environment)
+
+    def stop(self) -> None:
+        self.process.terminate()
+        self.process.wait(timeout=30)
+
+
 @pytest.fixture(scope="session")
 def s3_endpoint(tmp_path_factory) -> str:
     """The S3 endpoint URL of a SeaweedFS server with BUCKET, its keys and endpoint set in the
     environment (AWS_*) for this process and the servers it starts."""
-    ports = dict(zip(_PORTS, _free_ports(len(_PORTS)), strict=True))
-    directory = tmp_path_factory.mktemp("seaweedfs")
-    arguments = [
-        str(_weed()),
-        "mini",
-        f"-dir={directory}",
-        "-ip=127.0.0.1",
-        "-ip.bind=127.0.0.1",
-        "-admin.ui=false",
-        "-admin.port.legacy=0",
-        "-webdav=false",
-        f"-bucket={BUCKET}",
-        *(f"-{name}={port}" for name, port in ports.items()),
-    ]
-    endpoint = f"http://127.0.0.1:{ports['s3.port']}"
-    environment = {**CREDENTIALS, "AWS_ENDPOINT_URL": endpoint, "AWS_REGION": "us-east-1"}
-    saved = {name: os.environ.get(name) for name in environment}
-    os.environ.update(environment)
-    with open(directory / "weed.log", "wb") as log:
-        server = subprocess.Popen(arguments, env={**os.environ}, stdout=log, stderr=subprocess.STDOUT)
+    server = SeaweedFs(tmp_path_factory.mktemp("seaweedfs"))
+    with environment(server.environment):
+        server.start()
+        try:
+            yield server.endpoint
+        finally:
+            server.stop()
+
+
+@contextlib.contextmanager
+def environment(values: dict[str, str]) -> Iterator[None]:
+    """os.environ with `values` set (boto3 reads the endpoint and keys when a client is made),
+    as it was after."""
+    saved = {name: os.environ.get(name) for name in values}
+    os.environ.update(values)
     try:
-        _wait_for_bucket(server, directory / "weed.log")
-        yield endpoint
+        yield
     finally:
-        server.terminate()
-        server.wait(timeout=30)
         for name, value in saved.items():
             if value is None:
                 os.environ.pop(name, None)
@@ -99,9 +128,10 @@ def s3_endpoint(tmp_path_factory) -> str:
                 os.environ[name] = value
 
 
-def _wait_for_bucket(server: subprocess.Popen, log: Path, timeout_s: float = 120.0) -> None:
+def _wait_for_bucket(server: subprocess.Popen, log: Path, settings: dict, timeout_s: float = 120.0) -> None:
     """Until the bucket takes a write (the S3 gateway answers once the filer and volumes are up)."""
-    objects = S3Objects(BUCKET, "startup")
+    with environment(settings):
+        objects = S3Objects(BUCKET, "startup")
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         if server.poll() is not None:

@@ -80,7 +80,15 @@ void main() {
   vec3 normal = normalize(vNormal);
   if (!gl_FrontFacing) normal = -normal;
   vec3 light = normalize((viewMatrix * vec4(lightDirection, 0.0)).xyz);
-  float lit = ambient + (1.0 - ambient) * max(dot(normal, light), 0.0);
+  vec3 up = normalize((viewMatrix * vec4(0.0, 0.0, 1.0, 0.0)).xyz);
+  // Lambert through the normal scaled to unit height, (-dz/dx, -dz/dy, 1): linear in the slopes,
+  // so a coarse tile shades as the mean of the finer tiles it stands for, and levels of detail
+  // side by side match in brightness (unit normals darken rough, fine tiles). Clamped
+  // symmetrically about a flat facet's value, which keeps that mean for slopes within range.
+  float facing = dot(normal, up);
+  float flatLit = max(dot(light, up), 0.0);
+  float direct = facing > 0.05 ? clamp(dot(normal, light) / facing, 0.0, 2.0 * flatLit) : max(dot(normal, light), 0.0);
+  float lit = ambient + (1.0 - ambient) * direct;
   vec3 colour = base * mix(1.0, lit, isWall > 0.5 ? 0.0 : lighting);
   if (showRois == 1) {
     vec2 p = vTileset.xy;

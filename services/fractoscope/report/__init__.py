@@ -425,6 +425,7 @@ def _parameters(document: Document, content: ReportContent) -> None:
                 "tilt_residual_px",
                 "photometric_slopes_used",
                 "photometric_agreement",
+                "photometric_weight",
                 "warnings",
             )
             if key in roi.matching

@@ -229,7 +229,7 @@ def _rectify(images: Sequence[SemImage], tilt_axis_deg: float) -> _Rectified:
 class _MatchedViews:
     """Every view matched to the reference: disparities (views, rows, cols) with the reference's
     row zero, and per view but the reference its disparity sigma, confidence, placement and
-    photometric fusion's agreement and use (`photometric.Fusion`); the relative magnification
+    photometric fusion's agreement, use, explained share and weight (`photometric.Fusion`); the relative magnification
     uncertainty of every view (0 for the reference)."""
 
     disparities: np.ndarray
@@ -240,6 +240,8 @@ class _MatchedViews:
     strip_count: int
     photometric_agreement: list[float]
     photometric_slopes_used: list[bool]
+    photometric_explained: list[float]
+    photometric_weight: list[float]
 
     def best_confidence(self) -> np.ndarray:
         """The highest peak ZNCC any view reached at each pixel (rows, cols)."""
@@ -273,6 +275,8 @@ def _match_views(views, options: MatchingOptions, strip_matcher, report_progress
         strip_count,
         [fusion.agreement for fusion in fusions],
         [fusion.used for fusion in fusions],
+        [fusion.explained for fusion in fusions],
+        [fusion.weight for fusion in fusions],
     )
 
 
@@ -549,6 +553,8 @@ def _report(
         "strip_count": matched.strip_count,
         "photometric_agreement": matched.photometric_agreement,
         "photometric_slopes_used": matched.photometric_slopes_used,
+        "photometric_explained": matched.photometric_explained,
+        "photometric_weight": matched.photometric_weight,
         "tilt_uncertainty_deg": float(tilt_uncertainty),
         **calibration,
     }

@@ -29,7 +29,7 @@ from aiohttp import web
 from aiohttp.http_exceptions import HttpProcessingError
 from aiohttp.log import server_logger
 
-from fractoscope.errors import FractoscopeError, NotFoundError
+from fractoscope.errors import FractoscopeError, NotFoundError, outcome_of
 from fractoscope.runtime.auth import TokenTable
 from fractoscope.runtime.caches import BoundedCache
 from fractoscope.specimen.quadtree import TILE_URI
@@ -137,8 +137,10 @@ class _TileApp:
             body = self.cache.cached(key) or await _off_loop(self.cache.get, key, produce)
         except (NotFoundError, FileNotFoundError):
             return _plain(HTTPStatus.NOT_FOUND, "not found\n")
-        except FractoscopeError as error:
-            return _plain(HTTPStatus.BAD_REQUEST, f"{error}\n")
+        except FractoscopeError as error:  # the status the error table gives: 503 when the object store is out of reach
+            status = HTTPStatus(outcome_of(error).http_status)
+            retry = {"Retry-After": "5"} if status == HTTPStatus.SERVICE_UNAVAILABLE else {}
+            return _plain(status, f"{error}\n", **retry)
         if relative == "tileset.json" or request.query.get("v") != str(specimen.version):
             caching = _SHORT_CACHING
         else:
