@@ -3,8 +3,8 @@
 // list asks the server again every few seconds while a build is queued or running.
 import { formatNumber } from "./plot.js";
 
-const POLL_BUSY_MS = 2000;
-const POLL_IDLE_MS = 20000;
+const POLL_BUSY_MS = 1000;
+const POLL_IDLE_MS = 5000; // a build a lab system submits shows within 5 s
 
 export class SpecimenList {
   // `api(path)` fetches from the server; `token` (or null) goes into the thumbnails' URLs;

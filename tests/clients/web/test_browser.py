@@ -6,11 +6,13 @@ import base64
 import json
 import re
 import subprocess
+import time
 from pathlib import Path
 from urllib.parse import parse_qs, urlparse
 
 import numpy as np
 import pytest
+import requests
 from conftest import tile_seams_grey_levels
 
 from fractoscope.client import FractoscopeClient
@@ -264,3 +266,47 @@ def test_the_pollen_tiles_show_no_seams(pollen_data):
     within 2 grey levels: the texture is normalized per ROI, never per tile."""
     worst = tile_seams_grey_levels(pollen_data / "specimens" / "pollen")
     assert len(worst) > 4 and max(worst) <= 2, worst
+
+
+@pytest.mark.real_data
+def test_a_build_submitted_over_http_shows_its_progress_in_the_page(pollen_series, tmp_path):
+    """The viewer is open when a lab system submits a build (POST /api/jobs, multipart: the real
+    pollen pair, long enough to be watched: 3 % to 95 % in six readings here): the specimen list
+    shows it under way with a progress bar that never goes back, then built with its thumbnail,
+    and the console stays clean."""
+    manifest = {"specimen": "submitted", "rois": [{"id": "pot", "left": "pot_02.tif", "right": "pot_04.tif"}]}
+    server, port = create_server("127.0.0.1:0", data_dir=tmp_path / "data")
+    server.start()
+    http = start_http_server(SpecimenStore(tmp_path / "data"))
+    http.send_builds_to(f"127.0.0.1:{port}")
+    base, ready = f"http://127.0.0.1:{http.server_port}", tmp_path / "page-ready"
+    try:
+        page = subprocess.Popen(
+            ["node", str(Path(__file__).resolve().parent / "build_progress.mjs"), base, "submitted", str(ready), "900"],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            cwd=ROOT,
+        )
+        deadline = time.monotonic() + 120
+        while not ready.exists():
+            assert page.poll() is None, page.stderr.read()[-3000:]
+            assert time.monotonic() < deadline, "the page did not open within 120 s"
+            time.sleep(0.2)
+        parts = [("manifest", (None, json.dumps(manifest), "application/json"))]
+        for name in ("pot_02.tif", "pot_04.tif"):
+            parts.append(("images", (name, (pollen_series / name).read_bytes(), "image/tiff")))
+        answer = requests.post(f"{base}/api/jobs", files=parts, timeout=120)
+        assert answer.status_code == 202, answer.text
+        out, err = page.communicate(timeout=1200)
+        assert page.returncode == 0, err[-3000:]
+    finally:
+        http.shutdown()
+        server.stop(grace=None)
+    result = json.loads(out.splitlines()[-1])
+    (_artefacts("build-progress") / "result.json").write_text(json.dumps(result, indent=1))
+    assert result["console"] == [], result["console"]
+    assert result["states"][-1] == "built" and result["thumbnailPx"] > 0, result
+    assert "building" in result["states"], result  # seen under way, not only once done
+    fractions = [float(value.rstrip("%")) for value in result["fractions"]]
+    assert fractions and fractions == sorted(fractions), result  # a bar while it ran, never going back
