@@ -13,6 +13,7 @@ import numpy as np
 import pygltflib
 import pytest
 import tifffile
+import trimesh
 from s3_server import s3_endpoint, s3_objects  # noqa: F401 - fixtures: a real S3 server for the store tests
 
 from fractoscope import synthetic
@@ -309,3 +310,18 @@ def tile_seams_grey_levels(data: Path) -> list[int]:
                 a, b = glb_texture(path.read_bytes())[mine], glb_texture(tiles[neighbour].read_bytes())[theirs]
                 worst.append(int(np.abs(a.astype(int) - b).max()))
     return worst
+
+
+def mesh_component_areas_um2(data: Path, level: int) -> np.ndarray:
+    """The area, µm², of each connected piece of one level of a stored specimen's tiles (surface
+    and wall triangles, joined across tile borders where their vertices meet)."""
+    meshes = []
+    for path in data.glob(f"tiles/{level}/*/*.glb"):
+        decoded = decode_glb(path.read_bytes())
+        triangles = np.concatenate([decoded.triangles, decoded.wall_triangles.reshape(-1, 3)])
+        meshes.append(trimesh.Trimesh(decoded.positions_m, triangles, process=False))
+    merged = trimesh.util.concatenate(meshes)
+    merged.merge_vertices(digits_vertex=8)
+    labels = trimesh.graph.connected_component_labels(merged.edges, node_count=len(merged.vertices))
+    areas_m2 = np.bincount(labels[merged.faces[:, 0]], weights=merged.area_faces)
+    return areas_m2[areas_m2 > 0] * 1e12

@@ -25,14 +25,17 @@ import numpy as np
 from fractoscope.mesh.outline import DEFAULT_MIN_ISLAND_PX, Unmeasured
 from fractoscope.mesh.walls import WALL_SIGMA_FACTOR, grid_wall_triangles, wall_vertices, within_distance
 from fractoscope.specimen.fusion import FusedSurface, PlacedRoi, overlaps
+from fractoscope.stereo.matching import DEFAULT_WINDOW_PX
 
 OPTICAL, DIGITAL = "optical", "digital"
 # 64 x 64 cells keep a textured tile near 200 KB, small enough to stream many per second; the
 # quadtree gets deeper instead.
 QUADTREE_TILE_CELLS = 64
-# Each tile is sampled one vertex beyond its border all round, so that the normals of its border
-# vertices see its neighbours' heights: tiles meshed apart shade their shared border alike.
-MESH_MARGIN_CELLS = 1
+# Each tile is sampled this many cells beyond its border all round: the normals of its border
+# vertices see its neighbours' heights, so tiles meshed apart shade their shared border alike, and
+# an island (mesh.outline) that a tile border cuts is judged whole. A matching window's width: an
+# island is smaller than one window's area, so no compact one reaches beyond it.
+MESH_MARGIN_CELLS = DEFAULT_WINDOW_PX + 1
 _REFINE_RATIO = math.sqrt(2)
 # A tile URI's one form: numbers of up to 6 ASCII digits without leading zeros.
 _NUMBER = r"(0|[1-9][0-9]{0,5})"

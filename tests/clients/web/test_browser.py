@@ -13,7 +13,7 @@ from urllib.parse import parse_qs, urlparse
 import numpy as np
 import pytest
 import requests
-from conftest import tile_seams_grey_levels
+from conftest import mesh_component_areas_um2, tile_seams_grey_levels
 
 from fractoscope.client import FractoscopeClient
 from fractoscope.client.manifest import load_manifest
@@ -258,6 +258,19 @@ def test_the_workbench_on_the_demo_specimen(built):
 @pytest.mark.real_data
 def test_the_workbench_on_the_pollen_specimen(pollen_data):
     _check_workbench(pollen_data, "pollen", _artefacts("workbench-pollen"))
+
+
+@pytest.mark.real_data
+def test_the_pollen_tiles_hold_no_island_below_the_minimum(pollen_data):
+    """At every level, each connected piece of the real pollen specimen's mesh covers at least the
+    least island area (mesh.outline, in the ROI's pixels), however the tile borders cut it."""
+    from fractoscope.mesh.outline import DEFAULT_MIN_ISLAND_PX
+
+    folder = pollen_data / "specimens" / "pollen"
+    pixel_um = SpecimenStore(pollen_data).load("pollen").rois[0].pixel_size_um
+    levels = sorted({int(path.parts[-3]) for path in folder.glob("tiles/*/*/*.glb")})
+    smallest = {level: mesh_component_areas_um2(folder, level).min() / pixel_um**2 for level in levels}
+    assert len(levels) > 3 and min(smallest.values()) >= DEFAULT_MIN_ISLAND_PX, smallest
 
 
 @pytest.mark.real_data
