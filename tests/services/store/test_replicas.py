@@ -1,7 +1,8 @@
 """Two tile replicas (fracto-server processes) sharing nothing but one bucket on a real S3
 server: a specimen built through A is served byte for byte by B over HTTP and gRPC, B lists A's
 build while it runs, and B keeps serving the previous build, without an error, through a kill -9
-of A in the middle of a rebuild, then reports A's lost build as failed."""
+of A in the middle of a rebuild, then reports A's lost build as failed, and builds it again once
+A's lease has run out."""
 
 import json
 import os
@@ -175,3 +176,22 @@ def test_a_replica_killed_mid_rebuild_leaves_the_other_serving_the_previous_buil
         assert time.monotonic() < deadline, job
         time.sleep(1)
     assert job["state"] == "failed" and job["error"]["code"] == "UNAVAILABLE", job
+    retried, refused = _built_on(b, input_directory, "second-retry")  # while A's lease runs: refused
+    assert retried["state"] == "succeeded" and refused <= 30, (retried, refused)
+    assert requests.get(f"{b.base}/specimens/shared/tileset.json", timeout=30).status_code == 200
+
+
+def _built_on(replica: _Replica, input_directory: Path, request_id: str) -> tuple[dict, int]:
+    """Submits the build to `replica` until it is not refused for another replica's lease
+    (RESOURCE_EXHAUSTED, the build of a replica that died holds it until it runs out); its last
+    job, and how many times it was refused."""
+    deadline, refused = time.monotonic() + 400, 0
+    while True:
+        job_id = _submit(replica, input_directory, f"{request_id}-{refused}")
+        while (job := _listed(replica, job_id)) is None or job["state"] not in ("succeeded", "failed"):
+            assert time.monotonic() < deadline, job
+            time.sleep(0.5)
+        if job["state"] == "succeeded" or job["error"]["code"] != "RESOURCE_EXHAUSTED":
+            return job, refused
+        refused += 1
+        time.sleep(2)
