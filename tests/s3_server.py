@@ -53,7 +53,7 @@ def _weed() -> Path:
     return WEED
 
 
-def _free_ports(count: int) -> list[int]:
+def free_ports(count: int) -> list[int]:
     sockets = [socket.socket() for _ in range(count)]
     try:
         for each in sockets:
@@ -70,7 +70,7 @@ class SeaweedFs:
 
     def __init__(self, directory: Path):
         self.directory = directory
-        self.ports = dict(zip(_PORTS, _free_ports(len(_PORTS)), strict=True))
+        self.ports = dict(zip(_PORTS, free_ports(len(_PORTS)), strict=True))
         self.endpoint = f"http://127.0.0.1:{self.ports['s3.port']}"
         self.environment = {**CREDENTIALS, "AWS_ENDPOINT_URL": self.endpoint, "AWS_REGION": "us-east-1"}
         self.process: subprocess.Popen | None = None
@@ -116,16 +116,10 @@ def s3_endpoint(tmp_path_factory) -> str:
 def environment(values: dict[str, str]) -> Iterator[None]:
     """os.environ with `values` set (boto3 reads the endpoint and keys when a client is made),
     as it was after."""
-    saved = {name: os.environ.get(name) for name in values}
-    os.environ.update(values)
-    try:
+    with pytest.MonkeyPatch.context() as patch:
+        for name, value in values.items():
+            patch.setenv(name, value)
         yield
-    finally:
-        for name, value in saved.items():
-            if value is None:
-                os.environ.pop(name, None)
-            else:
-                os.environ[name] = value
 
 
 def _wait_for_bucket(server: subprocess.Popen, log: Path, settings: dict, timeout_s: float = 120.0) -> None:

@@ -2,6 +2,7 @@
 that one thread gives, on a pair whose disparity is known."""
 
 import functools
+import itertools
 import threading
 
 import numpy as np
@@ -24,13 +25,18 @@ def _pair():
     return left, correlation.warp_along_rows(left, -ramp), ramp
 
 
-def _record_threads(monkeypatch, method):
-    """The names of the threads that match strips by `method` from now on (a set that fills)."""
-    threads = set()
-    strip_method = matching._METHODS[method]
+def _record_threads(monkeypatch, method, strip_method, workers):
+    """The names of the threads that match strips by `method` (with `strip_method`) from now on
+    (a set that fills). The first `workers` strips wait for each other: matched at once, each on
+    a thread of its own, or the test fails after 60 s, never passing or failing by how the
+    threads happened to be scheduled."""
+    threads, started = set(), itertools.count()
+    together = threading.Barrier(workers, timeout=60)
 
     def recorded(task):
         threads.add(threading.current_thread().name)
+        if next(started) < workers:
+            together.wait()
         return strip_method(task)
 
     monkeypatch.setitem(matching._METHODS, method, recorded)
@@ -40,10 +46,10 @@ def _record_threads(monkeypatch, method):
 @pytest.mark.parametrize("method", [MatchingMethod.TGV_ZNCC, MatchingMethod.WINDOW_ZNCC])
 def test_two_workers_give_exactly_what_one_gives(method, monkeypatch):
     left, right, ramp = _pair()
-    threads = _record_threads(monkeypatch, method)
+    strip_method = matching._METHODS[method]
     results = {}
     for workers in (1, 2):
-        threads.clear()
+        threads = _record_threads(monkeypatch, method, strip_method, workers)
         results[workers] = matching.match_disparity(
             left,
             right,
@@ -63,7 +69,8 @@ def test_two_workers_give_exactly_what_one_gives(method, monkeypatch):
 
 def test_by_default_a_strip_is_matched_per_two_cpus_the_process_may_use(monkeypatch):
     left, right, _ = _pair()
-    threads = _record_threads(monkeypatch, MatchingMethod.WINDOW_ZNCC)
+    method = MatchingMethod.WINDOW_ZNCC
+    threads = _record_threads(monkeypatch, method, matching._METHODS[method], 2)
     monkeypatch.setattr(matching.os, "sched_getaffinity", lambda pid: {0, 1, 2, 3})
     matching.match_disparity(
         left, right, max_disparity_px=12, method=MatchingMethod.WINDOW_ZNCC, strip_pixels=STRIP_PIXELS
