@@ -12,7 +12,7 @@ from fractoscope.matching import messages as rpc_matching
 from fractoscope.rpc.channel import ChannelOwner, open_channel
 from fractoscope.rpc.status import ClientError, raised_as_client_errors
 from fractoscope.stereo.disparity import DisparityResult, StripTask
-from fractoscope.stereo.matching import match_strips
+from fractoscope.stereo.matching import match_strip
 from fractoscope.v1 import matching_pb2_grpc
 
 
@@ -54,7 +54,7 @@ class PeerStripMatcher:
             result, worker = self.peers.match_strip(task, timeout_s=self.timeout_s(), request_id=self.request_id)
         except ClientError as error:
             if error.code == grpc.StatusCode.RESOURCE_EXHAUSTED:
-                return next(match_strips([task]))
+                return match_strip(task)
             if error.code in (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.DEADLINE_EXCEEDED):
                 raise UnavailableError(f"a strip peer failed ({error}); retry") from None
             # A peer that refuses what this replica sends runs another version or other limits.

@@ -235,7 +235,7 @@ class SpecimenStore(StoredSpecimens):
         self._cache: dict[str, tuple[int, Specimen]] = {}
         self._lock = threading.Lock()
         self._commit_lock = threading.Lock()
-        _remove_abandoned_scratch(self.scratch_root)
+        remove_abandoned_scratch(self.scratch_root)
 
     def recover(self) -> tuple[list[str], int]:
         """Undoes what writes of a killed process left; only the one writer may call this, when it
@@ -333,7 +333,7 @@ def scratch_folder(root: Path, purpose: str) -> Iterator[Path]:
         shutil.rmtree(folder, ignore_errors=True)
 
 
-def _remove_abandoned_scratch(root: Path) -> None:
+def remove_abandoned_scratch(root: Path) -> None:
     """Removes the scratch folders under `root` of processes that no longer run (killed mid-export);
     those of running processes stay, this one's included: several servers of one process, or
     processes of one host, may share a data directory. (Processes of separate PID namespaces, e.g.

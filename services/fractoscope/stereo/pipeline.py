@@ -157,7 +157,7 @@ def compute_series_height_map(
 def _weighted_heights(x1_px, matched: _MatchedViews, tilts, offsets) -> tuple[np.ndarray, np.ndarray]:
     """Heights (px) with each view's equation weighted by its disparity's 1/σ², and how many views
     each rests on (uint8), on the rectified grid (`tilt_series.heights_px`, `views_used`)."""
-    sigmas = np.stack([np.ones_like(matched.sigmas[0]), *matched.sigmas])  # the reference's row is ignored
+    sigmas = [None, *matched.sigmas]  # the reference's is never read
     z_px, _ = tilt_series.heights_px(x1_px, matched.disparities, tilts, offsets_px=offsets, sigmas_px=sigmas)
     return z_px, tilt_series.views_used(matched.disparities, sigmas_px=sigmas)
 

@@ -53,8 +53,8 @@ def heights_px(
     (N, *shape), the reference's row ignored; NaN = unmatched), and the RMS residual per point
     (px; NaN with fewer than two matched views).
 
-    `sigmas_px` (N, *shape), optional: each disparity's one-sigma uncertainty (the reference's row
-    ignored). Given, each view's equation is weighted by 1/σ², so a view counts by its
+    `sigmas_px` (N of *shape), optional: each disparity's one-sigma uncertainty (the reference's
+    never read). Given, each view's equation is weighted by 1/σ², so a view counts by its
     information on the height, b²/σ² (as stereo.geometry.height_sigma_um combines them); a
     disparity whose sigma is not finite and positive is left out. Without, all weigh the same."""
     a, b = coefficients(tilt_deg, reference=reference)
@@ -87,7 +87,13 @@ def _weight(sigma_px: np.ndarray) -> np.ndarray:
     """1/σ² (1/px²), NaN where the sigma is not finite and positive."""
     sigma = np.asarray(sigma_px, np.float64)
     with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(np.isfinite(sigma) & (sigma > 0), 1.0 / sigma**2, np.nan)
+        return np.where(_usable(sigma), 1.0 / sigma**2, np.nan)
+
+
+def _usable(sigma_px: np.ndarray) -> np.ndarray:
+    """Where a disparity's sigma is finite and positive, so that its equation counts."""
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(sigma_px) & (sigma_px > 0)
 
 
 def views_used(disparities_px: np.ndarray, *, reference: int = 0, sigmas_px=None) -> np.ndarray:
@@ -100,7 +106,7 @@ def views_used(disparities_px: np.ndarray, *, reference: int = 0, sigmas_px=None
             continue
         known = np.isfinite(disparities_px[view])
         if sigmas_px is not None:
-            known &= np.isfinite(_weight(sigmas_px[view]))
+            known &= _usable(sigmas_px[view])
         count += known.astype(np.uint8)
     return count
 

@@ -25,7 +25,14 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from fractoscope.errors import NotFoundError
-from fractoscope.specimen.store import Specimen, SpecimenStore, StoredSpecimens, scratch_folder, validate_id
+from fractoscope.specimen.store import (
+    Specimen,
+    SpecimenStore,
+    StoredSpecimens,
+    remove_abandoned_scratch,
+    scratch_folder,
+    validate_id,
+)
 from fractoscope.store.leases import DEFAULT_LEASE_TTL_S, Lease, held
 from fractoscope.store.objects import ObjectMissing, PreconditionFailed, S3Objects, open_objects
 
@@ -53,6 +60,7 @@ class ObjectSpecimenStore(StoredSpecimens):
         self.grace_s, self.pointer_ttl_s, self.lease_ttl_s = grace_s, pointer_ttl_s, lease_ttl_s
         self._cache: dict[str, tuple[float, str, Specimen]] = {}  # id: (checked, pointer ETag, specimen)
         self._lock = threading.Lock()
+        remove_abandoned_scratch(self.scratch_root)
 
     def recover(self) -> tuple[list[str], int]:
         """Nothing to restore (a publish is one write); removes what killed builds left."""

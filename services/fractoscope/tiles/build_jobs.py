@@ -9,7 +9,6 @@ JOB_LOST_AFTER_S is reported failed (UNAVAILABLE): the replica that ran it stopp
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import json
 import logging
 import os
@@ -169,6 +168,7 @@ class BuildJobs:
         self.timeout_s = timeout_s
         self._pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="fractoscope-http-build")
         self._jobs: OrderedDict[str, HttpBuildJob] = OrderedDict()
+        self._finished: OrderedDict[str, HttpBuildJob] = OrderedDict()  # other replicas' (_stored)
         self._keep = keep
         self._lock = threading.Lock()
         self._calls: set = set()  # the ReconstructSpecimen calls under way, cancelled by close()
@@ -200,9 +200,34 @@ class BuildJobs:
         return job
 
     def _write(self, job: HttpBuildJob) -> None:
-        """The job's state to object storage, for the other replicas (when there is one)."""
-        if self.objects is not None:
+        """The job's state to object storage, for the other replicas (when there is one). A store
+        out of reach costs only their view of it: the job goes on, and an unfinished one's record
+        is written again within lost_after_s / 6 (_keep_records_fresh)."""
+        if self.objects is None:
+            return
+        try:
             self.objects.put(f"jobs/{job.id}.json", job.record())
+        except FractoscopeError as error:
+            logger.warning("job %s: its record could not be written: %s", job.id, error)
+
+    def _stored(self, job_id: str) -> HttpBuildJob | None:
+        """Another replica's job as its record in object storage tells it (see HttpBuildJob.lost),
+        None when there is none. Finished records never change: each is read once and kept (the
+        last `keep` of them)."""
+        with self._lock:
+            job = self._finished.get(job_id)
+        if job is not None:
+            return job
+        try:
+            job = HttpBuildJob.from_record(self.objects.get(f"jobs/{job_id}.json").data)
+        except ObjectMissing:
+            return None
+        if job.state not in _UNFINISHED:
+            with self._lock:
+                self._finished[job_id] = job
+                while len(self._finished) > self._keep:
+                    self._finished.popitem(last=False)
+        return job.lost(after_s=self.lost_after_s)
 
     def listed(self) -> list[HttpBuildJob]:
         """Every job known here and, with object storage, every replica's, oldest first."""
@@ -211,10 +236,8 @@ class BuildJobs:
         if self.objects is not None:
             for listed in self.objects.list("jobs/"):
                 job_id = listed.key[len("jobs/") : -len(".json")]
-                if job_id not in jobs:
-                    with contextlib.suppress(ObjectMissing):
-                        record = self.objects.get(listed.key).data
-                        jobs[job_id] = HttpBuildJob.from_record(record).lost(after_s=self.lost_after_s)
+                if job_id not in jobs and (job := self._stored(job_id)) is not None:
+                    jobs[job_id] = job
         return sorted(jobs.values(), key=lambda job: job.created_s)
 
     def get(self, job_id: str) -> HttpBuildJob:
@@ -223,9 +246,7 @@ class BuildJobs:
         with self._lock:
             job = self._jobs.get(job_id)
         if job is None and self.objects is not None:  # another replica's
-            with contextlib.suppress(ObjectMissing):
-                record = self.objects.get(f"jobs/{job_id}.json").data
-                job = HttpBuildJob.from_record(record).lost(after_s=self.lost_after_s)
+            job = self._stored(job_id)
         if job is None:
             raise NotFoundError(f"no job {job_id!r}", field="job_id")
         return job
@@ -246,10 +267,7 @@ class BuildJobs:
             with self._lock:
                 unfinished = [job for job in self._jobs.values() if job.state in _UNFINISHED]
             for job in unfinished:
-                try:
-                    self._write(job)
-                except FractoscopeError as error:  # the store unreachable: the next round tries again
-                    logger.warning("job %s: its record could not be rewritten: %s", job.id, error)
+                self._write(job)
 
     def _run(self, job: HttpBuildJob, rois, token: str | None) -> None:
         job.state = "running"

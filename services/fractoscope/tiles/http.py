@@ -126,7 +126,10 @@ class _TileApp:
             return _plain(HTTPStatus.NOT_FOUND, "not found\n")
         relative = route["path"]
         try:
-            specimen = self.store.load(route["specimen"])
+            if self.store.objects is None:  # a folder's: one stat
+                specimen = self.store.load(route["specimen"])
+            else:  # a bucket's pointer may be read again, over the network: never on the event loop
+                specimen = await _off_loop(self.store.load, route["specimen"])
             content = (
                 (lambda: versioned_tileset(specimen.tileset_bytes, specimen.version))
                 if relative == "tileset.json"

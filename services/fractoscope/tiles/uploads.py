@@ -13,6 +13,7 @@ import re
 import shutil
 import time
 import uuid
+from collections.abc import Iterator
 from http import HTTPStatus
 from pathlib import Path
 from typing import NamedTuple
@@ -88,14 +89,10 @@ class Uploads:
         reader = await multipart_reader(request, limit_bytes=self.max_bytes)
         await off_loop(self.sweep)
         upload_id = uuid.uuid4().hex
-        staging = self.root / f".staging-{upload_id}"
-        staging.mkdir()
-        try:
+        with self._staging() as staging:
             await self._receive_parts(reader, staging)
             specimen_id, rois = await off_loop(self._check, staging)
             staging.rename(self.root / upload_id)
-        finally:
-            shutil.rmtree(staging, ignore_errors=True)
         if self.objects is not None:
             await off_loop(self._share, upload_id)
         return upload_id, specimen_id, rois
@@ -118,9 +115,7 @@ class Uploads:
             return
         if (self.root / upload_id).is_dir() or listed[_COMPLETE] < time.time() - self.max_age_s:
             return
-        staging = self.root / f".staging-{uuid.uuid4().hex}"
-        try:
-            staging.mkdir()
+        with self._staging() as staging:
             for relative in listed.keys() - {_COMPLETE}:
                 if not all(_FILE_NAME.fullmatch(part) for part in relative.split("/")):
                     continue  # not a file an upload writes
@@ -130,15 +125,25 @@ class Uploads:
             os.utime(staging, (listed[_COMPLETE], listed[_COMPLETE]))  # its age is the upload's
             with contextlib.suppress(OSError):  # fetched by another thread meanwhile
                 staging.rename(self.root / upload_id)
+
+    @contextlib.contextmanager
+    def _staging(self) -> Iterator[Path]:
+        """A new staging folder under root, removed after the block unless the block renamed it
+        into place (one a killed process left is removed at start)."""
+        staging = self.root / f".staging-{uuid.uuid4().hex}"
+        staging.mkdir()
+        try:
+            yield staging
         finally:
             shutil.rmtree(staging, ignore_errors=True)
 
     def _unshare(self, upload_id: str) -> bool:
         """Removes an upload from object storage, its marker first; whether it was there."""
+        marker = f"uploads/{upload_id}/{_COMPLETE}"
         keys = [item.key for item in self.objects.list(f"uploads/{upload_id}/")]
-        if keys:
-            self.objects.delete(f"uploads/{upload_id}/{_COMPLETE}")
-            self.objects.delete_many(keys)
+        if marker in keys:
+            self.objects.delete(marker)
+        self.objects.delete_many([key for key in keys if key != marker])
         return bool(keys)
 
     async def _receive_parts(self, reader, staging: Path) -> None:
