@@ -52,7 +52,7 @@ def _pair(physics: synthetic.SemPhysics, size_px: int) -> synthetic.StereoPair:
 
 def _ours(pair, physics, method) -> tuple[np.ndarray, dict]:
     options = MatchingOptions(
-        method=MatchingMethod(method), detector_from_tilt_axis_deg=physics.detector_azimuth_deg - 90.0
+        method=MatchingMethod(method), detector_from_tilt_axis_deg=physics.detector_from_tilt_axis_deg
     )
     first, second = (SemImage(image, None, None, 0) for image in (pair.first, pair.second))
     result = compute_height_map(first, second, tilt_deg=TILTS_DEG, pixel_size_um=PIXEL_SIZE_UM, options=options)
@@ -88,6 +88,7 @@ def run_renderer(physics: synthetic.SemPhysics, *, size_px: int, rounds: int) ->
                 "rms_percent_of_range": 100 * errors.rms_of_range,
                 "valid_fraction": errors.valid_fraction,
                 "photometric_agreement": report.get("photometric_agreement", [float("nan")])[0],
+                "photometric_weight": report.get("photometric_weight", [0.0])[0],
                 "photometric_used": report.get("photometric_slopes_used", [False])[0],
             }
     sgbm = rows["sgbm"]

@@ -71,7 +71,7 @@ def measure(kind: str, noise_fraction: float, seed: int, physics: synthetic.SemP
         physics=physics,
     )
     # As a user would: the detector's side given where it is not at the top of the image.
-    options = MatchingOptions(tilt_uncertainty_deg=0.0, detector_from_tilt_axis_deg=physics.detector_azimuth_deg - 90.0)
+    options = MatchingOptions(tilt_uncertainty_deg=0.0, detector_from_tilt_axis_deg=physics.detector_from_tilt_axis_deg)
     first, second = (SemImage(image, None, None, 0) for image in (pair.first, pair.second))
     result = compute_height_map(
         first, second, tilt_deg=TILT_DEG, pixel_size_um=synthetic.REFERENCE_PIXEL_SIZE_UM, options=options

@@ -15,6 +15,9 @@ export class SpecimenList {
     this.jobs = [];
     this.current = null;
     this.timer = null;
+    // Each specimen's thumbnail <img>, kept across redraws while its summary is the same: a poll
+    // redraws the list, and a new <img> would ask the server to draw the thumbnail again.
+    this.pictures = new Map();
   }
 
   // Reads the specimens and the jobs again and redraws; returns the specimens' summaries.
@@ -58,6 +61,18 @@ export class SpecimenList {
     this.element.replaceChildren(...entries);
   }
 
+  // The thumbnail of a built specimen: the one shown before unless its summary changed (rebuilt).
+  picture(id, summary) {
+    const key = JSON.stringify(summary);
+    const kept = this.pictures.get(id);
+    if (kept?.key === key) return kept.picture;
+    const picture = document.createElement("img");
+    picture.src = `/api/specimens/${id}/thumbnail` + (this.token ? `?token=${encodeURIComponent(this.token)}` : "");
+    picture.alt = "";
+    this.pictures.set(id, { key, picture });
+    return picture;
+  }
+
   // One entry: a button that opens a built specimen; a build's state and progress below.
   entry(id, summary) {
     const item = document.createElement("button");
@@ -66,12 +81,8 @@ export class SpecimenList {
     item.dataset.specimen = id;
     item.disabled = !summary;
     item.classList.toggle("current", id === this.current);
-    const picture = document.createElement(summary ? "img" : "div");
+    const picture = summary ? this.picture(id, summary) : document.createElement("div");
     picture.className = "thumbnail";
-    if (summary) {
-      picture.src = `/api/specimens/${id}/thumbnail` + (this.token ? `?token=${encodeURIComponent(this.token)}` : "");
-      picture.alt = "";
-    }
     const name = document.createElement("strong");
     name.textContent = id;
     const details = document.createElement("span");
@@ -96,7 +107,7 @@ export class SpecimenList {
   }
 }
 
-function isUnderWay(job) {
+export function isUnderWay(job) {
   return job.state === "queued" || job.state === "running";
 }
 

@@ -9,7 +9,7 @@ import { GLTFExtensionsPlugin } from "3d-tiles-renderer/plugins";
 import { VIEWS, ViewCamera } from "./camera.js";
 import { Measurements } from "./measure.js";
 import { formatNumber, formatUm, niceTicks } from "./plot.js";
-import { SpecimenList } from "./specimens.js";
+import { SpecimenList, isUnderWay } from "./specimens.js";
 import { MAX_ROIS, RAMP, isWallMesh, lightDirection, rampGradient, sharedUniforms, surfaceMaterial } from "./surface.js";
 
 const METRES_PER_UM = 1e-6;
@@ -512,7 +512,7 @@ applyDisplay();
 if (wanted && !specimens.some((entry) => entry.id === wanted)) {
   // Never silently show another specimen than the one the link names.
   const job = list.jobOf(wanted);
-  const building = job && (job.state === "queued" || job.state === "running");
+  const building = Boolean(job) && isUnderWay(job);
   status.error = building ? null : `no specimen "${wanted}" here` + (specimens.length ? `; there are: ${specimens.map((s) => s.id).join(", ")}` : "");
   showMessage(building ? `${wanted} is being built: it opens here when it is done` : status.error);
   if (!building) setStatus(status.error, true);

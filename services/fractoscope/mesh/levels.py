@@ -1,18 +1,18 @@
 """Tiled levels of detail of a 2.5D height map as triangle meshes.
 
-Level 0 is the full-resolution grid mesh: one vertex per measured pixel, two triangles per quad
-of measured pixels. Level k clusters the pixels into cells of 2**k x 2**k and keeps one vertex per
-cell, the centroid of its measured pixels (the paper's hierarchical space decomposition); with
-the quadric method, each tile of level k >= 1 is that grid further decimated to half its
-triangles by quadric error collapses (fast-simplification), which spends triangles where the
-surface bends. Each level is cut into tiles of at most LOD_TILE_MAX_CELLS x LOD_TILE_MAX_CELLS
-cells; neighbouring tiles share their border vertices exactly (decimation keeps tile borders), so
-there are no cracks. A tile of level k+1 covers the area of the four tiles of level k below it (to
-within half a cell).
+Level 0 is the full-resolution grid mesh: one vertex per measured pixel, two triangles per quad of
+measured pixels and one per quad with three (mesh.outline's chamfers). Level k clusters the pixels
+into cells of 2**k x 2**k and keeps one vertex per cell, the centroid of its measured pixels (the
+paper's hierarchical space decomposition); with the quadric method, each tile of level k >= 1 is
+that grid further decimated to half its triangles by quadric error collapses (fast-simplification),
+which spends triangles where the surface bends. Each level is cut into tiles of at most
+LOD_TILE_MAX_CELLS x LOD_TILE_MAX_CELLS cells; neighbouring tiles share their border vertices
+exactly (decimation keeps tile borders), so there are no cracks. A tile of level k+1 covers the
+area of the four tiles of level k below it (to within half a cell).
 
 Walls (see mesh.walls): with a `max_slope`, triangles that bridge a height jump steeper than the
 measurement supports are flagged, kept apart from the surface and left out of geometric errors.
-Tiles without a triangle (no four neighbouring measured cells) are not produced.
+Tiles without a triangle (no quad with three measured corners) are not produced.
 
 Pixel positions (row_px, col_px) count from the centre of the top-left pixel.
 """
@@ -178,7 +178,7 @@ def iter_tiles(
     does not know its own surface better), and is at least the errors of the finer level's tiles
     under it (those leave out less around walls; a viewer that refines a tile must not find its
     children worse). Tiles without triangles are skipped. The outer `margin_cells` (one level only)
-    shape normals but get no vertex; levels drop islands below `min_island_px` (mesh.outline)."""
+    shape normals but get no vertex; levels 1 up drop islands below `min_island_px` (0: the caller)."""
     if z_um.shape != texture.shape or z_um.ndim != 2:
         raise ValueError(f"z_um and texture must be 2D of one shape, got {z_um.shape} and {texture.shape}")
     count = level_count or level_count_for(z_um.shape)
@@ -289,6 +289,8 @@ def _tile_mesh(
 def _walls(cluster: ClusterLevel, row_cells, col_cells, positions, triangles, pixel_size_um, max_slope) -> np.ndarray:
     """(M,) bool: which of a tile's `triangles` are walls (mesh.walls), with the sigma of each
     vertex's nearest cell."""
+    if max_slope is None or not len(triangles):  # no walls: the sigmas need not be looked up
+        return np.zeros(len(triangles), bool)
     return wall_triangles(
         positions[:, :2] * pixel_size_um,
         positions[:, 2],

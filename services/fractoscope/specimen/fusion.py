@@ -154,6 +154,11 @@ def overlaps(a, b) -> bool:
     return a[0] <= b[2] and b[0] <= a[2] and a[1] <= b[3] and b[1] <= a[3]
 
 
+def contains(a, b) -> bool:
+    """Whether rectangle a (x_min, y_min, x_max, y_max) holds all of rectangle b."""
+    return a[0] <= b[0] and a[1] <= b[1] and a[2] >= b[2] and a[3] >= b[3]
+
+
 def _pyramid_level(cell_um: float, pixel_size_um: float, levels: int) -> int:
     """The coarsest pyramid level whose pixels are no larger than the sampling cell."""
     ratio = cell_um / pixel_size_um

@@ -36,6 +36,8 @@ QUADTREE_TILE_CELLS = 64
 # an island (mesh.outline) that a tile border cuts is judged whole. A matching window's width: an
 # island is smaller than one window's area, so no compact one reaches beyond it.
 MESH_MARGIN_CELLS = DEFAULT_WINDOW_PX + 1
+# A sampled tile's own vertices, without the margin.
+_CORE = (slice(MESH_MARGIN_CELLS, -MESH_MARGIN_CELLS),) * 2
 _REFINE_RATIO = math.sqrt(2)
 # A tile URI's one form: numbers of up to 6 ASCII digits without leading zeros.
 _NUMBER = r"(0|[1-9][0-9]{0,5})"
@@ -147,7 +149,7 @@ class TileSamples:
     @property
     def core_z_um(self) -> np.ndarray:
         """The heights of the tile's own (QUADTREE_TILE_CELLS + 1)² vertices."""
-        return self.z_um[MESH_MARGIN_CELLS:-MESH_MARGIN_CELLS, MESH_MARGIN_CELLS:-MESH_MARGIN_CELLS]
+        return self.z_um[_CORE]
 
     @property
     def grid_origin_um(self) -> tuple[float, float]:
@@ -184,10 +186,9 @@ def build_tiles(
         cell_um = layout.cell_um(key.level)
         x_um, y_um = layout.vertex_grid_um(key, MESH_MARGIN_CELLS)
         samples = surface.sample(x_um, y_um, cell_um=cell_um)
-        core = (slice(MESH_MARGIN_CELLS, -MESH_MARGIN_CELLS),) * 2
-        if not _has_a_quad(samples.z_um[core]):
+        if not _has_a_quad(samples.z_um[_CORE]):
             return False
-        shown = surface.rois[_dominant_source(samples.source[core], below, surface)]
+        shown = surface.rois[_dominant_source(samples.source[_CORE], below, surface)]
         tile = TileSamples(
             samples.z_um,
             np.clip(samples.texture, 0, 255).astype(np.uint8),

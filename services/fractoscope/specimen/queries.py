@@ -245,12 +245,7 @@ def _holding_cell_um(specimen: Specimen, region_um) -> float:
     """The finest pixel size of the ROIs whose regions hold all of a region (clipped to the
     specimen; the overview's if none does), coarser where that would exceed MAX_REGION_SAMPLES, µm."""
     x0, y0, x1, y1 = _within_specimen(specimen, checked_region(region_um))
-    holding = [
-        roi.pixel_size_um
-        for roi in specimen.rois
-        if roi.region_um[0] <= x0 and roi.region_um[1] <= y0 and roi.region_um[2] >= x1 and roi.region_um[3] >= y1
-    ]
-    cell_um = min(holding) if holding else specimen.rois[0].pixel_size_um
+    cell_um = specimen.finest_pixel_size_um((x0, y0, x1, y1), holding=True)
     return max(cell_um, math.sqrt((x1 - x0) * (y1 - y0) / MAX_REGION_SAMPLES))
 
 

@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from fractoscope.errors import AlreadyExistsError, InvalidInputError, NotFoundError
-from fractoscope.specimen.fusion import FusedSurface, PlacedRoi, footprint_um, overlaps
+from fractoscope.specimen.fusion import FusedSurface, PlacedRoi, contains, footprint_um, overlaps
 from fractoscope.specimen.quadtree import QuadtreeLayout, TileKey, TileRecord
 
 _ID = re.compile(r"[A-Za-z0-9_-]{1,64}")
@@ -118,9 +118,11 @@ class Specimen:
             raise InvalidInputError("magnification", f"{magnification} gives no usable pixel size")
         return pixel_size_um
 
-    def finest_pixel_size_um(self, region_um: tuple[float, float, float, float]) -> float:
-        """The smallest pixel size among the ROIs that meet a region (the overview's if none)."""
-        sizes = [roi.pixel_size_um for roi in self.rois if overlaps(roi.region_um, region_um)]
+    def finest_pixel_size_um(self, region_um: tuple[float, float, float, float], *, holding: bool = False) -> float:
+        """The smallest pixel size among the ROIs that meet a region, or with `holding` that hold
+        all of it (the overview's if none)."""
+        meets = contains if holding else overlaps
+        sizes = [roi.pixel_size_um for roi in self.rois if meets(roi.region_um, region_um)]
         return min(sizes) if sizes else self.rois[0].pixel_size_um
 
     def heights(self, roi_id: str) -> PlacedRoi:

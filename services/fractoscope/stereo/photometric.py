@@ -74,7 +74,7 @@ _SLOPE_SIGMA_PX = 1.4
 # 1 %, 1.43 % without), not the shading.
 _STEREO_WEIGHT = 3.0
 # The model's fit uses one in this many of the matched pixels, less 8 px of border, and at most
-# about `_MAX_FIT_SAMPLES` of them (fitting five laws twice each on more only costs time).
+# about `_MAX_FIT_SAMPLES` of them (fitting four laws twice each on more only costs time).
 _FIT_STRIDE = 3
 _MAX_FIT_SAMPLES = 50_000
 # The fit's averaging of brightness and stereo slopes alike.

@@ -109,7 +109,7 @@ def compute_series_height_map(
     tilts of all but the first are estimated from the images first (see tilt_series). Explicit
     `tilt_deg` entries and `pixel_size_um` override the files; the tilt axis is
     DEFAULT_TILT_AXIS_DEG unless given. Dense matching runs in strips of rows
-    (`options.strip_pixels`), matched by `strip_matcher` (default: here, one after another)."""
+    (`options.strip_pixels`), matched by `strip_matcher` (default: here, on strip_workers())."""
     started = time.perf_counter()
     report_progress = progress or silent
     sources = {"tilt_axis_source": DEFAULT if tilt_axis_deg is None else ARGUMENT}

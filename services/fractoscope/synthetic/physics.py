@@ -68,6 +68,12 @@ class SemPhysics:
         if not 0.0 <= self.se2_fraction <= 1.0 or not 0.0 <= self.detector_strength <= 1.0:
             raise ValueError("se2_fraction and detector_strength must lie in [0, 1]")
 
+    @property
+    def detector_from_tilt_axis_deg(self) -> float:
+        """Where the detector lies as MatchingOptions.detector_from_tilt_axis_deg takes it (from the
+        vertical tilt axis of these renderings), as a user who knows the microscope would give it."""
+        return self.detector_azimuth_deg - 90.0
+
 
 DEFAULT_PHYSICS = SemPhysics()
 

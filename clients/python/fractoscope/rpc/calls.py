@@ -99,7 +99,7 @@ def mesh_request(
     """BuildMesh of a height map ((rows, cols) µm, NaN unknown) and a grey texture of its shape
     (None: flat grey), pixel (0, 0) at `origin_um` (x, y), with each height's local uncertainty
     `sigma_um` (optional, µm); `settings` are the request's other fields (method, level_count,
-    filter, request_id, plain_glb, max_slope)."""
+    filter, request_id, plain_glb, max_slope, unmeasured, min_island_px)."""
     request = meshing_pb2.BuildMeshRequest(
         origin_um=common_pb2.PointUm(x_um=origin_um[0], y_um=origin_um[1]), **settings
     )
