@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+from collections.abc import Iterable
 from dataclasses import dataclass
 from html.parser import HTMLParser
 from pathlib import Path
@@ -157,13 +158,15 @@ def built(tmp_path_factory):
 @dataclass(frozen=True)
 class DecodedGlb:
     """A GLB's one mesh as a client sees it: positions (N, 3) metres after the node's transform,
-    normals (N, 3), texture coordinates (N, 2), the surface's triangles (M, 3) and the walls' (K, 3)."""
+    normals (N, 3), texture coordinates (N, 2), the surface's triangles (M, 3), the walls' (K, 3)
+    and the unmeasured areas' floor's (F, 3; mesh.outline)."""
 
     positions_m: np.ndarray
     normals: np.ndarray
     uvs: np.ndarray
     triangles: np.ndarray
     wall_triangles: np.ndarray
+    floor_triangles: np.ndarray
 
 
 def decode_glb(glb: bytes) -> DecodedGlb:
@@ -220,6 +223,7 @@ def decode_glb(glb: bytes) -> DecodedGlb:
         values(primitive.attributes.TEXCOORD_0),
         triangles("surface"),
         triangles("wall"),
+        triangles("unmeasured"),
     )
 
 
@@ -299,25 +303,27 @@ def glb_texture(glb: bytes) -> np.ndarray:
 def tile_seams_grey_levels(data: Path) -> list[int]:
     """The largest grey difference along each shared border of neighbouring tiles of one level of
     a stored specimen's folder `data`."""
-    tiles = {tuple(int(p) for p in path.with_suffix("").parts[-3:]): path for path in data.glob("tiles/*/*/*.glb")}
+    textures = {
+        tuple(int(p) for p in path.with_suffix("").parts[-3:]): glb_texture(path.read_bytes())
+        for path in data.glob("tiles/*/*/*.glb")
+    }
     worst = []
-    for (level, col, row), path in tiles.items():
+    for (level, col, row), texture in textures.items():
         for neighbour, mine, theirs in (
             ((level, col + 1, row), np.s_[:, -1], np.s_[:, 0]),
             ((level, col, row + 1), np.s_[-1], np.s_[0]),
         ):
-            if neighbour in tiles:
-                a, b = glb_texture(path.read_bytes())[mine], glb_texture(tiles[neighbour].read_bytes())[theirs]
-                worst.append(int(np.abs(a.astype(int) - b).max()))
+            if neighbour in textures:
+                worst.append(int(np.abs(texture[mine].astype(int) - textures[neighbour][theirs]).max()))
     return worst
 
 
-def mesh_component_areas_um2(data: Path, level: int) -> np.ndarray:
-    """The area, µm², of each connected piece of one level of a stored specimen's tiles (surface
+def mesh_component_areas_um2(glbs: Iterable[bytes]) -> np.ndarray:
+    """The area, µm², of each connected piece of the meshes of `glbs` (tiles of one level: surface
     and wall triangles, joined across tile borders where their vertices meet)."""
     meshes = []
-    for path in data.glob(f"tiles/{level}/*/*.glb"):
-        decoded = decode_glb(path.read_bytes())
+    for glb in glbs:
+        decoded = decode_glb(glb)
         triangles = np.concatenate([decoded.triangles, decoded.wall_triangles.reshape(-1, 3)])
         meshes.append(trimesh.Trimesh(decoded.positions_m, triangles, process=False))
     merged = trimesh.util.concatenate(meshes)

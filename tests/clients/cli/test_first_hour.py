@@ -47,10 +47,10 @@ def test_demo_shows_the_viewer_before_the_first_specimen_is_built(tmp_path):
         lines = [process.stdout.readline()]
         assert lines[0].startswith("viewer: http://127.0.0.1:"), lines[0] + process.stderr.read()
         viewer = lines[0].split()[1]
+        # The URL came before the build stored anything, and the page answers: the demo serves while it builds.
+        assert not (data / "specimens" / "synthetic" / "tileset.json").exists()
         with urllib.request.urlopen(viewer, timeout=30) as page:
             assert page.status == 200 and b"3d-tiles-renderer" in page.read()
-        # The page answered before the build stored anything: the demo serves while it builds.
-        assert not (data / "specimens" / "synthetic" / "tileset.json").exists()
         while not lines[-1].startswith("synthetic: built in "):
             lines.append(process.stdout.readline())
             assert lines[-1], "the demo stopped before the specimen was built: " + process.stderr.read()

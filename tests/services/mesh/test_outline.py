@@ -4,10 +4,9 @@ minimum, unmeasured areas absent or a flat floor at zero, and valid glTF through
 
 import cv2
 import numpy as np
-import pygltflib
 import pytest
 import trimesh
-from conftest import decode_glb, glb_texture, tile_seams_grey_levels, validate_glbs
+from conftest import decode_glb, glb_texture, mesh_component_areas_um2, tile_seams_grey_levels, validate_glbs
 
 from fractoscope.mesh import outline, pipeline
 
@@ -34,31 +33,11 @@ def _tiles(unmeasured=outline.Unmeasured.ABSENT, **options):
     return pipeline.mesh_height_map(z, texture, pixel_size_um=PIXEL_SIZE_UM, options=settings)
 
 
-def _floor_triangles(glb: bytes) -> np.ndarray:
-    """The "unmeasured" primitive's triangles of a plain (float32) GLB."""
-    gltf = pygltflib.GLTF2.load_from_bytes(glb)
-    for primitive in gltf.meshes[0].primitives:
-        if gltf.materials[primitive.material].name == "unmeasured":
-            accessor = gltf.accessors[primitive.indices]
-            view = gltf.bufferViews[accessor.bufferView]
-            dtype = np.uint16 if accessor.componentType == pygltflib.UNSIGNED_SHORT else np.uint32
-            return np.frombuffer(gltf.binary_blob(), dtype, accessor.count, view.byteOffset).reshape(-1, 3)
-    return np.zeros((0, 3), np.int64)
-
-
 def test_islands_below_the_minimum_are_dropped_and_counted():
     tiles, report = _tiles()
     assert report.islands_dropped == 3
-    level0 = [decode_glb(tile.glb) for tile in tiles if tile.level == 0]
-    meshes = [trimesh.Trimesh(d.positions_m, d.triangles, process=False) for d in level0]
-    merged = trimesh.util.concatenate(meshes)
-    merged.merge_vertices(digits_vertex=9)
-    components = trimesh.graph.connected_components(merged.edges, nodes=np.arange(len(merged.vertices)))
-    pixel_area_m2 = (PIXEL_SIZE_UM * 1e-6) ** 2
-    for component in components:
-        faces = np.all(np.isin(merged.faces, component), axis=1)
-        area_px = merged.area_faces[faces].sum() / pixel_area_m2
-        assert area_px >= MIN_ISLAND_PX, area_px
+    areas_px = mesh_component_areas_um2(tile.glb for tile in tiles if tile.level == 0) / PIXEL_SIZE_UM**2
+    assert (areas_px >= MIN_ISLAND_PX).all(), areas_px
     kept, report = _tiles(min_island_px=0.0)
     assert report.islands_dropped == 0 and sum(t.triangle_count for t in kept) > sum(t.triangle_count for t in tiles)
 
@@ -97,11 +76,11 @@ def test_neighbouring_tiles_share_texture_and_normals_at_their_border():
 def test_unmeasured_areas_absent_or_flat_at_zero(tmp_path):
     absent, _ = _tiles(plain_glb=True)
     flat, _ = _tiles(outline.Unmeasured.FLAT, plain_glb=True)
-    assert all(len(_floor_triangles(t.glb)) == 0 for t in absent)
+    assert all(len(decode_glb(t.glb).floor_triangles) == 0 for t in absent)
     floor_area_m2 = surface_area_m2 = 0.0
     for tile in (t for t in flat if t.level == 0):
         decoded = decode_glb(tile.glb)
-        floor = _floor_triangles(tile.glb)
+        floor = decoded.floor_triangles
         assert np.all(decoded.positions_m[np.unique(floor), 1] == 0.0)  # glTF Y is the height
         floor_area_m2 += trimesh.Trimesh(decoded.positions_m, floor, process=False).area
         top = decoded.positions_m.copy()

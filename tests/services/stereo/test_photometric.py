@@ -87,9 +87,9 @@ def test_noise_sigma_reads_the_noise_of_a_smooth_image():
     assert photometric.noise_sigma(smooth + rng.normal(0.0, 5.0, smooth.shape)) == pytest.approx(5.0, rel=0.05)
 
 
-def _reconstruct(pair, tilt_deg=(-5.0, 5.0)):
+def _reconstruct(pair, tilt_deg=(-5.0, 5.0), options=MatchingOptions()):
     first, second = (SemImage(image, None, None, 0) for image in (pair.first, pair.second))
-    return compute_height_map(first, second, tilt_deg=tilt_deg, pixel_size_um=0.1)
+    return compute_height_map(first, second, tilt_deg=tilt_deg, pixel_size_um=0.1, options=options)
 
 
 @pytest.mark.slow
@@ -121,9 +121,8 @@ def _variant_pair(name, size_px=320):
 def _errors(pair, name, method=MatchingMethod.TGV_ZNCC):
     """The full height-map request on `pair`, told where the variant's detector is, as a user would."""
     physics = synthetic.PHYSICS_VARIANTS[name]
-    options = MatchingOptions(method=method, detector_from_tilt_axis_deg=physics.detector_azimuth_deg - 90.0)
-    first, second = (SemImage(image, None, None, 0) for image in (pair.first, pair.second))
-    result = compute_height_map(first, second, tilt_deg=(-5.0, 5.0), pixel_size_um=0.1, options=options)
+    options = MatchingOptions(method=method, detector_from_tilt_axis_deg=physics.detector_from_tilt_axis_deg)
+    result = _reconstruct(pair, options=options)
     return synthetic.height_errors(result.z_um, pair.z_seen_um).rms_of_range, result.report
 
 

@@ -14,7 +14,7 @@ from fractoscope.stereo.pipeline import compute_height_map
 
 
 def _coverage(pair, physics=synthetic.DEFAULT_PHYSICS) -> dict:
-    options = MatchingOptions(tilt_uncertainty_deg=0.0, detector_from_tilt_axis_deg=physics.detector_azimuth_deg - 90.0)
+    options = MatchingOptions(tilt_uncertainty_deg=0.0, detector_from_tilt_axis_deg=physics.detector_from_tilt_axis_deg)
     first, second = (SemImage(image, None, None, 0) for image in (pair.first, pair.second))
     result = compute_height_map(
         first, second, tilt_deg=(-5.0, 5.0), pixel_size_um=synthetic.REFERENCE_PIXEL_SIZE_UM, options=options
