@@ -10,6 +10,7 @@ import dataclasses
 import logging
 import os
 import socket
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -21,6 +22,7 @@ from fractoscope.rpc.status import abort_on_error
 from fractoscope.runtime import budget
 from fractoscope.runtime.jobs import Job, JobRunner
 from fractoscope.sem.image import read_sem_image
+from fractoscope.sem.instruments import InstrumentProfile
 from fractoscope.stereo.matching import DEFAULT_STRIP_PIXELS, match_strip
 from fractoscope.stereo.pipeline import HeightMapResult, compute_series_height_map
 from fractoscope.v1 import common_pb2, matching_pb2, matching_pb2_grpc
@@ -47,6 +49,7 @@ class MatchingServicer(matching_pb2_grpc.MatchingServiceServicer):
         strip_pixels: int = DEFAULT_STRIP_PIXELS,
         strip_in_flight: int = 4,
         call_timeout_s: float = 600.0,
+        instruments: Sequence[InstrumentProfile] = (),
     ):
         self.strip_pixels = strip_pixels
         self.strip_in_flight = strip_in_flight
@@ -54,6 +57,7 @@ class MatchingServicer(matching_pb2_grpc.MatchingServiceServicer):
         self._builds, self._strips, self._memory = builds, strips, memory
         self._peers = StripPeers(strip_peers) if strip_peers else None
         self._call_timeout_s = call_timeout_s
+        self.instruments = tuple(instruments)
 
     @abort_on_error
     def ComputeHeightMap(self, request, context):
@@ -113,6 +117,7 @@ class MatchingServicer(matching_pb2_grpc.MatchingServiceServicer):
                 tilt_axis_deg=request.tilt_axis_deg if request.HasField("tilt_axis_deg") else None,
                 options=options,
                 strip_matcher=peers,
+                instruments=self.instruments,
                 progress=progress,
             )
         if peers is not None:

@@ -200,13 +200,18 @@ def _calibration_rows(roi: RoiEntry, calibration: Calibration) -> list[list[Cell
 
 
 def _relief_sign_source(matching: dict) -> str:
-    """What told the heights' sign, from a matching report, in a few words: the images' cue with
-    the share of the image that agrees with the tilts as given, or the tilts where the images
-    could not tell it."""
+    """What told the heights' sign, from a matching report, in a few words: the images' cue and
+    its premise with the share of the votes that agree with the tilts as given, or the tilts
+    where the images could not tell it (the whole verdict: MatchingReport.relief_sign_sentence)."""
     if not matching.get("relief_sign_decided"):
         return "tilts as given (images undecided)"
     agreeing = 100 * (1 + matching.get("relief_sign_strength", 0.0)) / 2
-    return f"{matching.get('relief_sign_cue')}, {agreeing:.0f} % agree"
+    cue = matching.get("relief_sign_cue")
+    if cue == "occlusion":
+        return f"occlusion (geometry), {agreeing:.0f} % of walls agree"
+    profile = matching.get("instrument_profile")
+    premise = f"profile {profile}" if profile else f"detector {matching.get('detector_source', 'given')}"
+    return f"{cue} ({premise}), {agreeing:.0f} % of blocks agree"
 
 
 def _nominal_tilts(roi: RoiEntry, calibration: Calibration) -> list[float]:

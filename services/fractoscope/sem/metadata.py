@@ -1,9 +1,12 @@
 """Calibration from SEM vendors' TIFF metadata (as tifffile decodes it): stage tilt, pixel size,
-the image height without the data bar, and the nominal magnification."""
+the image height without the data bar, the nominal magnification, and the instrument (model,
+detector, scan rotation) that keys an instrument profile. Neither vendor records where a side
+detector lies in the image: only whether the detector is one in the lens, by its name."""
 
 from __future__ import annotations
 
 import re
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -62,3 +65,82 @@ def zeiss_magnification(metadata: dict) -> float | None:
         return None
     value = float(found[1]) * {"": 1.0, "k": 1e3, "K": 1e3, "M": 1e6}[found[2]]
     return value if value > 0 else None
+
+
+@dataclass(frozen=True)
+class InstrumentKey:
+    """What an image file says about the microscope that took it: the key of an instrument
+    profile (`sem.instruments`). Empty strings where the file does not say.
+
+    vendor: "Zeiss" or "FEI/Thermo Fisher"; model: the vendor's name of the microscope;
+    detector: the signal's detector as the vendor names it ("SE2", "InLens", "ETD", "TLD");
+    scan_rotation_deg: the scan rotation the image was taken at, degrees as the vendor counts it
+    (0 where the file says scan rotation is off).
+    """
+
+    vendor: str
+    model: str
+    detector: str
+    scan_rotation_deg: float
+
+    def describe(self) -> str:
+        """ "Zeiss Auriga 60, detector SE2, scan rotation 0°"."""
+        return f"{self.vendor} {self.model}, detector {self.detector}, scan rotation {self.scan_rotation_deg:g}°"
+
+
+def zeiss_instrument(metadata: dict) -> InstrumentKey | None:
+    """The instrument of a Zeiss SmartSEM image: ``Sem`` (model), the detector of ``Signal A``
+    (the displayed channel), and ``Scan Rotation`` where ``Scan Rot`` is on; None without a model."""
+    model = _zeiss_text(metadata.get("dp_sem"))
+    if not model:
+        return None
+    detector = _zeiss_text(metadata.get("dp_detector_channel"))
+    rotation = metadata.get("ap_scanrotation")
+    rotation_on = metadata.get("dp_scan_rot")
+    rotation_deg = 0.0
+    if isinstance(rotation_on, tuple) and rotation_on[1] is True and isinstance(rotation, tuple):
+        rotation_deg = float(rotation[1]) if isinstance(rotation[1], (int, float)) else float("nan")
+    return InstrumentKey("Zeiss", model, detector, rotation_deg)
+
+
+def fei_instrument(metadata: dict) -> InstrumentKey | None:
+    """The instrument of an FEI / Thermo Fisher image: ``[System] SystemType`` (model),
+    ``[Detectors] Name`` and ``[Beam] ScanRotation`` (radians; ``[EScan]``'s where ``[Beam]`` has
+    none); None without a model."""
+    system, detectors = (metadata.get(name) or {} for name in ("System", "Detectors"))
+    model = str(system.get("SystemType") or system.get("Type") or "").strip()
+    if not model:
+        return None
+    rotation_rad = next(
+        (
+            (metadata.get(section) or {}).get("ScanRotation")
+            for section in ("Beam", "EScan")
+            if isinstance((metadata.get(section) or {}).get("ScanRotation"), (int, float))
+        ),
+        0.0,
+    )
+    detector = str(detectors.get("Name") or "").strip()
+    return InstrumentKey("FEI/Thermo Fisher", model, detector, round(float(np.degrees(rotation_rad)), 6))
+
+
+def _zeiss_text(entry) -> str:
+    return str(entry[1]).strip() if isinstance(entry, tuple) and len(entry) >= 2 and entry[1] is not None else ""
+
+
+# Detectors inside the column or the lens collect secondary electrons from all sides alike, so
+# their images are not lit from a side (Zeiss InLens, FEI / Thermo Fisher TLD and the T1-T3 and
+# in-column detectors of newer columns); names as the vendors write them, compared case-blind.
+_IN_LENS_DETECTORS = ("inlens", "in-lens", "in lens", "tld", "through lens", "t1", "t2", "t3", "icd")
+# Everhart-Thornley detectors at a side port of the chamber: lit from one side.
+_SIDE_DETECTORS = ("se2", "etd")
+
+
+def detector_has_side(detector: str) -> bool | None:
+    """Whether a detector so named lights the image from one side (an Everhart-Thornley detector
+    at a chamber port) or from none (in the lens or column); None where the name does not say."""
+    name = detector.strip().lower()
+    if name in _IN_LENS_DETECTORS or name.startswith(("inlens", "in-lens", "in lens")):
+        return False
+    if name in _SIDE_DETECTORS or name.startswith("everhart"):
+        return True
+    return None

@@ -11,7 +11,8 @@ this process's own, called in-process), FRACTO_STRIP_PEERS (matching replicas th
 the strips of large pairs, e.g. the headless Service of the matching Deployment; empty = match
 here), FRACTO_STRIP_PIXELS and FRACTO_STRIP_IN_FLIGHT, FRACTO_HTTP_ADDRESS (host:port of the
 plain-HTTP tile endpoint; empty = off). Tokens (FRACTO_TOKENS, see auth) and TLS (FRACTO_TLS_CERT,
-FRACTO_TLS_KEY) likewise. FRACTO_WEB_ROOT (the installed web viewer, read by tiles.http; default
+FRACTO_TLS_KEY) likewise, and FRACTO_INSTRUMENTS (the instrument profiles file, see
+sem.instruments). FRACTO_WEB_ROOT (the installed web viewer, read by tiles.http; default
 sys.prefix/share/fractoscope/web) and FRACTO_UPLOAD_MAX_AGE_S (how long HTTP uploads are kept,
 read by tiles.uploads; default 24 h) have no flag.
 """
@@ -22,6 +23,7 @@ import argparse
 import os
 
 from fractoscope.rpc.limits import DEFAULT_MAX_MESSAGE_MB
+from fractoscope.sem.instruments import ENVIRONMENT_VARIABLE, profiles_path
 from fractoscope.stereo.matching import DEFAULT_STRIP_PIXELS
 
 SERVICE_NAMES = ("matching", "meshing", "tiles")
@@ -117,6 +119,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument(
         "--tls-key", default=os.environ.get("FRACTO_TLS_KEY") or None, help="PEM private key of --tls-cert"
+    )
+    parser.add_argument(
+        "--instruments",
+        default=str(profiles_path()),
+        help="instrument profiles applied to the images their metadata names (fracto instrument learn writes them; "
+        f"default: {ENVIRONMENT_VARIABLE}, else the user's configuration folder: %(default)s)",
     )
     parser.add_argument("--grace-s", type=float, default=30.0, help="seconds in-flight calls get on SIGTERM")
     return parser

@@ -9,7 +9,7 @@ import logging
 import os
 import signal
 import threading
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from concurrent import futures
 from pathlib import Path
 
@@ -30,6 +30,7 @@ from fractoscope.runtime.decoding import MalformedRequests
 from fractoscope.runtime.jobs import JobRunner
 from fractoscope.runtime.process import configure_logging, keep_freed_memory, settle_garbage_collector
 from fractoscope.runtime.threads import ThreadPoolRouting
+from fractoscope.sem.instruments import InstrumentProfile, load_profiles, profiles_path
 from fractoscope.server.config import (
     DEFAULT_BUILD_QUEUE,
     DEFAULT_DATA_DIR,
@@ -86,17 +87,16 @@ def create_server(
     strip_peers: str | None = None,
     strip_pixels: int = DEFAULT_STRIP_PIXELS,
     strip_in_flight: int = 4,
+    instruments: Sequence[InstrumentProfile] = (),
 ) -> tuple[grpc.Server, int]:
     """A server with the named services, health and reflection, bound to `address`; returns it
     (not started) with the bound port. `workers` threads answer queries; builds, height maps and
-    meshes run `build_workers` at a time (default: half the CPUs) with `build_queue` waiting, and
-    strips for peers likewise, each request within `max_request_mb` of estimated memory (see
-    budget); health checks have threads of their own. The tile service keeps specimens in `store`
-    (default: a store under `data_dir`; pass the one an HTTP endpoint of this process serves) and
-    calls matching and meshing at their addresses (default: in this process). With `tokens`, calls
-    need a bearer token (see auth); with a certificate and key, the port speaks TLS. The matching
-    service farms strips of about `strip_pixels` out to `strip_peers` when given,
-    `strip_in_flight` at a time."""
+    meshes run `build_workers` at a time (default: half the CPUs), `build_queue` waiting, strips for
+    peers likewise, each within `max_request_mb` of estimated memory (budget). The tile service
+    keeps specimens in `store` (default: under `data_dir`) and calls matching and meshing at their
+    addresses (default: in-process). `tokens`: bearer tokens (auth); a certificate and key: TLS.
+    The matching service farms strips of about `strip_pixels` to `strip_peers`, `strip_in_flight`
+    at a time, and applies the `instruments` profiles images' metadata names."""
     _check_known(services)
     build_workers = build_workers or default_build_workers()
     builds = JobRunner("builds", workers=build_workers, queue_limit=build_queue)
@@ -111,6 +111,7 @@ def create_server(
             strip_peers=strip_peers,
             strip_pixels=strip_pixels,
             strip_in_flight=strip_in_flight,
+            instruments=instruments,
         )
     if "meshing" in services:
         servicers["meshing"] = MeshingServicer(builds=builds, memory=memory)
@@ -243,8 +244,11 @@ def embedded_server(
 ) -> Iterator[str]:
     """Runs `services` (default: all) in this process on `host:port` (port 0: a free one) for the
     block's duration, the tile service keeping specimens in `store` (default: under `data_dir`,
-    which only the tile service touches); yields the address."""
-    server, bound = create_server(f"{host}:{port}", services=services, data_dir=data_dir, store=store)
+    which only the tile service touches), with the user's instrument profiles (`profiles_path`);
+    yields the address."""
+    server, bound = create_server(
+        f"{host}:{port}", services=services, data_dir=data_dir, store=store, instruments=load_profiles(profiles_path())
+    )
     server.start()
     try:
         yield f"{host}:{bound}"
@@ -276,6 +280,7 @@ def main(argv: list[str] | None = None) -> None:
         strip_peers=args.strip_peers,
         strip_pixels=args.strip_pixels,
         strip_in_flight=args.strip_in_flight,
+        instruments=load_profiles(Path(args.instruments)),
     )
     settle_garbage_collector()
     server.start()

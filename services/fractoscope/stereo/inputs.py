@@ -12,7 +12,7 @@ from fractoscope.errors import InvalidInputError
 from fractoscope.sem.image import SemImage
 from fractoscope.stereo import geometry, matching
 from fractoscope.stereo.disparity import MatchingMethod
-from fractoscope.stereo.relief_sign import DEFAULT_DETECTOR_FROM_TILT_AXIS_DEG, ReliefSignMode
+from fractoscope.stereo.relief_sign import ReliefSignMode
 
 # Where a calibration value came from (the report's tilt_source and pixel_size_source).
 METADATA, ARGUMENT, TILT_CALIBRATION, DEFAULT = "metadata", "argument", "tilt_calibration", "default"
@@ -33,7 +33,7 @@ class MatchingOptions:
     calibrate_tilt: bool = False
     strip_pixels: int = matching.DEFAULT_STRIP_PIXELS
     relief_sign: ReliefSignMode = ReliefSignMode.AUTO
-    detector_from_tilt_axis_deg: float = DEFAULT_DETECTOR_FROM_TILT_AXIS_DEG
+    detector_from_tilt_axis_deg: float = float("nan")  # not known: no place is assumed
 
 
 def resolve_calibration(images, tilt_deg, pixel_size_um) -> tuple[list[float], float, dict]:
@@ -54,6 +54,27 @@ def resolve_calibration(images, tilt_deg, pixel_size_um) -> tuple[list[float], f
         "pixel_size_source": ARGUMENT if pixel_size_um is not None else METADATA,
     }
     return nominal, _resolve_pixel_size(images[0], pixel_size_um), sources
+
+
+def tilts_against_metadata(images, tilt_deg) -> list[str]:
+    """Warnings where tilts given explicitly run the other way from the stage tilts the files
+    record (each view's step from the first, given against recorded): the sign the heights get
+    then rests on the typed tilts, which the metadata contradicts."""
+    given = list(tilt_deg) if tilt_deg is not None else [None] * len(images)
+    warnings = []
+    for index in range(1, len(images)):
+        pair = (given[0], given[index])
+        recorded = (images[0].tilt_deg, images[index].tilt_deg)
+        if None in pair or None in recorded or not all(np.isfinite(recorded)):
+            continue
+        step_given, step_recorded = pair[1] - pair[0], recorded[1] - recorded[0]
+        if step_given * step_recorded < 0:
+            warnings.append(
+                f"the tilts given for images[0] and images[{index}] ({pair[0]:g}°, {pair[1]:g}°) run the other way "
+                f"from the stage tilts their files record ({recorded[0]:g}°, {recorded[1]:g}°): the heights follow "
+                "the tilts given; check the image order and the tilt signs"
+            )
+    return warnings
 
 
 def _resolve_tilt(image: SemImage, explicit: float | None, index: int) -> float:
@@ -127,5 +148,7 @@ def validate_options(options: MatchingOptions, *, image_cols: int) -> None:
         raise InvalidInputError("max_disparity_px", f"must be 1 to the image width, got {options.max_disparity_px}")
     if not 0.0 <= options.tilt_uncertainty_deg < 45.0:
         raise InvalidInputError("tilt_uncertainty_deg", f"must be in [0, 45), got {options.tilt_uncertainty_deg}")
-    if np.isinf(options.detector_from_tilt_axis_deg):
-        raise InvalidInputError("detector_from_tilt_axis_deg", "must be finite degrees, or NaN where not known")
+    if abs(options.detector_from_tilt_axis_deg) > 360.0:  # NaN (not known) passes
+        raise InvalidInputError(
+            "detector_from_tilt_axis_deg", "must be degrees within ±360°, or absent (NaN) where not known"
+        )

@@ -12,12 +12,14 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 
 from fractoscope.errors import InvalidInputError
 from fractoscope.progress import ProgressCallback, silent
 from fractoscope.sem.image import SemImage
-from fractoscope.stereo import alignment, geometry, matching, photometric, relief_sign, tilt_series
+from fractoscope.sem.instruments import InstrumentProfile, detector_place
+from fractoscope.stereo import alignment, geometry, matching, orientation, photometric, tilt_series
 from fractoscope.stereo.disparity import MatchingMethod, StripMatcher
 from fractoscope.stereo.inputs import (
     ARGUMENT,
@@ -25,6 +27,7 @@ from fractoscope.stereo.inputs import (
     TILT_CALIBRATION,
     MatchingOptions,
     resolve_calibration,
+    tilts_against_metadata,
     validate_views,
 )
 from fractoscope.stereo.relief_sign import ReliefSignMode
@@ -100,6 +103,7 @@ def compute_series_height_map(
     tilt_axis_deg: float | None = None,
     options: MatchingOptions = MatchingOptions(),
     strip_matcher: StripMatcher | None = None,
+    instruments: Sequence[InstrumentProfile] = (),
     progress: ProgressCallback | None = None,
 ) -> HeightMapResult:
     """Heights of the surface seen in `images[0]` from a tilt series (two or more views about one
@@ -107,33 +111,33 @@ def compute_series_height_map(
     the least-squares solution over all views that matched it, each weighted by its disparity's
     1/σ² (`tilt_series.heights_px`). With `options.calibrate_tilt` and three or more views the
     tilts of all but the first are estimated from the images first (see tilt_series). Explicit
-    `tilt_deg` entries and `pixel_size_um` override the files; the tilt axis is
-    DEFAULT_TILT_AXIS_DEG unless given. Dense matching runs in strips of rows
-    (`options.strip_pixels`), matched by `strip_matcher` (default: here, on strip_workers())."""
-    started = time.perf_counter()
-    report_progress = progress or silent
+    `tilt_deg` entries and `pixel_size_um` override the files; the tilt axis is DEFAULT_TILT_AXIS_DEG
+    unless given. Strips of rows (`options.strip_pixels`) are matched by `strip_matcher` (default:
+    here, on strip_workers()). The relief's sign is chosen as `options.relief_sign` says
+    (`orientation`), the detector's place from the options, else the `instruments` profile the
+    files' metadata names."""
+    started, report_progress = time.perf_counter(), progress or silent
     sources = {"tilt_axis_source": DEFAULT if tilt_axis_deg is None else ARGUMENT}
     tilt_axis_deg = DEFAULT_TILT_AXIS_DEG if tilt_axis_deg is None else tilt_axis_deg
     nominal, pixel_size, given_sources = _calibration(images, tilt_deg, pixel_size_um, tilt_axis_deg, options)
     sources |= given_sources
     rectified = _rectify(images, tilt_axis_deg)
     matched = _match_views(rectified.views, options, strip_matcher, report_progress)
-    warnings = [note for image in images for note in image.notes]  # JPEG, colour (sem.image)
-    warnings += _matched_enough(matched, rectified)
+    notes = [note for image in images for note in image.notes]  # JPEG, colour (sem.image)
+    warnings = notes + tilts_against_metadata(images, tilt_deg) + _matched_enough(matched, rectified)
     tilts, offsets, calibration = _tilts(rectified.x1_px, matched, nominal, options, report_progress)
     if calibration:  # the reference keeps its tilt: only differences are observable
         sources["tilt_source"][1:] = [TILT_CALIBRATION] * (len(images) - 1)
     report_progress(0.92, "heights")
     z_px, views_used = _weighted_heights(rectified.x1_px, matched, tilts, offsets)
-    z_px, tilts, sign_report = _oriented(rectified, z_px, tilts, options, warnings)
-    warnings += _disagreeing_views(rectified.x1_px, matched, tilts, offsets, z_px)
-    z_um = (z_px * pixel_size).astype(np.float32)
-    z_um[rectified.outside] = np.nan  # the canvas's corners, not the image: not in sigma's reference level either
-    tilt_uncertainty = _tilt_uncertainty_deg(options, calibration, warnings)
-    sigma_um = geometry.height_sigma_um(
-        z_um, matched.sigmas, tilt_deg=tilts, pixel_size_um=pixel_size, tilt_uncertainty_deg=tilt_uncertainty
+    z_px, tilts, sign_report = _oriented(
+        images, rectified, matched, z_px, tilts, options, instruments, tilt_axis_deg, warnings
     )
-    z_um, sigma_um, confidence, views_used = _stored_maps(rectified, images[0], z_um, sigma_um, matched, views_used)
+    warnings += _disagreeing_views(rectified.x1_px, matched, tilts, offsets, z_px)
+    tilt_uncertainty = _tilt_uncertainty_deg(options, calibration, warnings)
+    z_um, sigma_um, confidence, views_used = _stored_maps(
+        rectified, images[0], z_px * pixel_size, tilts, pixel_size, tilt_uncertainty, matched, views_used
+    )
     axis_estimated = _estimated_tilt_axis_deg(matched.placements, tilt_axis_deg, warnings)
     report = _report(
         tilts=tilts,
@@ -147,9 +151,8 @@ def compute_series_height_map(
         calibration=calibration,
         tilt_uncertainty=tilt_uncertainty,
     )
-    report.update(sources, parameters=_parameters_used(options), elapsed_s=time.perf_counter() - started)
-    report.update(sign_report)
-    report["method"] = MatchingMethod(options.method).value
+    report.update(sources, **sign_report, parameters=_parameters_used(options), instrument=_instrument(images))
+    report.update(method=MatchingMethod(options.method).value, elapsed_s=time.perf_counter() - started)
     report_progress(1.0, "done")
     return HeightMapResult(z_um, sigma_um, confidence, views_used, report)
 
@@ -162,9 +165,17 @@ def _weighted_heights(x1_px, matched: _MatchedViews, tilts, offsets) -> tuple[np
     return z_px, tilt_series.views_used(matched.disparities, sigmas_px=sigmas)
 
 
-def _stored_maps(rectified: _Rectified, first: SemImage, z_um, sigma_um, matched: _MatchedViews, views_used):
-    """The result's maps on the first image's grid as stored (`_on_stored_grid`): heights and
-    sigma, the best confidence (0 where unknown) and the views count (uint8, 0 where no height)."""
+def _stored_maps(
+    rectified: _Rectified, first: SemImage, z_um, tilts, pixel_size, tilt_uncertainty, matched, views_used
+):
+    """The result's maps on the first image's grid as stored (`_on_stored_grid`): heights (µm,
+    NaN outside the image) and their sigma (`geometry.height_sigma_um`), the best confidence (0
+    where unknown) and the views count (uint8, 0 where no height)."""
+    z_um = z_um.astype(np.float32)
+    z_um[rectified.outside] = np.nan  # the canvas's corners, not the image: not in sigma's reference level either
+    sigma_um = geometry.height_sigma_um(
+        z_um, matched.sigmas, tilt_deg=tilts, pixel_size_um=pixel_size, tilt_uncertainty_deg=tilt_uncertainty
+    )
     z_um, sigma_um, confidence, views_used = _on_stored_grid(
         rectified, first, z_um, sigma_um, matched.best_confidence(), views_used
     )
@@ -230,7 +241,8 @@ class _MatchedViews:
     """Every view matched to the reference: disparities (views, rows, cols) with the reference's
     row zero, and per view but the reference its disparity sigma, confidence, placement and
     photometric fusion's agreement, use, explained share and weight (`photometric.Fusion`); the relative magnification
-    uncertainty of every view (0 for the reference)."""
+    uncertainty of every view (0 for the reference); per view but the reference the view resampled onto the
+    reference's grid without parallax (`on_first`) and the matcher's disparity to it."""
 
     disparities: np.ndarray
     sigmas: list[np.ndarray]
@@ -242,6 +254,8 @@ class _MatchedViews:
     photometric_slopes_used: list[bool]
     photometric_explained: list[float]
     photometric_weight: list[float]
+    on_first: list[np.ndarray]
+    matched_disparities: list[np.ndarray]
 
     def best_confidence(self) -> np.ndarray:
         """The highest peak ZNCC any view reached at each pixel (rows, cols)."""
@@ -250,17 +264,27 @@ class _MatchedViews:
 
 def _match_views(views, options: MatchingOptions, strip_matcher, report_progress) -> _MatchedViews:
     disparities = [np.zeros(views[0].shape, np.float32)]
-    sigmas, confidences, placements, magnification_sigma, fusions = [], [], [], [0.0], []
+    sigmas, confidences, placements, magnification_sigma, fusions, on_first, matched_disparities = (
+        [],
+        [],
+        [],
+        [0.0],
+        [],
+        [],
+        [],
+    )
     for index in range(1, len(views)):
 
         def matching_progress(fraction: float, message: str, index=index) -> None:
             report_progress(0.05 + 0.8 * (index - 1 + fraction) / (len(views) - 1), f"view {index}: {message}")
 
         report_progress(0.05 + 0.8 * (index - 1) / (len(views) - 1), f"view {index}: aligning")
-        disparity, matched, placement, epsilon_sigma, strip_count, fusion = _match_view(
+        disparity, matched, placement, epsilon_sigma, strip_count, fusion, resampled = _match_view(
             views[0], views[index], options, strip_matcher, matching_progress
         )
         fusions.append(fusion)
+        on_first.append(resampled)
+        matched_disparities.append(matched.disparity_px)
         disparities.append(disparity)
         magnification_sigma.append(epsilon_sigma)
         sigmas.append(matched.sigma_px)
@@ -277,6 +301,8 @@ def _match_views(views, options: MatchingOptions, strip_matcher, report_progress
         [fusion.used for fusion in fusions],
         [fusion.explained for fusion in fusions],
         [fusion.weight for fusion in fusions],
+        on_first,
+        matched_disparities,
     )
 
 
@@ -284,7 +310,8 @@ def _match_view(reference: np.ndarray, view: np.ndarray, options: MatchingOption
     """One view aligned to and matched with the reference: its disparity to the reference (the
     global shift and the magnification error the alignment left taken out), the matcher's result
     (with the default method, the shading's slopes fused in where they agree, `photometric`), the
-    placement, the magnification's uncertainty, the number of strips and the photometric fusion."""
+    placement, the magnification's uncertainty, the number of strips, the photometric fusion and the
+    view resampled onto the reference's grid without parallax."""
     placement = alignment.estimate_alignment(reference, view)
     on_first = alignment.apply_affine(
         view, alignment.second_to_first_matrix(placement, reference.shape), reference.shape, inverse=True
@@ -327,7 +354,7 @@ def _match_view(reference: np.ndarray, view: np.ndarray, options: MatchingOption
     epsilon, epsilon_sigma = measured if measured else (0.0, placement.scale_sigma)
     disparity = matched.disparity_px + placement.shift_parallel_px - (epsilon * columns_px).astype(np.float32)
     placement = dataclasses.replace(placement, scale=placement.scale * (1.0 + epsilon))
-    return disparity, matched, placement, epsilon_sigma, strip_count, fusion
+    return disparity, matched, placement, epsilon_sigma, strip_count, fusion, on_first
 
 
 # Views of which less than the first share is matched with the first view are refused (what
@@ -423,39 +450,43 @@ def _tilts(x1_px, matched: _MatchedViews, nominal, options: MatchingOptions, rep
     return estimate.tilt_deg, estimate.offsets_px, calibration
 
 
-def _oriented(rectified: _Rectified, z_px, tilts, options: MatchingOptions, warnings):
-    """The heights (px) and tilts with the relief's sign chosen as `options.relief_sign` says (the
-    mirror image: both negated), and the report's relief_sign fields; warnings where the images
-    disagree with the sign used or cannot tell it."""
-    verdict = relief_sign.relief_sign_from_shading(
-        rectified.views[0], z_px, detector_azimuth_deg=90.0 + options.detector_from_tilt_axis_deg
+def _oriented(images, rectified: _Rectified, matched: _MatchedViews, z_px, tilts, options, instruments, axis, warnings):
+    """The heights (px) and tilts with the relief's sign chosen (`orientation.oriented`; the
+    mirror image: both negated), and the report's relief_sign fields; its warnings added."""
+    place = detector_place([image.instrument for image in images], options.detector_from_tilt_axis_deg, instruments)
+    views = [
+        rectified.views[0],
+        *(_through_disparity(view, d) for view, d in zip(matched.on_first, matched.matched_disparities)),
+    ]
+    chosen = orientation.oriented(
+        views, z_px, tilts, mode=ReliefSignMode(options.relief_sign), detector=place, tilt_axis_deg=axis
     )
-    mode = ReliefSignMode(options.relief_sign)
-    inverted = mode is ReliefSignMode.INVERTED or (mode is ReliefSignMode.AUTO and verdict.decided and verdict.inverted)
-    given = ", ".join(f"{tilt:g}" for tilt in tilts)
-    if inverted and mode is ReliefSignMode.AUTO:
-        warnings.append(
-            f"the images show the relief inverted under the tilts as given ({given}°; {verdict.cue}: "
-            f"{100 * (1 - verdict.strength) / 2:.0f} % of the image disagrees with them): the heights use the tilts "
-            "with their signs reversed; check the microscope's tilt direction, the image order and the tilt axis, "
-            "or set relief_sign to nominal to keep the tilts as given"
-        )
-    elif mode is not ReliefSignMode.AUTO and verdict.decided and verdict.inverted != inverted:
-        warnings.append(f"the images suggest the relief is the other way up ({verdict.cue}; relief_sign {mode.value})")
-    elif mode is ReliefSignMode.AUTO and not verdict.decided:
-        warnings.append(
-            f"the relief's sign could not be told from the images ({verdict.reason}): the heights follow the tilts as "
-            "given; check that features stand up as they should"
-        )
-    fields = {
-        "relief_sign": "inverted" if inverted else "nominal",
-        "relief_sign_cue": verdict.cue,
-        "relief_sign_strength": verdict.strength,
-        "relief_sign_confidence": verdict.confidence,
-        "relief_sign_decided": verdict.decided,
+    warnings += chosen.warnings
+    sign = -1.0 if chosen.inverted else 1.0
+    return z_px * sign, np.asarray(tilts, np.float64) * sign, chosen.fields
+
+
+def _through_disparity(view: np.ndarray, disparity_px: np.ndarray) -> np.ndarray:
+    """`view` (rows, cols, on the reference's grid without parallax) sampled where each reference
+    pixel's match lies, (rows, cols) float32, NaN where the disparity is unknown."""
+    rows, cols = np.indices(view.shape, dtype=np.float32)
+    known = np.isfinite(disparity_px)
+    map_cols = cols + np.where(known, disparity_px, 0).astype(np.float32)
+    sampled = cv2.remap(view.astype(np.float32), map_cols, rows, cv2.INTER_LINEAR, borderValue=float("nan"))
+    return np.where(known, sampled, np.nan).astype(np.float32)
+
+
+def _instrument(images) -> dict:
+    """The report's instrument: what the first image's file says (empty where it says nothing)."""
+    key = images[0].instrument
+    if key is None:
+        return {}
+    return {
+        "vendor": key.vendor,
+        "model": key.model,
+        "detector": key.detector,
+        "scan_rotation_deg": key.scan_rotation_deg,
     }
-    sign = -1.0 if inverted else 1.0
-    return z_px * sign, np.asarray(tilts, np.float64) * sign, fields
 
 
 def _check_calibrated(estimate: tilt_series.TiltEstimate, nominal) -> None:

@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from fractoscope.sem.image import read_sem_image
-from fractoscope.stereo.pipeline import compute_height_map
+from fractoscope.sem.instruments import InstrumentProfile
+from fractoscope.stereo.pipeline import compute_height_map, compute_series_height_map
 
 pytestmark = [pytest.mark.real_data, pytest.mark.slow]
 
@@ -109,16 +110,25 @@ def test_calibrated_tilt_series_agree_on_tilt_steps_and_heights(calibrated):
     assert abs(heights[0] - heights[1]) / heights[1] < 0.05
 
 
-def test_the_grain_is_a_dome_whatever_the_tilts_sign_or_the_image_order(pollen_series, pairs):
-    """Issue 36: the ±3° pair typed with the tilts' signs reversed, and the images swapped with the
-    tilts kept in the typed order, both invert the relief under the tilts as given; the detector's
-    lighting (from the top right in these images) tells, and auto puts the grain back on top
-    (measured: 97 % of the image blocks against the reversed tilts, confidence > 0.99999)."""
+def test_a_profile_learned_on_one_pair_puts_another_typed_reversed_the_right_way_up(pollen_series, pairs):
+    """Issue 46: the detector's place is learned from the ±6° pair (tilts from the metadata,
+    trusted), as `fracto instrument learn` does, and applied through the Auriga's profile to the
+    ±3° pair typed with the tilts' signs reversed, and swapped with the tilts in the typed order:
+    the grain comes out a dome. Without the profile no lighting overrides the typed tilts."""
+    learned = pairs[(1, 5)][2]
+    assert np.isfinite(learned["lighting_from_tilt_axis_deg"]) and learned["detector_source"] == "unknown"
+    instrument = read_sem_image((pollen_series / "pot_01.tif").read_bytes()).instrument
+    profile = InstrumentProfile(instrument, learned["lighting_from_tilt_axis_deg"], learned["lighting_sigma_deg"])
     reference = pairs[(2, 4)]
-    assert reference[2]["relief_sign"] == "nominal" and reference[2]["relief_sign_decided"]
     images = {i: read_sem_image((pollen_series / f"pot_0{i}.tif").read_bytes()) for i in (2, 4)}
     for first, second in [(2, 4), (4, 2)]:
-        result = compute_height_map(images[first], images[second], tilt_deg=(3.0, -3.0) if first == 2 else (-3.0, 3.0))
-        assert result.report["relief_sign"] == "inverted" and result.report["relief_sign_decided"]
+        reversed_tilts = (3.0, -3.0) if first == 2 else (-3.0, 3.0)
+        result = compute_series_height_map(
+            [images[first], images[second]], tilt_deg=reversed_tilts, instruments=[profile]
+        )
+        report = result.report
+        assert report["relief_sign"] == "inverted" and report["relief_sign_decided"], report["relief_sign_sentence"]
+        assert report["detector_source"] == "profile" and report["instrument_profile"] == profile.name
+        assert any("run the other way from the stage tilts" in warning for warning in report["warnings"])
         height = _grain_height(result.z_um)
         assert abs(height - reference[0]) / reference[0] < 0.1, height

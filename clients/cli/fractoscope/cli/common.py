@@ -87,19 +87,10 @@ def calibrated_tilts(report: dict) -> str:
 
 
 def relief_sign_sentence(report: dict) -> str:
-    """Which way up the heights of a matching report (MatchingReport's fields) are and what told
-    it, as one line of text; "" for a report without the verdict."""
-    sign, cue = report.get("relief_sign"), report.get("relief_sign_cue")
-    if not sign:
-        return ""
-    if not report.get("relief_sign_decided"):
-        return f"relief {sign}: as the tilts as given say (the images could not tell the sign)"
-    agreeing = 100 * (1 + report["relief_sign_strength"]) / 2
-    confidence = report["relief_sign_confidence"]
-    told = f"{cue}: {agreeing:.0f} % of the image agrees with the tilts as given, confidence {confidence:.4f}"
-    if sign == "inverted":
-        return f"relief inverted: the heights use the tilts with their signs reversed ({told})"
-    return f"relief {sign} ({told})"
+    """The relief sign's verdict of a matching report (MatchingReport.relief_sign_sentence, the
+    server's words), "" where the report has none or its warnings already say it."""
+    sentence = report.get("relief_sign_sentence") or ""
+    return "" if any(sentence and warning.startswith(sentence) for warning in report.get("warnings", ())) else sentence
 
 
 def datum_sentence(datum: dict) -> str:

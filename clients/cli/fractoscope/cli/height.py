@@ -65,14 +65,16 @@ def add_parsers(commands) -> None:
         "--relief-sign",
         choices=("auto", "nominal", "inverted"),
         default="auto",
-        help="which way up the heights are: auto (default: as the images show it where the detector's lighting "
-        "tells it, else as the tilts say, with a warning), nominal (as the tilts as given say) or inverted",
+        help="which way up the heights are: auto (default: as the images show it where occlusion, or the lighting "
+        "of a detector whose place is known, tells it; else as the tilts say, with a warning), nominal (as the "
+        "tilts as given say) or inverted",
     )
     height.add_argument(
         "--detector-from-tilt-axis-deg",
         type=float,
-        help="where the secondary-electron detector lies, degrees counter-clockwise from the tilt axis as displayed "
-        "(default 0: the side the axis points to, the top of the image for a vertical axis); nan: not known",
+        help="where the side (Everhart-Thornley) detector lies, degrees counter-clockwise from the tilt axis as "
+        "displayed (0: the side the axis points to); default: not known, no place assumed (an instrument profile, "
+        "see fracto instrument learn, may give it)",
     )
     height.add_argument(
         "--propagate-at-full-resolution",

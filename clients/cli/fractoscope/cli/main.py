@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from fractoscope.cli import demo, export, height, mesh, specimen
+from fractoscope.cli import demo, export, height, instrument, mesh, specimen
 from fractoscope.cli.common import (
     SuggestingParser,
     UsageError,
@@ -31,7 +31,7 @@ LOCAL_EXTRA = "pip install 'fractoscope-cli[local]'"
 def build_parser() -> argparse.ArgumentParser:
     parser = SuggestingParser(prog="fracto", description="Calibrated 3D fracture surfaces from SEM stereo pairs.")
     commands = parser.add_subparsers(dest="command", required=True)
-    for verbs in (height, mesh, specimen, export, demo):
+    for verbs in (height, mesh, specimen, export, instrument, demo):
         verbs.add_parsers(commands)
     return parser
 

@@ -109,7 +109,7 @@ class FractoscopeClient(ChannelOwner):
         steps). `method`: "tgv_zncc", "window_zncc" or "fast" (None: the server's default,
         tgv_zncc; see MatchingMethod). `relief_sign`: "auto", "nominal" or "inverted" (None: the
         server's default, auto; see ReliefSignMode), with where the detector lies,
-        `detector_from_tilt_axis_deg` (° from the tilt axis; None: along it, see MatchingParameters).
+        `detector_from_tilt_axis_deg` (° from the tilt axis; None: not known, see MatchingParameters).
         The report's relief_sign fields give the verdict."""
         files = [
             (image, "") if isinstance(image, bytes) else (Path(image).read_bytes(), Path(image).name)
