@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import io
+import os
+import tempfile
 from collections.abc import Iterable
 from dataclasses import dataclass
 from html.parser import HTMLParser
@@ -25,6 +27,10 @@ from fractoscope.specimen.fusion import PlacedRoi
 from fractoscope.specimen.quadtree import OPTICAL, QuadtreeLayout, TileKey, TileRecord
 from fractoscope.specimen.store import RoiEntry, SpecimenStore, write_description, write_roi_arrays
 from fractoscope.synthetic.examples import write_multiscale_specimen
+
+# No instrument profile of the machine's user reaches a test (sem.instruments): each test that
+# wants profiles names its own file.
+os.environ["FRACTO_INSTRUMENTS"] = str(Path(tempfile.gettempdir()) / "fractoscope-tests" / "no-instruments.json")
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 POLLEN_SERIES = SHARED_DATA / "real" / "potamogeton-tilt-series"

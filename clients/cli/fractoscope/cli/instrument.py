@@ -51,13 +51,13 @@ def add_parsers(commands) -> None:
 
 def command_learn(args) -> int:
     from fractoscope.sem.instruments import InstrumentProfile, profiles_path, save_profile
-    from fractoscope.sem.metadata import InstrumentKey, detector_has_side
 
     if len(args.images) < 2:
         raise UsageError("give at least two images (a stereo pair or a tilt series)")
     if args.tilt is not None and len(args.tilt) != len(args.images):
         raise UsageError(f"--tilt needs one angle per image: {len(args.images)} images, {len(args.tilt)} tilts")
     paths = [existing_file(image) for image in args.images]
+    key = _instrument_of(paths)
     with connected(args.server) as client:
         result = client.compute_height_map(
             paths,
@@ -67,19 +67,6 @@ def command_learn(args) -> int:
             relief_sign="nominal",
         )
     report = result.report
-    fields = report.get("instrument") or {}
-    if not fields.get("model"):
-        raise UsageError(
-            f"{paths[0]}: its metadata names no instrument (vendor, model, detector), so a profile could never be "
-            "applied to it; learn on the microscope's own TIFF files"
-        )
-    key = InstrumentKey(
-        fields["vendor"], fields["model"], fields.get("detector", ""), fields.get("scan_rotation_deg", 0.0)
-    )
-    if detector_has_side(key.detector) is False:
-        raise UsageError(
-            f"the detector {key.detector} lies in the lens: its images are lit from no side, nothing to learn"
-        )
     azimuth, sigma = report.get("lighting_from_tilt_axis_deg", math.nan), report.get("lighting_sigma_deg", math.nan)
     if azimuth is None or not math.isfinite(azimuth):
         raise UsageError(
@@ -106,6 +93,28 @@ def command_learn(args) -> int:
             f"{profile.sigma_deg:.0f}° from the tilt axis; written to {path}"
         )
     return 0
+
+
+def _instrument_of(paths: list[Path]):
+    """The instrument the files name (all the same), before any matching; UsageError where they
+    name none, several, or a detector without a side."""
+    from fractoscope.sem.image import read_sem_image
+    from fractoscope.sem.metadata import detector_has_side
+
+    keys = {read_sem_image(path.read_bytes(), field=str(path)).instrument for path in paths}
+    if None in keys:
+        raise UsageError(
+            "the metadata of some images names no instrument (vendor, model, detector), so a profile could never be "
+            "applied to them; learn on the microscope's own TIFF files"
+        )
+    if len(keys) > 1:
+        raise UsageError(f"the images name different instruments: {'; '.join(sorted(k.describe() for k in keys))}")
+    (key,) = keys
+    if detector_has_side(key.detector) is False:
+        raise UsageError(
+            f"the detector {key.detector} lies in the lens: its images are lit from no side, nothing to learn"
+        )
+    return key
 
 
 def _stands_up(z_um: np.ndarray, sigma_um: np.ndarray) -> bool:
