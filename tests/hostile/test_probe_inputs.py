@@ -11,7 +11,7 @@ import grpc
 import numpy as np
 import pytest
 import requests
-from conftest import WRITE, WRITE_METADATA
+from probe_servers import WRITE, WRITE_METADATA
 
 from fractoscope.rpc import calls
 from fractoscope.rpc.status import ClientError, raised_as_client_errors

@@ -9,7 +9,7 @@ import uuid
 
 import pytest
 import requests
-from conftest import READ, WRITE
+from probe_servers import READ, WRITE
 
 from fractoscope.tiles.uploads import MAX_UPLOAD_PARTS
 

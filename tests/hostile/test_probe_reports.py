@@ -9,7 +9,7 @@ import subprocess
 import grpc
 import pytest
 import requests
-from conftest import READ, READ_METADATA, write_map_specimen
+from probe_servers import READ, READ_METADATA, write_map_specimen
 
 from fractoscope.v1 import tiles_pb2, tiles_pb2_grpc
 

@@ -1,7 +1,8 @@
 """Plain HTTP for standard 3D Tiles viewers and our web viewer.
 
 - `/specimens/{id}/tileset.json` and the tiles it names, each under its one URI (a tile number
-  zero-padded or in other digits is a 404, not another cache entry): CORS headers (viewers run on
+  zero-padded, in other digits or percent-encoded is a 404, not another cache entry; a tile of a
+  build since replaced, `?v=OLD`, is 410 Gone, the current build's bytes never): CORS headers (viewers run on
   other origins), gzip when Accept-Encoding accepts it (q > 0), a strong ETag per representation
   (the gzip one has its own) and 304 when If-None-Match holds it (weak comparison, RFC 9110).
 - `/viewer/` the web viewer (the installed clients/web package, see WEB_ROOT) and `/vendor/` the
@@ -13,6 +14,7 @@
 from __future__ import annotations
 
 import asyncio
+import functools
 import gzip
 import hashlib
 import json
@@ -121,15 +123,20 @@ class _TileApp:
                 return _plain(HTTPStatus.UNAUTHORIZED, "a valid bearer token is required\n")
         if (static := _STATIC.fullmatch(path)) is not None:
             return await self._static(request, static["area"], static["path"] or "index.html")
-        route = _ROUTE.fullmatch(path)
+        # Matched as sent: `tiles%2F0%2F0%2F0.glb` decodes to a tile's path but is not its URI.
+        route = _ROUTE.fullmatch(request.raw_path.partition("?")[0])
         if route is None:
             return _plain(HTTPStatus.NOT_FOUND, "not found\n")
         relative = route["path"]
+        build = (request.query.get("v") or None) if relative != "tileset.json" else None
         try:
-            if self.store.objects is None:  # a folder's: one stat
-                specimen = self.store.load(route["specimen"])
-            else:  # a bucket's pointer may be read again, over the network: never on the event loop
-                specimen = await _off_loop(self.store.load, route["specimen"])
+            specimen = await self._specimen(route["specimen"], build)
+            if build is not None and build != str(specimen.version):
+                return _plain(
+                    HTTPStatus.GONE,
+                    f"build {build} of specimen {specimen.id!r} was replaced; load its tileset.json again\n",
+                    **{"Cache-Control": "no-store"},
+                )
             content = (
                 (lambda: versioned_tileset(specimen.tileset_bytes, specimen.version))
                 if relative == "tileset.json"
@@ -144,11 +151,19 @@ class _TileApp:
             status = HTTPStatus(outcome_of(error).http_status)
             retry = {"Retry-After": "5"} if status == HTTPStatus.SERVICE_UNAVAILABLE else {}
             return _plain(status, f"{error}\n", **retry)
-        if relative == "tileset.json" or request.query.get("v") != str(specimen.version):
-            caching = _SHORT_CACHING
-        else:
-            caching = _TILE_CACHING
+        caching = _SHORT_CACHING if build is None else _TILE_CACHING
         return _body_response(request, body, _TYPES[relative[relative.rfind(".") :]], caching)
+
+    async def _specimen(self, specimen_id: str, build: str | None):
+        """The stored specimen; when a tile of another build than the one known here is asked for,
+        the store is asked again (a bucket's replica may not have seen a new build yet)."""
+        if self.store.objects is None:  # a folder's: one stat
+            return self.store.load(specimen_id)
+        # A bucket's pointer may be read again, over the network: never on the event loop.
+        specimen = await _off_loop(self.store.load, specimen_id)
+        if build is not None and build != str(specimen.version):
+            specimen = await _off_loop(functools.partial(self.store.load, specimen_id, fresh=True))
+        return specimen
 
     async def _static(self, request: web.Request, area: str, relative: str) -> web.StreamResponse:
         if area == "viewer":
@@ -166,8 +181,9 @@ class _TileApp:
 
 _CORS = {"Access-Control-Allow-Origin": "*", "Access-Control-Expose-Headers": "ETag, Content-Encoding"}
 # A tile's bytes never change within a build: tileset.json names each tile with its build
-# (`?v=`, see versioned_tileset), and a tile asked for under its current build is cached for good.
-# tileset.json itself, and a tile asked for without the current build, are looked at again soon.
+# (`?v=`, see versioned_tileset), and a tile asked for under its current build is cached for good;
+# under a build since replaced, it is 410 Gone (the viewer then loads the tileset again).
+# tileset.json itself, and a tile asked for without a build, are looked at again soon.
 _TILE_CACHING = "public, max-age=31536000, immutable"
 _SHORT_CACHING = "public, max-age=10"
 

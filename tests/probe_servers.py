@@ -1,8 +1,8 @@
-"""The probe suite's servers: what a hostile user meets, on loopback. `live` is one process's gRPC
-and HTTP endpoints over a folder store, tokens required (write and read); `ServerProcess` runs
-fracto-server as a process of its own, for what is measured from outside it (memory, CPU, file
-descriptors, its log). Specimens are written straight into a store (`write_map_specimen`), not
-built, so that each probe starts at once."""
+"""The probe suite's servers (tests/hostile; fixtures of tests/conftest.py): what a hostile user
+meets, on loopback. `live` is one process's gRPC and HTTP endpoints over a folder store, tokens
+required (write and read); `ServerProcess` runs fracto-server as a process of its own, for what is
+measured from outside it (memory, CPU, file descriptors, its log). Specimens are written straight
+into a store (`write_map_specimen`), not built, so that each probe starts at once."""
 
 from __future__ import annotations
 
@@ -72,10 +72,11 @@ def write_map_specimen(
     size_px: int = 256,
     pixel_size_um: float = 0.5,
     view_names: tuple[str, ...] = ("left.png", "right.png"),
+    tile_bytes: bytes = b"glTF-tile",
 ) -> None:
     """A one-ROI specimen without building it: a self-affine map of `size_px`² at `pixel_size_um`,
     its sigma 0.05 µm, its texture from its heights, image files named `view_names` (PNG bytes of
-    the texture) and one root tile (a few bytes, not a GLB)."""
+    the texture) and one root tile, `tile_bytes` (not a GLB)."""
     z_um = synthetic.self_affine_surface((size_px, size_px), hurst=0.8, rms_um=1.0, seed=3).astype(np.float32)
     texture = np.clip((z_um - z_um.min()) / np.ptp(z_um) * 255, 0, 255).astype(np.uint8)
     roi = PlacedRoi("overview", 100.0, pixel_size_um, (0.0, 0.0), z_um, texture, np.full(z_um.shape, 0.05, np.float32))
@@ -84,7 +85,7 @@ def write_map_specimen(
     png = cv2.imencode(".png", texture)[1].tobytes()
     with store.writing(specimen_id) as staging:
         (staging / root.uri).parent.mkdir(parents=True)
-        (staging / root.uri).write_bytes(b"glTF-" + specimen_id.encode())
+        (staging / root.uri).write_bytes(tile_bytes)
         (staging / "tileset.json").write_text(
             '{"asset": {"version": "1.1"}, "geometricError": 1, "root": {"geometricError": 0, '
             '"boundingVolume": {"box": [0,0,0,1,0,0,0,1,0,0,0,1]}, "content": {"uri": "tiles/0/0/0.glb"}}}'
