@@ -34,6 +34,7 @@ from aiohttp.log import server_logger
 from fractoscope.errors import FractoscopeError, NotFoundError, outcome_of
 from fractoscope.runtime.auth import TokenTable
 from fractoscope.runtime.caches import BoundedCache
+from fractoscope.runtime.process import CredentialFilter
 from fractoscope.specimen.quadtree import TILE_URI
 from fractoscope.specimen.store import SpecimenStore
 from fractoscope.tiles.api import JsonApi
@@ -256,28 +257,17 @@ def _plain(status: HTTPStatus, text: str, **headers: str) -> web.Response:
     )
 
 
-# Credentials in a log line: a header's value to the end of its line, a bearer token, a query's token.
-_CREDENTIALS = re.compile(r"(?i)(authorization[ \t]*[:=][ \t]*)[^\r\n]*|(bearer[ \t]+)\S+|([?&;]token=)[^&\s]*")
-
-
-def _redacted(text: str) -> str:
-    return _CREDENTIALS.sub(lambda found: (found[1] or found[2] or found[3]) + "[redacted]", text)
-
-
-class _CredentialFilter(logging.Filter):
+class _CredentialFilter(CredentialFilter):
     """aiohttp's server log without credentials: a request its parser refuses (anyone's input) is
     logged at DEBUG without a traceback, not at ERROR with one whose message quotes the refused line,
-    Authorization header and all; every record's message and traceback are redacted."""
+    Authorization header and all; every record is redacted (CredentialFilter)."""
 
     def filter(self, record: logging.LogRecord) -> bool:
         error = record.exc_info[1] if record.exc_info else None
         if isinstance(error, HttpProcessingError):
             record.msg, record.args = f"{record.getMessage()}: {error.message}", None
             record.levelno, record.levelname, record.exc_info, record.exc_text = logging.DEBUG, "DEBUG", None, None
-        record.msg, record.args = _redacted(record.getMessage()), None
-        if record.exc_info:  # formatted now, redacted, in place of the exception a handler would format
-            record.exc_text = _redacted(logging.Formatter().formatException(record.exc_info))
-            record.exc_info = None
+        super().filter(record)
         # The logger's level was checked at the record's first level; a downgraded one is checked again.
         return record.levelno > logging.DEBUG or server_logger.isEnabledFor(logging.DEBUG)
 
