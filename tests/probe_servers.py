@@ -7,6 +7,7 @@ into a store (`write_map_specimen`), not built, so that each probe starts at onc
 from __future__ import annotations
 
 import os
+import resource
 import signal
 import subprocess
 import sys
@@ -115,10 +116,19 @@ def write_map_specimen(
 
 class ServerProcess:
     """fracto-server in a process of its own on free loopback ports, its data in `data`, its log
-    (JSON lines) in `data/../server.log`; `environment` adds to or overrides the inherited one."""
+    (JSON lines) in `data/../server.log`; `environment` adds to or overrides the inherited one;
+    `open_files` sets its limit of file descriptors (RLIMIT_NOFILE)."""
 
-    def __init__(self, data: Path, *, environment: dict[str, str] | None = None, arguments: tuple[str, ...] = ()):
+    def __init__(
+        self,
+        data: Path,
+        *,
+        environment: dict[str, str] | None = None,
+        arguments: tuple[str, ...] = (),
+        open_files: int | None = None,
+    ):
         self.data = data
+        self.open_files = open_files
         self.grpc_port, self.http_port = free_ports(2)
         self.log_path = data.parent / f"server-{self.grpc_port}.log"
         self.environment = {"FRACTO_TOKENS": TOKENS, "FRACTO_TOKEN": WRITE_TOKEN, **(environment or {})}
@@ -148,7 +158,11 @@ class ServerProcess:
         ]
         with open(self.log_path, "ab") as log:
             self.process = subprocess.Popen(
-                command, env={**os.environ, **self.environment}, stdout=log, stderr=subprocess.STDOUT
+                command,
+                env={**os.environ, **self.environment},
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                preexec_fn=self._limits if self.open_files else None,
             )
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
@@ -160,6 +174,9 @@ class ServerProcess:
             except requests.RequestException:
                 time.sleep(0.3)
         raise RuntimeError(f"fracto-server did not answer within {timeout_s} s: {self.log()[-2000:]}")
+
+    def _limits(self) -> None:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (self.open_files, self.open_files))
 
     def stop(self) -> None:
         if self.process is not None and self.process.poll() is None:

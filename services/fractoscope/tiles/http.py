@@ -19,10 +19,13 @@ import gzip
 import hashlib
 import json
 import logging
+import math
 import os
 import re
+import resource
 import sys
 import threading
+import time
 import urllib.parse
 from http import HTTPStatus
 from pathlib import Path
@@ -275,6 +278,92 @@ class _CredentialFilter(CredentialFilter):
 _CREDENTIAL_FILTER = _CredentialFilter()
 
 
+# How long a connection may go without a whole request, its first one's headers included, s:
+# an idle socket costs a file descriptor, and a slow client's headers hold one open.
+IDLE_TIMEOUT_S = float(os.environ.get("FRACTO_HTTP_IDLE_TIMEOUT_S", "15"))
+# Connections kept open at most (FRACTO_HTTP_MAX_CONNECTIONS, and never more than half the file
+# descriptors the process may open): a new one beyond closes the oldest idle one.
+DEFAULT_MAX_CONNECTIONS = 1000
+
+
+def max_connections() -> int:
+    """FRACTO_HTTP_MAX_CONNECTIONS (default DEFAULT_MAX_CONNECTIONS), at most half RLIMIT_NOFILE's
+    soft limit, leaving the rest to files, gRPC and the object store."""
+    wanted = int(os.environ.get("FRACTO_HTTP_MAX_CONNECTIONS", DEFAULT_MAX_CONNECTIONS))
+    return max(8, min(wanted, resource.getrlimit(resource.RLIMIT_NOFILE)[0] // 2))
+
+
+class _CappedSite(web.TCPSite):
+    """A TCP site that keeps at most `max_connections` open: each new connection beyond closes the
+    oldest idle ones (those without a request in a handler: `busy`, see _track_busy), so that
+    idle or slow clients cannot take every descriptor from those that send requests. Sockets are
+    accepted a quarter of the cap at a time at most (the listen backlog), so that a burst cannot
+    overshoot it by much before the cap acts."""
+
+    def __init__(self, runner: web.AppRunner, host: str, port: int, *, max_connections: int, busy: set, **options):
+        super().__init__(runner, host, port, backlog=max(1, min(128, max_connections // 4)), **options)
+        self._max_connections, self._busy = max_connections, busy
+
+    async def start(self) -> None:
+        await web.BaseSite.start(self)  # registers the site; TCPSite.start would bind its own factory
+        server = self._runner.server
+
+        def protocol():
+            handlers = server.connections
+            excess = len(handlers) + 1 - self._max_connections
+            for idle in [handler for handler in handlers if handler not in self._busy][: max(0, excess)]:
+                idle.force_close()  # waits for nothing: close() would leave an idle one's socket open
+            return server()
+
+        self._server = await asyncio.get_running_loop().create_server(
+            protocol, self._host, self._port, reuse_address=self._reuse_address, backlog=self._backlog
+        )
+        self._bound_port = self._server.sockets[0].getsockname()[1]
+
+
+def _track_busy(busy: set):
+    """A middleware that keeps in `busy` the connections (request.protocol) whose request a
+    handler is answering."""
+
+    @web.middleware
+    async def tracked(request: web.Request, handler):
+        busy.add(request.protocol)
+        try:
+            return await handler(request)
+        finally:
+            busy.discard(request.protocol)
+
+    return tracked
+
+
+class _AcceptErrors:
+    """The HTTP loop's handler of exceptions no task catches: asyncio's report that accept() ran
+    out of descriptors (EMFILE, which it retries every second, each time with a traceback) is
+    logged at most once every ACCEPT_ERROR_EVERY_S without one, counting the ones left out;
+    everything else goes to asyncio's default handler."""
+
+    def __init__(self):
+        self._last_s, self._left_out = -math.inf, 0
+
+    def __call__(self, loop: asyncio.AbstractEventLoop, context: dict) -> None:
+        if not context.get("message", "").startswith("socket.accept() out of system resource"):
+            loop.default_exception_handler(context)
+            return
+        now_s = time.monotonic()
+        if now_s - self._last_s < ACCEPT_ERROR_EVERY_S:
+            self._left_out += 1
+            return
+        _log.error(
+            f"{context['message']}: {context.get('exception')!r} (file descriptors run out; "
+            f"{self._left_out} more such reports left out since the last)"
+        )
+        self._last_s, self._left_out = now_s, 0
+
+
+ACCEPT_ERROR_EVERY_S = 10.0
+_log = logging.getLogger("fractoscope.http")
+
+
 class HttpTileServer:
     """The HTTP endpoint, served by aiohttp from an event loop on its own daemon thread."""
 
@@ -283,7 +372,8 @@ class HttpTileServer:
         self._loop = asyncio.new_event_loop()
         self._api = api
         app = _TileApp(store, tokens, api)
-        application = web.Application()
+        busy: set = set()
+        application = web.Application(middlewares=[_track_busy(busy)])
         application.router.add_route("*", r"/{tail:[\s\S]*}", app.handle)  # any path, new lines too
         self._runner = web.AppRunner(
             application,
@@ -291,9 +381,11 @@ class HttpTileServer:
             handle_signals=False,
             max_line_size=_PARSER_LINE_BYTES,
             max_field_size=_PARSER_LINE_BYTES,
+            keepalive_timeout=IDLE_TIMEOUT_S,  # from the connection's start too: a header timeout
         )
+        self._loop.set_exception_handler(_AcceptErrors())
         self._loop.run_until_complete(self._runner.setup())
-        site = web.TCPSite(self._runner, host, port, reuse_address=True)
+        site = _CappedSite(self._runner, host, port, max_connections=max_connections(), busy=busy, reuse_address=True)
         self._loop.run_until_complete(site.start())
         self.server_port: int = self._runner.addresses[0][1]
         self._thread = threading.Thread(target=self._loop.run_forever, name="fractoscope-http", daemon=True)
