@@ -5,6 +5,8 @@
   build since replaced, `?v=OLD`, is 410 Gone, the current build's bytes never): CORS headers (viewers run on
   other origins), gzip when Accept-Encoding accepts it (q > 0), a strong ETag per representation
   (the gzip one has its own) and 304 when If-None-Match holds it (weak comparison, RFC 9110).
+- `/livez` 200 while the process answers; `/healthz` 200, or 503 "degraded" while the object store
+  is out of reach (a liveness probe asks the first: restarting cannot mend the store).
 - `/viewer/` the web viewer (the installed clients/web package, see WEB_ROOT) and `/vendor/` the
   three.js and 3DTilesRendererJS modules it imports (that package's node_modules).
 - `/api/` the HTTP/JSON API (tiles.api, described at `/api/openapi.json`), which the
@@ -96,6 +98,8 @@ class _TileApp:
         self.cache = body_cache()
         self.tokens = tokens
         self.api = api
+        self._check: asyncio.Future | None = None  # the object store's last health check (_store_problem)
+        self._checked_s = -math.inf
 
     async def handle(self, request: web.Request) -> web.StreamResponse:
         if request.method == "OPTIONS":
@@ -117,7 +121,12 @@ class _TileApp:
         if request.method not in ("GET", "HEAD"):
             return _plain(HTTPStatus.METHOD_NOT_ALLOWED, "only GET, HEAD and OPTIONS\n", Allow="GET, HEAD, OPTIONS")
         path = request.path
+        if path == "/livez":  # the process answers: what a liveness probe asks, whatever the store's state
+            return _plain(HTTPStatus.OK, "ok\n")
         if path == "/healthz":
+            problem = await self._store_problem()
+            if problem is not None:
+                return _plain(HTTPStatus.SERVICE_UNAVAILABLE, f"degraded: {problem}\n", **{"Retry-After": "5"})
             return _plain(HTTPStatus.OK, "ok\n")
         if path == "/":
             return web.Response(status=HTTPStatus.FOUND, headers={"Location": "/viewer/"})
@@ -158,6 +167,26 @@ class _TileApp:
         caching = _SHORT_CACHING if build is None else _TILE_CACHING
         return _body_response(request, body, _TYPES[relative[relative.rfind(".") :]], caching)
 
+    async def _store_problem(self) -> str | None:
+        """Why the store cannot serve now (None: it can): an object store held out of reach, or
+        one that failed or did not answer within HEALTH_WAIT_S a check made at most every
+        HEALTH_CHECK_EVERY_S (calls waiting meanwhile share it)."""
+        objects = self.store.objects
+        if objects is None:
+            return None
+        if objects.outage is not None:
+            return objects.outage
+        now_s = time.monotonic()
+        if self._check is None or (self._check.done() and now_s - self._checked_s >= HEALTH_CHECK_EVERY_S):
+            self._check, self._checked_s = asyncio.ensure_future(_off_loop(objects.check)), now_s
+        try:
+            await asyncio.wait_for(asyncio.shield(self._check), HEALTH_WAIT_S)
+        except TimeoutError:
+            return f"the object store {objects.url} did not answer within {HEALTH_WAIT_S:g} s"
+        except FractoscopeError as error:
+            return str(error)
+        return None
+
     async def _specimen(self, specimen_id: str, build: str | None):
         """The stored specimen; when a tile of another build than the one known here is asked for,
         the store is asked again (a bucket's replica may not have seen a new build yet)."""
@@ -183,6 +212,8 @@ class _TileApp:
         return _body_response(request, body, _TYPES[path.suffix])
 
 
+# /healthz checks an object store at most this often, and waits at most this long for it, s.
+HEALTH_CHECK_EVERY_S, HEALTH_WAIT_S = 5.0, 4.0
 _CORS = {"Access-Control-Allow-Origin": "*", "Access-Control-Expose-Headers": "ETag, Content-Encoding"}
 # A tile's bytes never change within a build: tileset.json names each tile with its build
 # (`?v=`, see versioned_tileset), and a tile asked for under its current build is cached for good;
