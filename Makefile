@@ -22,6 +22,7 @@ GRPC_PORT ?= 50051
 CHROMIUM := /usr/bin/chromium
 WRK := /usr/bin/wrk
 PDFTOPPM := /usr/bin/pdftoppm
+CURL := /usr/bin/curl
 GHZ := .tools/bin/ghz
 # Go tools for validating the Kubernetes manifests, built from the Go module proxy, and the
 # Kubernetes API's JSON schemas for them (deploy/kubernetes_schemas.py).
@@ -68,9 +69,10 @@ $(WEB_LINK): | $(BIN)/python
 run: install
 	$(BIN)/fracto demo --data $(DATA) --http-port $(PORT) --port $(GRPC_PORT)
 
-# Debian's Chromium for the browser test (never a browser downloaded by a test tool) and wrk, the
-# HTTP load generator of `make load` and `make bench`.
-$(CHROMIUM) $(WRK):
+# Debian's Chromium for the browser test (never a browser downloaded by a test tool), wrk, the
+# HTTP load generator of `make load` and `make bench`, and curl, with which the probe suite sends
+# gRPC calls of any bytes (tests/hostile).
+$(CHROMIUM) $(WRK) $(CURL):
 	if [ "$$(id -u)" = 0 ]; then SUDO=; else SUDO=sudo; fi; \
 	$$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq --no-install-recommends $(notdir $@) >/dev/null
 
@@ -97,7 +99,7 @@ $(KUBE_SCHEMAS): deploy/kubernetes_schemas.py
 	touch $@
 
 ## test: the whole test suite
-test: install $(CHROMIUM) $(PDFTOPPM) $(KUBECONFORM) $(KUSTOMIZE) $(KUBE_SCHEMAS) $(WEED)
+test: install $(CHROMIUM) $(PDFTOPPM) $(CURL) $(KUBECONFORM) $(KUSTOMIZE) $(KUBE_SCHEMAS) $(WEED)
 	$(MAKE) --no-print-directory lint
 	$(BIN)/python -m pytest -q
 

@@ -17,6 +17,7 @@ import pygltflib
 import pytest
 import tifffile
 import trimesh
+from probe_servers import live, server_process  # noqa: F401 - fixtures: the probe suite's servers (tests/hostile)
 from s3_server import s3_endpoint, s3_objects  # noqa: F401 - fixtures: a real S3 server for the store tests
 
 from fractoscope import synthetic

@@ -22,7 +22,7 @@ const authorization = token ? { Authorization: `Bearer ${token}` } : {};
 const api = (path) => fetch(path, { headers: authorization });
 const $ = (id) => document.getElementById(id);
 const view = $("view");
-const status = { loaded: 0, failed: 0, tilesetLoaded: false, downloading: 0, queued: 0, visible: 0, settled: false, error: null };
+const status = { loaded: 0, failed: 0, tilesetLoaded: false, downloading: 0, queued: 0, visible: 0, settled: false, error: null, reopened: 0 };
 window.viewer = { status, profile: null, roughness: null };
 
 const renderer = new THREE.WebGLRenderer({ antialias: true, preserveDrawingBuffer: true });
@@ -56,6 +56,18 @@ class SpecimenTiles extends TilesRenderer {
     } finally {
       console.warn = warn;
     }
+  }
+
+  // A tile of a build since replaced answers 410 Gone (the server never sends another build's
+  // bytes under its URL): `onReplaced` is called, once, to open the specimen again as it is now.
+  async fetchData(url, options) {
+    const response = await super.fetchData(url, options);
+    if (response.status === 410 && this.onReplaced) {
+      const replaced = this.onReplaced;
+      this.onReplaced = null;
+      replaced();
+    }
+    return response;
   }
 }
 
@@ -150,6 +162,13 @@ async function open(id, state = {}) {
   setRoiOutlines(summary.rois);
   tiles = new SpecimenTiles(`/specimens/${id}/tileset.json`);
   tiles.fetchOptions.headers = authorization;
+  // After a rebuild the browser's copy of tileset.json (cached briefly) names the old build.
+  if (state.rebuilt) tiles.fetchOptions.cache = "no-cache";
+  // Rebuilt while shown: the new build opens with the camera, display and measurements kept.
+  tiles.onReplaced = () => {
+    status.reopened += 1;
+    open(id, { ...applyState(new URL(permalink()).searchParams), rebuilt: true });
+  };
   // Tiles are meshoptimizer-compressed (EXT_meshopt_compression).
   tiles.registerPlugin(new GLTFExtensionsPlugin({ meshoptDecoder: MeshoptDecoder }));
   tiles.errorTarget = ERROR_TARGET_PX;

@@ -12,6 +12,7 @@ import numpy as np
 from fractoscope.errors import InvalidInputError
 from fractoscope.rpc import wire
 from fractoscope.sem import image as sem_image
+from fractoscope.stereo import alignment
 from fractoscope.stereo.disparity import DisparityResult, MatchingMethod, StripTask
 from fractoscope.stereo.inputs import MatchingOptions, validate_options, validate_same_size, validate_tilt_axis_deg
 from fractoscope.stereo.pipeline import DEFAULT_TILT_AXIS_DEG, HeightMapResult
@@ -110,6 +111,13 @@ def checked_height_map_request(
     with request_fields():
         validate_options(options, image_cols=shape[1])
     validate_tilt_axis_deg(tilt_axis_deg(request))
+    _, canvas = alignment.rotation_to_vertical_axis(shape, tilt_axis_deg(request))
+    if max(canvas) > sem_image.MAX_SIDE_PX:
+        raise InvalidInputError(
+            "tilt_axis_deg",
+            f"turns images of {shape[1]} x {shape[0]} pixels onto a canvas of {canvas[1]} x {canvas[0]}, longer than "
+            f"the {sem_image.MAX_SIDE_PX} px OpenCV takes; send smaller images",
+        )
     return shape, options
 
 
@@ -149,6 +157,10 @@ def request_to_strip_task(request: matching_pb2.MatchStripRequest) -> StripTask:
         raise InvalidInputError(
             "left",
             f"{left.size} pixels is more than the limit of {sem_image.MAX_IMAGE_PIXELS} (FRACTO_MAX_IMAGE_PIXELS)",
+        )
+    if max(left.shape) > sem_image.MAX_SIDE_PX:  # a strip's sides are far apart, but neither may pass this
+        raise InvalidInputError(
+            "left", f"a strip of {left.shape[1]} x {left.shape[0]} pixels is longer than {sem_image.MAX_SIDE_PX} px"
         )
     for name, values in (("left", left), ("right", right)):
         if not np.isfinite(values).all():

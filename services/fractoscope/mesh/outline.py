@@ -86,10 +86,10 @@ def drop_islands(z_um: np.ndarray, *, min_area_cells: float, keep_edge: bool = F
     a kept patch's quad (it would make at most a lone triangle), become NaN. With `keep_edge`, patches
     that reach the grid's edge are kept whatever their size (the grid is a piece of a larger surface
     they may go on in). The largest patch is never an island: a map too small for the threshold is
-    kept whole rather than emptied."""
+    kept whole rather than emptied, and so is a grid of one row or column (it has no quad)."""
     known = np.isfinite(z_um)
     complete = np.logical_and.reduce(quad_corners(known))
-    if not known.any():
+    if not known.any() or complete.size == 0:
         return z_um, 0
     count, labels, stats, _ = cv2.connectedComponentsWithStats(complete.astype(np.uint8), connectivity=8)
     small = stats[:, cv2.CC_STAT_AREA] < min_area_cells

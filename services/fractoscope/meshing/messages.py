@@ -41,7 +41,7 @@ def options_from_request(request: meshing_pb2.BuildMeshRequest) -> MeshingOption
         level_count=request.level_count or None,
         plain_glb=request.plain_glb,
         max_slope=request.max_slope or None,
-        unmeasured=UNMEASURED.get(request.unmeasured) or _invalid("unmeasured", f"unknown value {request.unmeasured}"),
+        unmeasured=unmeasured_of(request.unmeasured),
         min_island_px=request.min_island_px if request.HasField("min_island_px") else defaults.min_island_px,
         margin_cells=request.margin_cells,
     )
@@ -64,6 +64,15 @@ def options_from_request(request: meshing_pb2.BuildMeshRequest) -> MeshingOption
             "margin_cells", f"needs level_count 1 (a margin is one level's), got level_count {request.level_count}"
         )
     return options
+
+
+def unmeasured_of(code: int) -> Unmeasured:
+    """An UnmeasuredAreas value of a request (BuildMesh, ReconstructSpecimen) as mesh.outline's;
+    InvalidInputError naming `unmeasured` for a number the enumeration lacks."""
+    if code not in UNMEASURED:
+        known = ", ".join(f"{common_pb2.UnmeasuredAreas.Name(known)} ({known})" for known in UNMEASURED)
+        raise InvalidInputError("unmeasured", f"unknown value {code}; known: {known}")
+    return UNMEASURED[code]
 
 
 def _invalid(field: str, message: str):

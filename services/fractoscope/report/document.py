@@ -183,9 +183,15 @@ class _Pages:
     def line(self, kind: str, text: str, *, keep_with_next: float = 0) -> None:
         height_in = _LINE_IN * (1.6 if kind == "title" else 1.25 if kind == "heading" else 1.0)
         self._room(height_in + _LINE_IN * keep_with_next)
-        if text:
+        if text:  # plain text: lines hold users' names (image files), never mathtext
             self._page.text(
-                _MARGIN_IN / _PAGE_IN[0], 1 - self._used_in / _PAGE_IN[1], text, va="top", ha="left", **_STYLES[kind]
+                _MARGIN_IN / _PAGE_IN[0],
+                1 - self._used_in / _PAGE_IN[1],
+                text,
+                va="top",
+                ha="left",
+                parse_math=False,
+                **_STYLES[kind],
             )
         self._used_in += height_in
 

@@ -33,7 +33,8 @@ def views_figure(views: list[View]) -> Figure:
     for ax, view in zip(axes.ravel(), views):
         ax.imshow(view.pixels, cmap="gray", vmin=0, vmax=255, interpolation="antialiased")
         tilt = f", tilt {view.tilt_deg:+.3g}°" if math.isfinite(view.tilt_deg) else ""
-        ax.set_title(f"ROI {view.roi}, view {view.index} ({view.name}){tilt}", fontsize=8)
+        # The file's name is the user's text, never mathtext: `$\frac{1}{$` would fail every report.
+        ax.set_title(f"ROI {view.roi}, view {view.index} ({view.name}){tilt}", fontsize=8, parse_math=False)
     return figure
 
 

@@ -1,5 +1,5 @@
-"""Settings of a serving process: JSON logs, the garbage collector, and malloc's handling of freed
-memory (fracto-server, `make run` and in-process `fracto` commands)."""
+"""Settings of a serving process: JSON logs without credentials, the garbage collector, and
+malloc's handling of freed memory (fracto-server, `make run` and in-process `fracto` commands)."""
 
 from __future__ import annotations
 
@@ -7,6 +7,7 @@ import ctypes
 import gc
 import json
 import logging
+import re
 import sys
 import time
 
@@ -32,7 +33,50 @@ class JsonFormatter(logging.Formatter):
 def configure_logging(level: str) -> None:
     handler = logging.StreamHandler(sys.stdout)
     handler.setFormatter(JsonFormatter())
+    handler.addFilter(CREDENTIAL_FILTER)  # whatever logger a record comes from
     logging.basicConfig(level=level.upper(), handlers=[handler], force=True)
+
+
+# Credentials in a log line: a header's value to the end of its line, a bearer token, a query's token.
+_CREDENTIALS = re.compile(r"(?i)(authorization[ \t]*[:=][ \t]*)[^\r\n]*|(bearer[ \t]+)\S+|([?&;]token=)[^&\s]*")
+# gRPC's report of a metadata value that is not UTF-8 (grpc._cython.cygrpc._decode): it quotes the
+# value whole, an Authorization header's too, with or without "Bearer".
+_UNDECODABLE_METADATA = "Invalid encoding on "
+# The loggers of gRPC Python that log what a client sent (filters act on the logger a record is
+# made on, not on its parents).
+GRPC_LOGGERS = ("grpc._cython.cygrpc", "grpc._server", "grpc._common", "grpc._channel")
+
+
+def redacted(text: str) -> str:
+    """`text` with every credential _CREDENTIALS finds replaced by "[redacted]"."""
+    return _CREDENTIALS.sub(lambda found: (found[1] or found[2] or found[3]) + "[redacted]", text)
+
+
+class CredentialFilter(logging.Filter):
+    """Records without credentials: their message and traceback redacted (the traceback formatted
+    now, in place of the exception a handler would format), and gRPC's report of an undecodable
+    metadata value, which may be a token, without the value or its traceback (a warning)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        message = record.getMessage()
+        if message.startswith(_UNDECODABLE_METADATA):
+            message = "a call's metadata held a value that is not UTF-8 (not logged: it may be a credential)"
+            record.levelno, record.levelname, record.exc_info, record.exc_text = logging.WARNING, "WARNING", None, None
+        record.msg, record.args = redacted(message), None
+        if record.exc_info:
+            record.exc_text = redacted(logging.Formatter().formatException(record.exc_info))
+            record.exc_info = None
+        return True
+
+
+CREDENTIAL_FILTER = CredentialFilter()
+
+
+def filter_grpc_logs() -> None:
+    """Puts CREDENTIAL_FILTER on gRPC's own loggers (once: a filter is not added twice), for
+    servers whose process logs through handlers of its own."""
+    for name in GRPC_LOGGERS:
+        logging.getLogger(name).addFilter(CREDENTIAL_FILTER)
 
 
 def settle_garbage_collector() -> None:

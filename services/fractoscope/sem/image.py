@@ -79,6 +79,10 @@ class SemImage:
 
 # The smallest side an image may have, data bar excluded (a correlation window needs room).
 _MIN_SIDE_PX = 32
+# The longest side: OpenCV's remaps and warps refuse images of SHRT_MAX (32767) px or more a side.
+MAX_SIDE_PX = 32766
+# The most one side may be a multiple of the other (a stitched strip of views stays well within).
+MAX_ASPECT = 64
 
 
 def read_sem_image(content: bytes, *, field: str = "image") -> SemImage:
@@ -290,16 +294,33 @@ def _tiff_values(content: bytes, entry, order: str, big: bool, end: int) -> np.n
 
 
 def _check_size(shape, field: str) -> None:
-    """InvalidInputError unless a (rows, cols) `shape` is at least _MIN_SIDE_PX a side and within
-    the pixel limit."""
+    """InvalidInputError unless a (rows, cols) `shape` has sides that check_sides takes and is
+    within the pixel limit."""
+    check_sides(shape, field)
+    rows, cols = (int(v) for v in shape)
+    if rows * cols > MAX_IMAGE_PIXELS:
+        raise InvalidInputError(
+            field, f"{cols}x{rows} pixels is larger than the limit of {MAX_IMAGE_PIXELS} (FRACTO_MAX_IMAGE_PIXELS)"
+        )
+
+
+def check_sides(shape, field: str) -> None:
+    """InvalidInputError naming `field` unless an image or raster of (rows, cols) `shape` has
+    sides of _MIN_SIDE_PX to MAX_SIDE_PX and a ratio of at most MAX_ASPECT between them."""
     rows, cols = (int(v) for v in shape)
     if min(rows, cols) < _MIN_SIDE_PX:
         raise InvalidInputError(
             field, f"expected an image of at least {_MIN_SIDE_PX}x{_MIN_SIDE_PX} pixels, got {cols}x{rows}"
         )
-    if rows * cols > MAX_IMAGE_PIXELS:
+    if max(rows, cols) > MAX_SIDE_PX:
         raise InvalidInputError(
-            field, f"{cols}x{rows} pixels is larger than the limit of {MAX_IMAGE_PIXELS} (FRACTO_MAX_IMAGE_PIXELS)"
+            field,
+            f"{cols}x{rows} pixels has a side longer than {MAX_SIDE_PX} px, the most OpenCV's image "
+            "operations take (SHRT_MAX - 1)",
+        )
+    if max(rows, cols) > MAX_ASPECT * min(rows, cols):
+        raise InvalidInputError(
+            field, f"{cols}x{rows} pixels is more than {MAX_ASPECT} times as long as it is wide, not an SEM image"
         )
 
 

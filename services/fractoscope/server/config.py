@@ -13,8 +13,10 @@ here), FRACTO_STRIP_PIXELS and FRACTO_STRIP_IN_FLIGHT, FRACTO_HTTP_ADDRESS (host
 plain-HTTP tile endpoint; empty = off). Tokens (FRACTO_TOKENS, see auth) and TLS (FRACTO_TLS_CERT,
 FRACTO_TLS_KEY) likewise, and FRACTO_INSTRUMENTS (the instrument profiles file, see
 sem.instruments). FRACTO_WEB_ROOT (the installed web viewer, read by tiles.http; default
-sys.prefix/share/fractoscope/web) and FRACTO_UPLOAD_MAX_AGE_S (how long HTTP uploads are kept,
-read by tiles.uploads; default 24 h) have no flag.
+sys.prefix/share/fractoscope/web), FRACTO_HTTP_IDLE_TIMEOUT_S and FRACTO_HTTP_MAX_CONNECTIONS
+(how long an HTTP connection may go without a whole request, default 15 s, and how many are kept
+open, default 1000 and at most half the file descriptors; tiles.http) and FRACTO_UPLOAD_MAX_AGE_S
+(how long HTTP uploads are kept, read by tiles.uploads; default 24 h) have no flag.
 """
 
 from __future__ import annotations

@@ -28,7 +28,12 @@ from fractoscope.runtime.auth import AuthInterceptor, TokenTable, peer_token_pro
 from fractoscope.runtime.budget import MemoryBudget
 from fractoscope.runtime.decoding import MalformedRequests
 from fractoscope.runtime.jobs import JobRunner
-from fractoscope.runtime.process import configure_logging, keep_freed_memory, settle_garbage_collector
+from fractoscope.runtime.process import (
+    configure_logging,
+    filter_grpc_logs,
+    keep_freed_memory,
+    settle_garbage_collector,
+)
 from fractoscope.runtime.threads import ThreadPoolRouting
 from fractoscope.sem.instruments import InstrumentProfile, load_profiles, profiles_path
 from fractoscope.server.config import (
@@ -98,6 +103,7 @@ def create_server(
     The matching service farms strips of about `strip_pixels` to `strip_peers`, `strip_in_flight`
     at a time, and applies the `instruments` profiles images' metadata names."""
     _check_known(services)
+    filter_grpc_logs()  # a token in a call's metadata must not reach the log through gRPC's own lines
     build_workers = build_workers or default_build_workers()
     builds = JobRunner("builds", workers=build_workers, queue_limit=build_queue)
     strips = JobRunner("strips", workers=build_workers, queue_limit=build_queue)

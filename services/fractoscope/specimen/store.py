@@ -328,7 +328,7 @@ def scratch_folder(root: Path, purpose: str) -> Iterator[Path]:
     removed on exit. Its name carries `purpose` (lower-case letters and '-') and this process's
     identity, so that a store made by another process removes it only once this one has gone."""
     root.mkdir(parents=True, exist_ok=True)
-    folder = Path(tempfile.mkdtemp(prefix=f"{purpose}-{_process_identity(os.getpid())}-", dir=root))
+    folder = Path(tempfile.mkdtemp(prefix=f"{purpose}-{process_identity(os.getpid())}-", dir=root))
     try:
         yield folder
     finally:
@@ -344,11 +344,11 @@ def remove_abandoned_scratch(root: Path) -> None:
         return
     for folder in root.iterdir():
         named = _SCRATCH_NAME.fullmatch(folder.name)
-        if named and _process_identity(int(named["pid"])) != f"{named['pid']}.{named['start']}":
+        if named and process_identity(int(named["pid"])) != f"{named['pid']}.{named['start']}":
             shutil.rmtree(folder, ignore_errors=True)
 
 
-def _process_identity(pid: int) -> str | None:
+def process_identity(pid: int) -> str | None:
     """`{pid}.{start}` of a running process, its start time (clock ticks after boot, field 22 of
     /proc/PID/stat) telling it apart from a later process given the same pid, as a restarted
     container's server is; None when no process has that pid."""

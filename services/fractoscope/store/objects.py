@@ -5,12 +5,18 @@ publishing and leases rest on (If-Match, If-None-Match: *).
 AWS_ENDPOINT_URL, AWS_ACCESS_KEY_ID, AWS_SECRET_ACCESS_KEY and AWS_REGION (boto3 reads them),
 so the same flag points at AWS S3, MinIO, Ceph RGW or SeaweedFS. An unreachable server is
 UnavailableError (gRPC UNAVAILABLE, HTTP 503): callers retry.
+
+Every wait is bounded: a connection within CONNECT_TIMEOUT_S, each read within READ_TIMEOUT_S,
+ATTEMPTS tries in all; a server that did not answer so is held out of reach for OUTAGE_HOLD_S, its
+calls failing at once meanwhile (the first after it tries again), so that a frozen server costs
+a request one bounded wait, not one per object it reads.
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import NamedTuple
@@ -22,6 +28,10 @@ import botocore.exceptions
 
 from fractoscope.errors import InvalidInputError, UnavailableError
 
+CONNECT_TIMEOUT_S = 2.0
+READ_TIMEOUT_S = float(os.environ.get("FRACTO_S3_READ_TIMEOUT_S", "3"))
+ATTEMPTS = 2
+OUTAGE_HOLD_S = 5.0
 # Codes S3 servers answer a failed condition with: 412, or 409 for a concurrent conditional write.
 _PRECONDITION_CODES = {"PreconditionFailed", "ConditionalRequestConflict", "412", "409"}
 _MISSING_CODES = {"NoSuchKey", "404", "NotFound"}
@@ -54,13 +64,26 @@ class S3Objects:
         self.prefix = prefix.strip("/") + "/" if prefix.strip("/") else ""
         config = botocore.config.Config(
             max_pool_connections=max_pool,
-            retries={"max_attempts": 3, "mode": "standard"},
-            connect_timeout=5,
-            read_timeout=60,
+            retries={"total_max_attempts": ATTEMPTS, "mode": "standard"},
+            connect_timeout=CONNECT_TIMEOUT_S,
+            read_timeout=READ_TIMEOUT_S,
             s3={"addressing_style": "path"},
         )
         region = os.environ.get("AWS_REGION") or os.environ.get("AWS_DEFAULT_REGION") or "us-east-1"
         self._client = boto3.session.Session().client("s3", config=config, region_name=region)
+        self._out_of_reach: tuple[float, str] | None = None  # (until, monotonic s; why)
+
+    @property
+    def outage(self) -> str | None:
+        """Why the server is held out of reach now (see the module docstring), None when it is not."""
+        held = self._out_of_reach
+        return held[1] if held is not None and time.monotonic() < held[0] else None
+
+    def check(self) -> None:
+        """One bounded call (the bucket's first key): UnavailableError when the server does not
+        answer or refuses the bucket."""
+        with self._calling(""):
+            self._client.list_objects_v2(Bucket=self.bucket, Prefix=self.prefix, MaxKeys=1)
 
     @property
     def url(self) -> str:
@@ -110,7 +133,10 @@ class S3Objects:
 
     @contextlib.contextmanager
     def _calling(self, key: str) -> Iterator[None]:
-        """S3's answers as this module's errors; a server out of reach as UnavailableError."""
+        """S3's answers as this module's errors; a server out of reach as UnavailableError, at once
+        while it is held so (see the module docstring)."""
+        if (outage := self.outage) is not None:
+            raise UnavailableError(f"{outage}; retry in a few seconds")
         try:
             yield
         except botocore.exceptions.ClientError as error:
@@ -122,8 +148,12 @@ class S3Objects:
             if code in ("NoSuchBucket", "AccessDenied", "InvalidAccessKeyId", "SignatureDoesNotMatch"):
                 raise UnavailableError(f"the object store {self.url} refused {key!r}: {code}") from None
             raise
-        except (botocore.exceptions.EndpointConnectionError, botocore.exceptions.ConnectionError) as error:
-            raise UnavailableError(f"the object store {self.url} cannot be reached: {error}") from None
+        except (botocore.exceptions.ConnectionError, botocore.exceptions.HTTPClientError) as error:
+            # Refused, timed out connecting or reading, or cut off: a server not there or not answering.
+            why = f"the object store {self.url} cannot be reached ({type(error).__name__}: {error})"
+            self._out_of_reach = (time.monotonic() + OUTAGE_HOLD_S, why)
+            raise UnavailableError(why) from None
+        self._out_of_reach = None
 
 
 def open_objects(url: str) -> S3Objects:

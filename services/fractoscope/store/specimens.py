@@ -73,12 +73,13 @@ class ObjectSpecimenStore(StoredSpecimens):
             if listed.key.endswith(".json")
         )
 
-    def load(self, specimen_id: str) -> Specimen:
+    def load(self, specimen_id: str, *, fresh: bool = False) -> Specimen:
+        """The specimen as published: its pointer read again after pointer_ttl_s, or now when `fresh`."""
         validate_id(specimen_id, field="specimen_id")
         now = time.monotonic()
         with self._lock:
             cached = self._cache.get(specimen_id)
-        if cached and now - cached[0] < self.pointer_ttl_s:
+        if cached and now - cached[0] < self.pointer_ttl_s and not fresh:
             return cached[2]
         try:
             pointer = self.objects.get(_pointer_key(specimen_id))

@@ -33,7 +33,13 @@ from fractoscope.specimen import exports, quadtree, queries
 from fractoscope.specimen.store import SpecimenStore, validate_id
 from fractoscope.stereo.geometry import validate_pixel_size_um
 from fractoscope.tiles import openapi
-from fractoscope.tiles.build_jobs import DEFAULT_ANALYSIS_WORKERS, DEFAULT_QUEUED_ANALYSES, Analyses, BuildJobs
+from fractoscope.tiles.build_jobs import (
+    DEFAULT_ANALYSIS_WORKERS,
+    DEFAULT_QUEUED_ANALYSES,
+    Analyses,
+    BuildJobs,
+    FolderRecords,
+)
 from fractoscope.tiles.http_json import (
     CORS_HEADERS,
     JSON_TYPE,
@@ -124,7 +130,8 @@ class JsonApi:
         self.store = store
         self.tokens = tokens
         self.uploads = Uploads(uploads_root, max_upload_bytes, objects=store.objects)
-        self.jobs = BuildJobs(grpc_address, workers=build_workers, queue_limit=queued_builds, objects=store.objects)
+        records = store.objects or FolderRecords(uploads_root.parent)  # a folder store's: beside its uploads
+        self.jobs = BuildJobs(grpc_address, workers=build_workers, queue_limit=queued_builds, objects=records)
         self.analyses = Analyses(workers=analysis_workers, queue_limit=queued_analyses)
 
     async def handle(self, request: web.Request) -> web.StreamResponse:

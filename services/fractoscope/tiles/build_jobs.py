@@ -1,6 +1,10 @@
 """Work the HTTP API runs for its callers: reconstructions (ReconstructSpecimen calls on this
 server's own gRPC endpoint, followed as jobs) and analyses on a bounded pool.
 
+With a folder store, each job's state is also written to `DATA/jobs/{job_id}.json` as it changes,
+so that a job the server was running when it stopped (a kill, a restart) is reported failed
+(UNAVAILABLE) after it, as the object store's replicas report one of a stopped replica.
+
 With object storage (a store shared by replicas), each job's state is also written to
 `jobs/{job_id}.json` there as it changes, and at least every JOB_LOST_AFTER_S / 6 while it waits or
 runs, so any replica answers for a job another one runs; one whose record went unwritten for
@@ -17,16 +21,19 @@ import threading
 import time
 import uuid
 from collections import OrderedDict
+from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from http import HTTPStatus
+from pathlib import Path
 
 from google.protobuf import json_format
 
 from fractoscope.errors import FractoscopeError, InvalidInputError, NotFoundError
 from fractoscope.rpc.channel import open_channel
 from fractoscope.rpc.status import ClientError, raised_as_client_errors
-from fractoscope.store.objects import ObjectMissing, S3Objects
+from fractoscope.specimen.store import process_identity
+from fractoscope.store.objects import Listed, ObjectMissing, S3Objects, Stored
 from fractoscope.tiles.http_json import ApiError
 from fractoscope.v1 import tiles_pb2, tiles_pb2_grpc
 
@@ -60,6 +67,7 @@ class HttpBuildJob:
     specimen: dict | None = None
     error: dict | None = None
     updated_s: float = field(default_factory=time.time)  # when its record was last written
+    process: str | None = None  # the identity of the process that wrote its record (specimen.store)
 
     def as_dict(self) -> dict:
         return {
@@ -79,7 +87,7 @@ class HttpBuildJob:
         """The job as written to object storage now (as_dict with its times in seconds)."""
         self.updated_s = time.time()
         times = {"created_s": self.created_s, "finished_s": self.finished_s, "updated_s": self.updated_s}
-        return json.dumps({**self.as_dict(), **times}).encode()
+        return json.dumps({**self.as_dict(), **times, "process": process_identity(os.getpid())}).encode()
 
     @classmethod
     def from_record(cls, data: bytes) -> HttpBuildJob:
@@ -97,20 +105,59 @@ class HttpBuildJob:
             specimen=record["specimen"],
             error=record["error"],
             updated_s=record.get("updated_s", record["created_s"]),
+            process=record.get("process"),
         )
 
-    def lost(self, *, after_s: float) -> HttpBuildJob:
-        """This job as read from another replica's record: failed (UNAVAILABLE) when it is
-        unfinished and the record went unwritten for `after_s`."""
+    def lost(self, *, after_s: float, local: bool = False) -> HttpBuildJob:
+        """This job as read from a record another process wrote: failed (UNAVAILABLE) when it is
+        unfinished and the record went unwritten for `after_s` (another replica's), or, with
+        `local` (a record of this host's), its process no longer runs."""
+        if self.state not in _UNFINISHED:
+            return self
         silent_s = time.time() - self.updated_s
-        if self.state in _UNFINISHED and silent_s > after_s:
-            self.state, self.finished_s = "failed", self.updated_s
-            self.error = {
-                "error": f"the replica running this job stopped ({silent_s:.0f} s without word); submit it again",
-                "field": None,
-                "code": "UNAVAILABLE",
-            }
+        if local and not _running(self.process):
+            self._failed("the server stopped while it ran this job (it was restarted or killed); submit it again")
+        elif not local and silent_s > after_s:
+            self._failed(f"the replica running this job stopped ({silent_s:.0f} s without word); submit it again")
         return self
+
+    def _failed(self, message: str) -> None:
+        self.state, self.finished_s = "failed", self.updated_s
+        self.error = {"error": message, "field": None, "code": "UNAVAILABLE"}
+
+
+def _running(identity: str | None) -> bool:
+    """Whether the process of an identity (specimen.store.process_identity) still runs."""
+    return identity is not None and process_identity(int(identity.partition(".")[0])) == identity
+
+
+class FolderRecords:
+    """Job records in a local folder (a folder store's data directory), read and written as
+    S3Objects' are (`put`, `get`, `list`; ObjectMissing when there is none), each written whole
+    by a rename."""
+
+    local = True
+
+    def __init__(self, root: Path):
+        self.root = Path(root)
+
+    def put(self, key: str, data: bytes) -> None:
+        path = self.root / key
+        path.parent.mkdir(parents=True, exist_ok=True)
+        staged = path.with_name(f".{path.name}.{uuid.uuid4().hex}")
+        staged.write_bytes(data)
+        staged.replace(path)
+
+    def get(self, key: str) -> Stored:
+        try:
+            return Stored((self.root / key).read_bytes(), "")
+        except FileNotFoundError:
+            raise ObjectMissing(f"no record {key!r}") from None
+
+    def list(self, prefix: str) -> Iterator[Listed]:
+        folder = self.root / prefix
+        for path in sorted(folder.glob("*.json")) if folder.is_dir() else ():
+            yield Listed(f"{prefix}{path.name}", path.stat().st_mtime)
 
 
 class Analyses:
@@ -147,9 +194,10 @@ class Analyses:
 class BuildJobs:
     """Builds submitted over HTTP, each a ReconstructSpecimen call on `address` (this server's gRPC
     endpoint) with the submitter's token, at most `workers` at once and `queue_limit` waiting
-    (more get 429); the last `keep` jobs stay queryable here, and in `objects` (when given) all
-    of them, for every replica, another replica's unfinished job reported failed once its record
-    went unwritten for `lost_after_s`."""
+    (more get 429); the last `keep` jobs stay queryable here, and in `objects` (object storage,
+    or FolderRecords) all of them: in object storage for every replica, another replica's
+    unfinished job reported failed once its record went unwritten for `lost_after_s`; in a folder
+    for later processes, which report an unfinished job of a process gone as failed."""
 
     def __init__(
         self,
@@ -159,7 +207,7 @@ class BuildJobs:
         queue_limit: int,
         keep: int = 1000,
         timeout_s: float = 3600.0,
-        objects: S3Objects | None = None,
+        objects: S3Objects | FolderRecords | None = None,
         lost_after_s: float = JOB_LOST_AFTER_S,
     ):
         self.address = address
@@ -174,7 +222,7 @@ class BuildJobs:
         self._calls: set = set()  # the ReconstructSpecimen calls under way, cancelled by close()
         self.lost_after_s = lost_after_s
         self._closed = threading.Event()
-        if objects is not None:
+        if objects is not None and not getattr(objects, "local", False):
             threading.Thread(target=self._keep_records_fresh, name="fractoscope-job-records", daemon=True).start()
 
     @property
@@ -200,14 +248,14 @@ class BuildJobs:
         return job
 
     def _write(self, job: HttpBuildJob) -> None:
-        """The job's state to object storage, for the other replicas (when there is one). A store
-        out of reach costs only their view of it: the job goes on, and an unfinished one's record
-        is written again within lost_after_s / 6 (_keep_records_fresh)."""
+        """The job's state to its record (when it has one), for the other replicas or the next
+        process. A store out of reach costs only their view of it: the job goes on, and an
+        unfinished one's record is written again within lost_after_s / 6 (_keep_records_fresh)."""
         if self.objects is None:
             return
         try:
             self.objects.put(f"jobs/{job.id}.json", job.record())
-        except FractoscopeError as error:
+        except (FractoscopeError, OSError) as error:  # OSError: a folder's disk full
             logger.warning("job %s: its record could not be written: %s", job.id, error)
 
     def _stored(self, job_id: str) -> HttpBuildJob | None:
@@ -227,7 +275,7 @@ class BuildJobs:
                 self._finished[job_id] = job
                 while len(self._finished) > self._keep:
                     self._finished.popitem(last=False)
-        return job.lost(after_s=self.lost_after_s)
+        return job.lost(after_s=self.lost_after_s, local=getattr(self.objects, "local", False))
 
     def listed(self) -> list[HttpBuildJob]:
         """Every job known here and, with object storage, every replica's, oldest first."""

@@ -1,9 +1,12 @@
 """Plain HTTP for standard 3D Tiles viewers and our web viewer.
 
 - `/specimens/{id}/tileset.json` and the tiles it names, each under its one URI (a tile number
-  zero-padded or in other digits is a 404, not another cache entry): CORS headers (viewers run on
+  zero-padded, in other digits or percent-encoded is a 404, not another cache entry; a tile of a
+  build since replaced, `?v=OLD`, is 410 Gone, the current build's bytes never): CORS headers (viewers run on
   other origins), gzip when Accept-Encoding accepts it (q > 0), a strong ETag per representation
   (the gzip one has its own) and 304 when If-None-Match holds it (weak comparison, RFC 9110).
+- `/livez` 200 while the process answers; `/healthz` 200, or 503 "degraded" while the object store
+  is out of reach (a liveness probe asks the first: restarting cannot mend the store).
 - `/viewer/` the web viewer (the installed clients/web package, see WEB_ROOT) and `/vendor/` the
   three.js and 3DTilesRendererJS modules it imports (that package's node_modules).
 - `/api/` the HTTP/JSON API (tiles.api, described at `/api/openapi.json`), which the
@@ -13,14 +16,18 @@
 from __future__ import annotations
 
 import asyncio
+import functools
 import gzip
 import hashlib
 import json
 import logging
+import math
 import os
 import re
+import resource
 import sys
 import threading
+import time
 import urllib.parse
 from http import HTTPStatus
 from pathlib import Path
@@ -32,6 +39,7 @@ from aiohttp.log import server_logger
 from fractoscope.errors import FractoscopeError, NotFoundError, outcome_of
 from fractoscope.runtime.auth import TokenTable
 from fractoscope.runtime.caches import BoundedCache
+from fractoscope.runtime.process import CredentialFilter
 from fractoscope.specimen.quadtree import TILE_URI
 from fractoscope.specimen.store import SpecimenStore
 from fractoscope.tiles.api import JsonApi
@@ -90,6 +98,8 @@ class _TileApp:
         self.cache = body_cache()
         self.tokens = tokens
         self.api = api
+        self._check: asyncio.Future | None = None  # the object store's last health check (_store_problem)
+        self._checked_s = -math.inf
 
     async def handle(self, request: web.Request) -> web.StreamResponse:
         if request.method == "OPTIONS":
@@ -111,7 +121,12 @@ class _TileApp:
         if request.method not in ("GET", "HEAD"):
             return _plain(HTTPStatus.METHOD_NOT_ALLOWED, "only GET, HEAD and OPTIONS\n", Allow="GET, HEAD, OPTIONS")
         path = request.path
+        if path == "/livez":  # the process answers: what a liveness probe asks, whatever the store's state
+            return _plain(HTTPStatus.OK, "ok\n")
         if path == "/healthz":
+            problem = await self._store_problem()
+            if problem is not None:
+                return _plain(HTTPStatus.SERVICE_UNAVAILABLE, f"degraded: {problem}\n", **{"Retry-After": "5"})
             return _plain(HTTPStatus.OK, "ok\n")
         if path == "/":
             return web.Response(status=HTTPStatus.FOUND, headers={"Location": "/viewer/"})
@@ -121,15 +136,20 @@ class _TileApp:
                 return _plain(HTTPStatus.UNAUTHORIZED, "a valid bearer token is required\n")
         if (static := _STATIC.fullmatch(path)) is not None:
             return await self._static(request, static["area"], static["path"] or "index.html")
-        route = _ROUTE.fullmatch(path)
+        # Matched as sent: `tiles%2F0%2F0%2F0.glb` decodes to a tile's path but is not its URI.
+        route = _ROUTE.fullmatch(request.raw_path.partition("?")[0])
         if route is None:
             return _plain(HTTPStatus.NOT_FOUND, "not found\n")
         relative = route["path"]
+        build = (request.query.get("v") or None) if relative != "tileset.json" else None
         try:
-            if self.store.objects is None:  # a folder's: one stat
-                specimen = self.store.load(route["specimen"])
-            else:  # a bucket's pointer may be read again, over the network: never on the event loop
-                specimen = await _off_loop(self.store.load, route["specimen"])
+            specimen = await self._specimen(route["specimen"], build)
+            if build is not None and build != str(specimen.version):
+                return _plain(
+                    HTTPStatus.GONE,
+                    f"build {build} of specimen {specimen.id!r} was replaced; load its tileset.json again\n",
+                    **{"Cache-Control": "no-store"},
+                )
             content = (
                 (lambda: versioned_tileset(specimen.tileset_bytes, specimen.version))
                 if relative == "tileset.json"
@@ -144,11 +164,39 @@ class _TileApp:
             status = HTTPStatus(outcome_of(error).http_status)
             retry = {"Retry-After": "5"} if status == HTTPStatus.SERVICE_UNAVAILABLE else {}
             return _plain(status, f"{error}\n", **retry)
-        if relative == "tileset.json" or request.query.get("v") != str(specimen.version):
-            caching = _SHORT_CACHING
-        else:
-            caching = _TILE_CACHING
+        caching = _SHORT_CACHING if build is None else _TILE_CACHING
         return _body_response(request, body, _TYPES[relative[relative.rfind(".") :]], caching)
+
+    async def _store_problem(self) -> str | None:
+        """Why the store cannot serve now (None: it can): an object store held out of reach, or
+        one that failed or did not answer within HEALTH_WAIT_S a check made at most every
+        HEALTH_CHECK_EVERY_S (calls waiting meanwhile share it)."""
+        objects = self.store.objects
+        if objects is None:
+            return None
+        if objects.outage is not None:
+            return objects.outage
+        now_s = time.monotonic()
+        if self._check is None or (self._check.done() and now_s - self._checked_s >= HEALTH_CHECK_EVERY_S):
+            self._check, self._checked_s = asyncio.ensure_future(_off_loop(objects.check)), now_s
+        try:
+            await asyncio.wait_for(asyncio.shield(self._check), HEALTH_WAIT_S)
+        except TimeoutError:
+            return f"the object store {objects.url} did not answer within {HEALTH_WAIT_S:g} s"
+        except FractoscopeError as error:
+            return str(error)
+        return None
+
+    async def _specimen(self, specimen_id: str, build: str | None):
+        """The stored specimen; when a tile of another build than the one known here is asked for,
+        the store is asked again (a bucket's replica may not have seen a new build yet)."""
+        if self.store.objects is None:  # a folder's: one stat
+            return self.store.load(specimen_id)
+        # A bucket's pointer may be read again, over the network: never on the event loop.
+        specimen = await _off_loop(self.store.load, specimen_id)
+        if build is not None and build != str(specimen.version):
+            specimen = await _off_loop(functools.partial(self.store.load, specimen_id, fresh=True))
+        return specimen
 
     async def _static(self, request: web.Request, area: str, relative: str) -> web.StreamResponse:
         if area == "viewer":
@@ -164,10 +212,13 @@ class _TileApp:
         return _body_response(request, body, _TYPES[path.suffix])
 
 
+# /healthz checks an object store at most this often, and waits at most this long for it, s.
+HEALTH_CHECK_EVERY_S, HEALTH_WAIT_S = 5.0, 4.0
 _CORS = {"Access-Control-Allow-Origin": "*", "Access-Control-Expose-Headers": "ETag, Content-Encoding"}
 # A tile's bytes never change within a build: tileset.json names each tile with its build
-# (`?v=`, see versioned_tileset), and a tile asked for under its current build is cached for good.
-# tileset.json itself, and a tile asked for without the current build, are looked at again soon.
+# (`?v=`, see versioned_tileset), and a tile asked for under its current build is cached for good;
+# under a build since replaced, it is 410 Gone (the viewer then loads the tileset again).
+# tileset.json itself, and a tile asked for without a build, are looked at again soon.
 _TILE_CACHING = "public, max-age=31536000, immutable"
 _SHORT_CACHING = "public, max-age=10"
 
@@ -240,33 +291,108 @@ def _plain(status: HTTPStatus, text: str, **headers: str) -> web.Response:
     )
 
 
-# Credentials in a log line: a header's value to the end of its line, a bearer token, a query's token.
-_CREDENTIALS = re.compile(r"(?i)(authorization[ \t]*[:=][ \t]*)[^\r\n]*|(bearer[ \t]+)\S+|([?&;]token=)[^&\s]*")
-
-
-def _redacted(text: str) -> str:
-    return _CREDENTIALS.sub(lambda found: (found[1] or found[2] or found[3]) + "[redacted]", text)
-
-
-class _CredentialFilter(logging.Filter):
+class _CredentialFilter(CredentialFilter):
     """aiohttp's server log without credentials: a request its parser refuses (anyone's input) is
     logged at DEBUG without a traceback, not at ERROR with one whose message quotes the refused line,
-    Authorization header and all; every record's message and traceback are redacted."""
+    Authorization header and all; every record is redacted (CredentialFilter)."""
 
     def filter(self, record: logging.LogRecord) -> bool:
         error = record.exc_info[1] if record.exc_info else None
         if isinstance(error, HttpProcessingError):
             record.msg, record.args = f"{record.getMessage()}: {error.message}", None
             record.levelno, record.levelname, record.exc_info, record.exc_text = logging.DEBUG, "DEBUG", None, None
-        record.msg, record.args = _redacted(record.getMessage()), None
-        if record.exc_info:  # formatted now, redacted, in place of the exception a handler would format
-            record.exc_text = _redacted(logging.Formatter().formatException(record.exc_info))
-            record.exc_info = None
+        super().filter(record)
         # The logger's level was checked at the record's first level; a downgraded one is checked again.
         return record.levelno > logging.DEBUG or server_logger.isEnabledFor(logging.DEBUG)
 
 
 _CREDENTIAL_FILTER = _CredentialFilter()
+
+
+# How long a connection may go without a whole request, its first one's headers included, s:
+# an idle socket costs a file descriptor, and a slow client's headers hold one open.
+IDLE_TIMEOUT_S = float(os.environ.get("FRACTO_HTTP_IDLE_TIMEOUT_S", "15"))
+# Connections kept open at most (FRACTO_HTTP_MAX_CONNECTIONS, and never more than half the file
+# descriptors the process may open): a new one beyond closes the oldest idle one.
+DEFAULT_MAX_CONNECTIONS = 1000
+
+
+def max_connections() -> int:
+    """FRACTO_HTTP_MAX_CONNECTIONS (default DEFAULT_MAX_CONNECTIONS), at most half RLIMIT_NOFILE's
+    soft limit, leaving the rest to files, gRPC and the object store."""
+    wanted = int(os.environ.get("FRACTO_HTTP_MAX_CONNECTIONS", DEFAULT_MAX_CONNECTIONS))
+    return max(8, min(wanted, resource.getrlimit(resource.RLIMIT_NOFILE)[0] // 2))
+
+
+class _CappedSite(web.TCPSite):
+    """A TCP site that keeps at most `max_connections` open: each new connection beyond closes the
+    oldest idle ones (those without a request in a handler: `busy`, see _track_busy), so that
+    idle or slow clients cannot take every descriptor from those that send requests. Sockets are
+    accepted a quarter of the cap at a time at most (the listen backlog), so that a burst cannot
+    overshoot it by much before the cap acts."""
+
+    def __init__(self, runner: web.AppRunner, host: str, port: int, *, max_connections: int, busy: set, **options):
+        super().__init__(runner, host, port, backlog=max(1, min(128, max_connections // 4)), **options)
+        self._max_connections, self._busy = max_connections, busy
+
+    async def start(self) -> None:
+        await web.BaseSite.start(self)  # registers the site; TCPSite.start would bind its own factory
+        server = self._runner.server
+
+        def protocol():
+            handlers = server.connections
+            excess = len(handlers) + 1 - self._max_connections
+            for idle in [handler for handler in handlers if handler not in self._busy][: max(0, excess)]:
+                idle.force_close()  # waits for nothing: close() would leave an idle one's socket open
+            return server()
+
+        self._server = await asyncio.get_running_loop().create_server(
+            protocol, self._host, self._port, reuse_address=self._reuse_address, backlog=self._backlog
+        )
+        self._bound_port = self._server.sockets[0].getsockname()[1]
+
+
+def _track_busy(busy: set):
+    """A middleware that keeps in `busy` the connections (request.protocol) whose request a
+    handler is answering."""
+
+    @web.middleware
+    async def tracked(request: web.Request, handler):
+        busy.add(request.protocol)
+        try:
+            return await handler(request)
+        finally:
+            busy.discard(request.protocol)
+
+    return tracked
+
+
+class _AcceptErrors:
+    """The HTTP loop's handler of exceptions no task catches: asyncio's report that accept() ran
+    out of descriptors (EMFILE, which it retries every second, each time with a traceback) is
+    logged at most once every ACCEPT_ERROR_EVERY_S without one, counting the ones left out;
+    everything else goes to asyncio's default handler."""
+
+    def __init__(self):
+        self._last_s, self._left_out = -math.inf, 0
+
+    def __call__(self, loop: asyncio.AbstractEventLoop, context: dict) -> None:
+        if not context.get("message", "").startswith("socket.accept() out of system resource"):
+            loop.default_exception_handler(context)
+            return
+        now_s = time.monotonic()
+        if now_s - self._last_s < ACCEPT_ERROR_EVERY_S:
+            self._left_out += 1
+            return
+        _log.error(
+            f"{context['message']}: {context.get('exception')!r} (file descriptors run out; "
+            f"{self._left_out} more such reports left out since the last)"
+        )
+        self._last_s, self._left_out = now_s, 0
+
+
+ACCEPT_ERROR_EVERY_S = 10.0
+_log = logging.getLogger("fractoscope.http")
 
 
 class HttpTileServer:
@@ -277,7 +403,8 @@ class HttpTileServer:
         self._loop = asyncio.new_event_loop()
         self._api = api
         app = _TileApp(store, tokens, api)
-        application = web.Application()
+        busy: set = set()
+        application = web.Application(middlewares=[_track_busy(busy)])
         application.router.add_route("*", r"/{tail:[\s\S]*}", app.handle)  # any path, new lines too
         self._runner = web.AppRunner(
             application,
@@ -285,9 +412,11 @@ class HttpTileServer:
             handle_signals=False,
             max_line_size=_PARSER_LINE_BYTES,
             max_field_size=_PARSER_LINE_BYTES,
+            keepalive_timeout=IDLE_TIMEOUT_S,  # from the connection's start too: a header timeout
         )
+        self._loop.set_exception_handler(_AcceptErrors())
         self._loop.run_until_complete(self._runner.setup())
-        site = web.TCPSite(self._runner, host, port, reuse_address=True)
+        site = _CappedSite(self._runner, host, port, max_connections=max_connections(), busy=busy, reuse_address=True)
         self._loop.run_until_complete(site.start())
         self.server_port: int = self._runner.addresses[0][1]
         self._thread = threading.Thread(target=self._loop.run_forever, name="fractoscope-http", daemon=True)

@@ -12,7 +12,7 @@ import zlib
 from http import HTTPStatus
 
 import numpy as np
-from aiohttp import web
+from aiohttp import BodyPartReader, web
 from aiohttp.http_exceptions import HttpProcessingError
 from numpy.lib import format as npy_format
 
@@ -147,7 +147,8 @@ async def json_body(request: web.Request, *, limit_bytes: int) -> dict:
 async def small_form(request: web.Request, *, files: set[str], fields: set[str], limit_bytes: int) -> dict:
     """A multipart form held in memory: the `fields` as str, the `files` parts as bytes."""
     form, total = {}, 0
-    async for part in form_parts(await multipart_reader(request, limit_bytes=limit_bytes)):
+    parts = form_parts(await multipart_reader(request, limit_bytes=limit_bytes), max_parts=len(files | fields) + 1)
+    async for part in parts:
         name = part.name or ""
         if name not in files | fields:
             raise InvalidInputError(name or "body", f"is not a part of this form ({', '.join(sorted(files | fields))})")
@@ -169,8 +170,11 @@ async def small_form(request: web.Request, *, files: set[str], fields: set[str],
     return form
 
 
-async def form_parts(reader):
-    """The parts of a multipart body; a malformed one is the caller's error, not ours."""
+async def form_parts(reader, *, max_parts: int):
+    """The parts of a multipart body, at most `max_parts` of them (413 for more: each costs a
+    file or a buffer, and parsing them all would hold the event loop); a malformed one, or a
+    nested multipart body (multipart/mixed), is the caller's error, not ours."""
+    count = 0
     while True:
         try:
             part = await reader.next()
@@ -178,6 +182,20 @@ async def form_parts(reader):
             raise InvalidInputError("body", f"is not valid multipart/form-data: {first_line(error)}") from None
         if part is None:
             return
+        if not isinstance(part, BodyPartReader):
+            raise InvalidInputError(
+                "body",
+                f"part {count + 1} is itself multipart ({part.headers.get('Content-Type')}); "
+                "send each file as a part of its own",
+            )
+        count += 1
+        if count > max_parts:
+            raise ApiError(
+                HTTPStatus.REQUEST_ENTITY_TOO_LARGE,
+                f"the body has more than {max_parts} parts",
+                "body",
+                Connection="close",
+            )
         yield part
 
 

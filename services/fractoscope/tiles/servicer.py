@@ -19,7 +19,6 @@ from fractoscope.errors import (
     error_of_code,
 )
 from fractoscope.formats.exports import MEDIA_TYPES
-from fractoscope.mesh.outline import Unmeasured
 from fractoscope.mesh.pipeline import EncodedTile, MeshReport
 from fractoscope.meshing import messages as rpc_meshing
 from fractoscope.progress import ProgressCallback, silent
@@ -263,6 +262,7 @@ class TileServicer(tiles_pb2_grpc.TileServiceServicer):
     @abort_on_error
     def ReconstructSpecimen(self, request, context):
         specimen_id = validate_id(request.specimen_id, field="specimen_id")
+        rpc_meshing.unmeasured_of(request.unmeasured)  # checked before it takes a place in the queue
         digest = rpc_tiles.request_digest(request) if request.request_id else ""
         stored = self._stored(specimen_id, request.request_id, digest)
         if stored is None:
@@ -332,7 +332,7 @@ class TileServicer(tiles_pb2_grpc.TileServiceServicer):
                 request_id=request.request_id,
                 request_digest=digest,
                 progress=job.progress,
-                unmeasured=rpc_meshing.UNMEASURED.get(request.unmeasured, Unmeasured.ABSENT),
+                unmeasured=rpc_meshing.unmeasured_of(request.unmeasured),
             )
 
     @abort_on_error

@@ -21,7 +21,7 @@ from typing import NamedTuple
 from aiohttp import web
 
 from fractoscope.errors import InvalidInputError, NotFoundError
-from fractoscope.rpc.limits import MAX_REQUEST_ID_CHARS
+from fractoscope.rpc.limits import MAX_REQUEST_ID_CHARS, MAX_ROIS
 from fractoscope.rpc.manifest import manifest_field, parse_manifest
 from fractoscope.sem.image import read_sem_image
 from fractoscope.specimen.store import validate_id
@@ -38,6 +38,9 @@ _UPLOAD_ID = re.compile(r"[0-9a-f]{32}")
 _COMPLETE = "complete"
 
 DEFAULT_MAX_UPLOAD_BYTES = 512 * 1024 * 1024
+# Parts of one upload: a manifest, a request id and the images of MAX_ROIS ROIs, a tilt series of
+# 15 views each (a part beyond is refused as it comes, before it costs a file).
+MAX_UPLOAD_PARTS = 2 + MAX_ROIS * 15
 # Long enough to submit a build the next day; short enough that abandoned uploads do not fill the disk.
 DEFAULT_MAX_AGE_S = 24 * 3600.0
 
@@ -148,7 +151,7 @@ class Uploads:
 
     async def _receive_parts(self, reader, staging: Path) -> None:
         total, fields = 0, {}
-        async for part in form_parts(reader):
+        async for part in form_parts(reader, max_parts=MAX_UPLOAD_PARTS):
             name = part.name or ""
             if name in ("manifest", "request_id"):
                 target, label = staging / f"{name}.field", name
@@ -174,7 +177,7 @@ class Uploads:
                         raise ApiError(
                             HTTPStatus.REQUEST_ENTITY_TOO_LARGE, f"the upload exceeds {self.max_bytes} bytes", label
                         )
-                    out.write(chunk)
+                    await off_loop(out.write, chunk)  # a slow disk must not hold every connection
             fields[name] = True
         if "manifest" not in fields:
             raise InvalidInputError("manifest", "is required: the specimen manifest (JSON)")

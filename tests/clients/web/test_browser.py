@@ -4,7 +4,9 @@ bench-results/browser/ (not committed)."""
 
 import base64
 import json
+import os
 import re
+import shutil
 import subprocess
 import time
 from pathlib import Path
@@ -327,3 +329,39 @@ def test_a_build_submitted_over_http_shows_its_progress_in_the_page(pollen_serie
     assert "building" in result["states"], result  # seen under way, not only once done
     fractions = [float(value.rstrip("%")) for value in result["fractions"]]
     assert fractions and fractions == sorted(fractions), result  # a bar while it ran, never going back
+
+
+def test_a_specimen_rebuilt_while_shown_opens_again_with_the_view_kept(built, tmp_path):
+    """Tiles asked for under a build since replaced are 410 Gone (issue 49, item 9): the viewer
+    opens the specimen again, as it is now, with its camera, and settles with nothing failed."""
+    _, _, data, _ = built
+    copy = tmp_path / "data"
+    shutil.copytree(data / "specimens", copy / "specimens")
+    http = start_http_server(SpecimenStore(copy))
+    base, ready, go = f"http://127.0.0.1:{http.server_port}", tmp_path / "ready", tmp_path / "go"
+    script = Path(__file__).resolve().parent / "replaced_build.mjs"
+    try:
+        page = subprocess.Popen(
+            ["node", str(script), base, "synthetic", str(ready), str(go)],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            cwd=ROOT,
+        )
+        deadline = time.monotonic() + STUCK_AFTER_S
+        while not ready.exists():
+            assert page.poll() is None, page.stderr.read()[-3000:]
+            assert time.monotonic() < deadline, "the page did not settle"
+            time.sleep(0.2)
+        description = copy / "specimens" / "synthetic" / "specimen.json"
+        os.utime(description, ns=(time.time_ns(), time.time_ns()))  # a new build of the same content
+        go.write_text("")
+        out, err = page.communicate(timeout=900)
+        assert page.returncode == 0, err[-3000:]
+    finally:
+        http.shutdown()
+    result = json.loads(out.splitlines()[-1])
+    (_artefacts("replaced-build") / "result.json").write_text(json.dumps(result, indent=1))
+    assert result["gone"] >= 1 and result["status"]["reopened"] == 1, result
+    assert result["status"]["failed"] == 0 and result["status"]["loaded"] >= 1 and not result["console"], result
+    assert np.allclose(result["after"], result["before"], rtol=1e-6, atol=1e-12), result  # the view kept

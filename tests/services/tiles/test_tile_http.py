@@ -116,7 +116,8 @@ def test_gzip_is_sent_only_where_accept_encoding_weighs_it_above_zero(endpoint):
 
 def test_tiles_are_cached_for_good_only_under_their_build(endpoint, tmp_path):
     """tileset.json names each tile with its build; such a URL never changes its bytes, so it is
-    immutable. After a rebuild the tileset names new URLs, and an old one is only briefly cached."""
+    immutable. After a rebuild the tileset names new URLs, and an old one is 410 Gone; a tile
+    asked for without a build is the current one's, only briefly cached."""
     tileset = {"asset": {"version": "1.1"}, "root": {"content": {"uri": "tiles/0/0/0.glb"}, "children": []}}
     store = SpecimenStore(tmp_path / "data")
     (store.root / "steel-1" / "tileset.json").write_text(json.dumps(tileset))
@@ -127,9 +128,11 @@ def test_tiles_are_cached_for_good_only_under_their_build(endpoint, tmp_path):
     assert uri == f"tiles/0/0/0.glb?v={urllib.parse.quote(version, safe='')}"
     status, headers, _ = _get(endpoint, f"/specimens/steel-1/{uri}")
     assert status == 200 and headers["Cache-Control"] == "public, max-age=31536000, immutable"
-    for stale in ("tiles/0/0/0.glb", "tiles/0/0/0.glb?v=1", "tiles/0/0/0.glb?v="):
-        status, headers, _ = _get(endpoint, f"/specimens/steel-1/{stale}")
-        assert status == 200 and headers["Cache-Control"] == "public, max-age=10", stale
+    for unnamed in ("tiles/0/0/0.glb", "tiles/0/0/0.glb?v="):
+        status, headers, _ = _get(endpoint, f"/specimens/steel-1/{unnamed}")
+        assert status == 200 and headers["Cache-Control"] == "public, max-age=10", unnamed
+    status, headers, _ = _get(endpoint, "/specimens/steel-1/tiles/0/0/0.glb?v=1")
+    assert status == 410 and headers["Cache-Control"] == "no-store"
 
 
 def test_if_none_match_compares_entity_tags_weakly(endpoint):
