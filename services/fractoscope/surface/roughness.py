@@ -30,7 +30,7 @@ import numba
 import numpy as np
 
 from fractoscope.errors import InvalidInputError
-from fractoscope.surface import areal_parameters, form_removal, iso_filters, scaling, uncertainty
+from fractoscope.surface import areal_parameters, form_removal, iso_filters, measurement, scaling, uncertainty
 
 FORMS = ("none", *form_removal.FORMS)
 HURST_METHODS = ("hhc", "psd")
@@ -125,6 +125,8 @@ class SurfaceAnalysis:
     hurst: the Hurst fits.
     psd_q_per_um, psd_um4: the radially averaged areal PSD of the S-F surface (cycles/µm, µm⁴).
     form_parameters: the fitted form's geometry (form_removal.FormFit.parameters).
+    coverage: what share of the map was measured, filled (and left out) or unknown (None: not
+        told, a map analysed as it is).
     """
 
     chain: SurfaceChain
@@ -136,6 +138,7 @@ class SurfaceAnalysis:
     psd_q_per_um: np.ndarray
     psd_um4: np.ndarray
     form_parameters: dict = field(default_factory=dict)
+    coverage: measurement.Coverage | None = None
 
     def legacy(self) -> dict:
         """The keys Fractoscope reported before the chain: Sa ... Sdr, and the Hurst exponent by

@@ -304,7 +304,7 @@ def roughness_of_file(path: Path, chain: dict, *, pixel_size_um: float | None) -
     from fractoscope.stereo.matching import DEFAULT_WINDOW_PX
     from fractoscope.tiles.messages import roughness_response
 
-    sigma_um, tilt_rel, origin_um = None, None, (0.0, 0.0)
+    sigma_um, tilt_rel, origin_um, filled = None, None, (0.0, 0.0), None
     if path.suffix.lower() == ".x3p":
         surface = read_x3p(path)
         if not np.isclose(surface.step_x_um, surface.step_y_um, rtol=1e-6):
@@ -313,7 +313,7 @@ def roughness_of_file(path: Path, chain: dict, *, pixel_size_um: float | None) -
     else:
         stored = read_height_npz(path)
         z_um, file_pixel_um, window_px = stored.z_um.astype(np.float64), stored.pixel_size_um, DEFAULT_WINDOW_PX
-        sigma_um, tilt_rel = _matching_noise(stored)
+        (sigma_um, tilt_rel), filled = _matching_noise(stored), stored.filled
     pixel_um = pixel_size_um if pixel_size_um is not None else recorded_pixel_size_um(path, file_pixel_um)
     request = ChainRequest(**chain)
     analysis = roughness_of_map(
@@ -321,6 +321,7 @@ def roughness_of_file(path: Path, chain: dict, *, pixel_size_um: float | None) -
         pixel_size_um=pixel_um,
         origin_um=origin_um,
         sigma_um=sigma_um,
+        filled=filled,
         tilt_rel_uncertainty=tilt_rel,
         chain=request,
         default_window_px=window_px,
@@ -329,10 +330,9 @@ def roughness_of_file(path: Path, chain: dict, *, pixel_size_um: float | None) -
 
 
 def _matching_noise(stored) -> tuple[np.ndarray | None, float | None]:
-    """The matching noise of a height map file (formats.height_npz.HeightMapFile), µm, on its grid
-    (unknown points: the median), and the relative height error its tilts' uncertainty makes
-    (None: not recorded): the chain propagates the tilt part, which scales all heights together,
-    apart from the noise."""
+    """The matching noise of a height map file (formats.height_npz.HeightMapFile), µm, on its grid,
+    and the relative height error its tilts' uncertainty makes (None: not recorded): the chain
+    propagates the tilt part, which scales all heights together, apart from the noise."""
     from fractoscope.stereo import geometry
     from fractoscope.stereo.inputs import MatchingOptions
 
@@ -345,9 +345,6 @@ def _matching_noise(stored) -> tuple[np.ndarray | None, float | None]:
         tilt_rel = geometry.series_relative_height_error(
             stored.calibration.tilt_deg, tilt_uncertainty_deg=tilt_uncertainty
         )
-    if sigma_um is not None:
-        known = np.isfinite(sigma_um) & np.isfinite(stored.z_um)
-        sigma_um = np.where(known, sigma_um, np.median(sigma_um[known]) if known.any() else 0.0)
     return sigma_um, tilt_rel
 
 
@@ -381,6 +378,7 @@ def report_of_file(path: Path, outputs: list[Path], *, pixel_size_um: float | No
                 **stored.record.get("report", {}),
             },
             sigma_um=sigma_um,
+            filled=stored.filled,
             tilt_rel_uncertainty=tilt_rel,
             datum=stored.record.get("datum"),
         )

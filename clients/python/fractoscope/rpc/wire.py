@@ -249,7 +249,8 @@ def response_to_roughness(response: tiles_pb2.GetRoughnessResponse) -> dict:
     "hurst" (one dict per fit: method "hhc" or "psd", side "along" or "across", direction_deg,
     hurst, hurst_stderr, fit_min_um, fit_max_um, fit_min_windows, scale_um, value, in_fit,
     not_determinable: why H is not determinable, "" when it is),
-    "hurst_note" and "psd" {"q_per_um", "c_um4"}. Unknown numbers are None."""
+    "hurst_note", "psd" {"q_per_um", "c_um4"} and "coverage" {"measured_fraction",
+    "filled_fraction", "unknown_fraction"} (None: not told). Unknown numbers are None."""
     values = {name: _number(getattr(response, field)) for name, field in _ROUGHNESS_FIELDS.items()}
     values |= {parameter.name: _number(parameter.value) for parameter in response.parameters}
     values |= {name: _number(getattr(response, name)) for name in _HURST_FIELDS}
@@ -282,6 +283,14 @@ def response_to_roughness(response: tiles_pb2.GetRoughnessResponse) -> dict:
     ]
     values["hurst_note"] = response.hurst_note
     values["psd"] = {"q_per_um": list(response.psd_q_per_um), "c_um4": [_number(v) for v in response.psd_um4]}
+    values["coverage"] = (
+        {
+            name: getattr(response.coverage, name)
+            for name in ("measured_fraction", "filled_fraction", "unknown_fraction")
+        }
+        if response.HasField("coverage")
+        else None
+    )
     return values
 
 
