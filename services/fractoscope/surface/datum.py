@@ -122,7 +122,8 @@ def level_heights(
     if isinstance(level, str):
         if level not in LEVELS:
             raise ValueError(f"level must be one of {', '.join(LEVELS)} or a region, not {level!r}")
-        region = known if level == "plane" else _substrate(z, known, pixel_size_um)
+        # The substrate grows over measured points only: a fill across a hole is no level.
+        region = known if level == "plane" else _substrate(z, measured, pixel_size_um)
         name, region_um = level, None
     else:
         region_um, region = _region(level, known, pixel_size_um)

@@ -305,6 +305,7 @@ def roughness_response(analysis: SurfaceAnalysis, request: ChainRequest) -> tile
     response.psd_um4.extend(analysis.psd_um4)
     if analysis.coverage is not None:
         response.coverage.CopyFrom(coverage_message(analysis.coverage.to_dict()))
+    response.caveats.extend(analysis.caveats)
     return response
 
 
