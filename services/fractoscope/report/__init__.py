@@ -68,21 +68,7 @@ def build_document(content: ReportContent) -> Document:
     from fractoscope.report import figures  # matplotlib's figures only when a report is drawn
 
     document = Document(f"Measurement report: {content.subject}, {content.area_label}")
-    covered = content.area.coverage
-    document.add(
-        Table(
-            ["", ""],
-            [
-                [Cell("source"), Cell(content.subject)],
-                [Cell("area"), Cell(content.area_label)],
-                [Cell("height zero"), Cell(content.datum_text)],
-                [Cell("coverage"), Cell(_coverage_text(covered))],
-                [Cell("created"), Cell(content.created)],
-                [Cell("software"), Cell(content.software)],
-            ],
-            anchor="summary",
-        )
-    )
+    document.add(_summary(content))
     _calibration(document, content)
     document.add(Heading("SEM images", "sem"))
     if content.views:
@@ -131,6 +117,22 @@ def build_document(content: ReportContent) -> Document:
     _profiles(document, content, figures)
     _parameters(document, content)
     return document
+
+
+def _summary(content: ReportContent) -> Table:
+    """What is reported, where its height zero is, how much of it was measured, when and by what."""
+    return Table(
+        ["", ""],
+        [
+            [Cell("source"), Cell(content.subject)],
+            [Cell("area"), Cell(content.area_label)],
+            [Cell("height zero"), Cell(content.datum_text)],
+            [Cell("coverage"), Cell(_coverage_text(content.area.coverage))],
+            [Cell("created"), Cell(content.created)],
+            [Cell("software"), Cell(content.software)],
+        ],
+        anchor="summary",
+    )
 
 
 def _calibration(document: Document, content: ReportContent) -> None:
