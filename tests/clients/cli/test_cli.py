@@ -276,6 +276,7 @@ def test_demo_builds_the_specimens_and_prints_the_viewer_url(tmp_path):
     assert len(progress) >= 4 and any(
         "matching ROI overview" in line for line in progress
     )  # a log shows the build going on
+    assert "synthetic: roughness of ROI zoom ..." in lines  # and the seconds between a build and the next
     table = lines[lines.index("Fractoscope demo specimens") :]
     assert table[1].split() == ["specimen", "ROI", "mag.", "µm/px", "at", "x,", "y", "µm", "Sz", "µm", "Sa", "µm"]
     assert all(len(line) <= 80 for line in table if not line.startswith(("viewer:", "gRPC:", "data:")))
