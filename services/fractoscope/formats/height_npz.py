@@ -1,10 +1,13 @@
 """The .npz file of a height map: what `fracto height` writes and the other commands read back.
 
 Arrays, on the reference image's grid (rows, cols), float32:
-- `z_um` heights (NaN unknown), `sigma_um` their one-sigma uncertainty, `confidence` the peak
-  correlation (as in the HeightMap message);
+- `z_um` heights (NaN unknown) as every route keeps them (surface.measurement: cleaned, holes of
+  a few pixels filled, levelled on the datum), `sigma_um` their one-sigma uncertainty (matching
+  and tilt), `confidence` the peak correlation (as in the HeightMap message);
 - `local_sigma_um`, the part of sigma_um that neighbouring heights do not share (the tilt error,
   which scales all heights together, left out; see stereo.geometry.matching_sigma_um);
+- `filled` (bool), the heights interpolated rather than matched (absent in files written before
+  it was kept);
 - `views_used` (uint8), how many views of the series each height rests on (as in the HeightMap
   message), when the server counted them;
 - `pixel_size_um` (a scalar) and `tilt_deg` (one per view), readable without this module;
@@ -46,6 +49,7 @@ class HeightMapFile:
     confidence: np.ndarray | None = None
     local_sigma_um: np.ndarray | None = None
     views_used: np.ndarray | None = None
+    filled: np.ndarray | None = None
     calibration: Calibration | None = None
     record: dict = field(default_factory=dict)
 
@@ -72,6 +76,7 @@ def write_height_npz(
     record: dict,
     tilt_deg_estimated: np.ndarray | None = None,
     views_used: np.ndarray | None = None,
+    filled: np.ndarray | None = None,
 ) -> None:
     """Writes the file; `record` holds tilt_axis_deg, max_slope, method, parameters, report and
     datum (see the module's docstring), to which the software and calibration are added."""
@@ -89,6 +94,8 @@ def write_height_npz(
         arrays["tilt_deg_estimated"] = np.asarray(tilt_deg_estimated, np.float64)
     if views_used is not None:
         arrays["views_used"] = np.asarray(views_used, np.uint8)
+    if filled is not None:
+        arrays["filled"] = np.asarray(filled, bool)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(path, **arrays)
@@ -102,10 +109,10 @@ def read_height_npz(path: str | Path, *, field: str | None = None) -> HeightMapF
     z_um = values.get("z_um")
     if z_um is None or z_um.ndim != 2 or not _real(z_um):
         raise InvalidInputError(field, "holds no 2D z_um array of real numbers (write it with fracto height)")
-    for name in ("sigma_um", "confidence", "local_sigma_um", "views_used"):
+    for name in ("sigma_um", "confidence", "local_sigma_um", "views_used", "filled"):
         if name in values and values[name].shape != z_um.shape:
             raise InvalidInputError(field, f"its {name} array has shape {values[name].shape}, its z_um {z_um.shape}")
-        if name in values and not _real(values[name]):
+        if name in values and not (_real(values[name]) or values[name].dtype == bool):
             raise InvalidInputError(field, f"its {name} array holds {values[name].dtype}, not real numbers")
     record = _record(values, field)
     try:
@@ -120,6 +127,7 @@ def read_height_npz(path: str | Path, *, field: str | None = None) -> HeightMapF
         confidence=values.get("confidence"),
         local_sigma_um=values.get("local_sigma_um"),
         views_used=values.get("views_used"),
+        filled=values["filled"].astype(bool) if "filled" in values else None,
         calibration=calibration,
         record=record,
         array_pixel_size_um=_array_pixel_size_um(values, field),

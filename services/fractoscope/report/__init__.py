@@ -15,6 +15,7 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 
 from fractoscope.formats.calibration import Calibration
+from fractoscope.numbers import measured, uncertainty_text, value_text
 from fractoscope.report.content import ReportContent, report_content
 from fractoscope.report.document import (
     Cell,
@@ -23,7 +24,6 @@ from fractoscope.report.document import (
     Heading,
     Paragraph,
     Table,
-    number,
     write_html,
     write_pdf,
 )
@@ -39,13 +39,20 @@ _METHOD_NAMES = {"hhc": "height-height correlation", "psd": "profile PSD"}
 
 
 def write_report(
-    specimen: Specimen, directory: Path, *, file_format: str = "html", roi: str | None = None, region_um=None
+    specimen: Specimen,
+    directory: Path,
+    *,
+    file_format: str = "html",
+    roi: str | None = None,
+    region_um=None,
+    subject: str | None = None,
 ) -> Path:
     """Writes the report of an ROI (default: the overview) or a region as `file_format` ("html" or
-    "pdf") into `directory`; returns its path."""
+    "pdf") into `directory`; returns its path. `subject` names what is reported (default:
+    "specimen ID"; a height map file's report names the file)."""
     if file_format not in MEDIA_TYPES:
         raise ValueError(f"file_format: {file_format!r} is none of {sorted(MEDIA_TYPES)}")
-    content = report_content(specimen, roi=roi, region_um=region_um)
+    content = report_content(specimen, roi=roi, region_um=region_um, subject=subject)
     document = build_document(content)
     path = Path(directory) / f"{specimen.id}-report.{file_format}"
     try:
@@ -60,19 +67,8 @@ def write_report(
 def build_document(content: ReportContent) -> Document:
     from fractoscope.report import figures  # matplotlib's figures only when a report is drawn
 
-    document = Document(f"Measurement report: specimen {content.specimen_id}, {content.area_label}")
-    document.add(
-        Table(
-            ["", ""],
-            [
-                [Cell("specimen"), Cell(content.specimen_id)],
-                [Cell("area"), Cell(content.area_label)],
-                [Cell("created"), Cell(content.created)],
-                [Cell("software"), Cell(content.software)],
-            ],
-            anchor="summary",
-        )
-    )
+    document = Document(f"Measurement report: {content.subject}, {content.area_label}")
+    document.add(_summary(content))
     _calibration(document, content)
     document.add(Heading("SEM images", "sem"))
     if content.views:
@@ -102,8 +98,17 @@ def build_document(content: ReportContent) -> Document:
         Heading("Coverage and uncertainty", "maps"),
         FigureBlock(
             figures.maps_figure(content.area),
-            "Left: the ROI each point's height comes from (finer ROIs win where they have data). Right: the "
-            "one-sigma height uncertainty of each point (matching and tilt).",
+            "Left: the ROI each matched height comes from (finer ROIs win where they have data); filled: heights "
+            "interpolated across holes of a few pixels, which the parameters below leave out. Right: the "
+            "matching part of each height's one-sigma uncertainty only (the noise neighbouring heights do not "
+            "share); the tilt part, "
+            + (
+                f"ε_z = {_percent(content.area.tilt_rel_uncertainty)} of each height above the "
+                + ("datum" if content.area.datum_levelled else "median height")
+                if content.area.tilt_rel_uncertainty
+                else "not known here"
+            )
+            + ", scales every height together and adds to it in quadrature (the exports' sigma_um holds both).",
             "maps-figure",
         ),
     )
@@ -112,6 +117,22 @@ def build_document(content: ReportContent) -> Document:
     _profiles(document, content, figures)
     _parameters(document, content)
     return document
+
+
+def _summary(content: ReportContent) -> Table:
+    """What is reported, where its height zero is, how much of it was measured, when and by what."""
+    return Table(
+        ["", ""],
+        [
+            [Cell("source"), Cell(content.subject)],
+            [Cell("area"), Cell(content.area_label)],
+            [Cell("height zero"), Cell(content.datum_text)],
+            [Cell("coverage"), Cell(_coverage_text(content.area.coverage))],
+            [Cell("created"), Cell(content.created)],
+            [Cell("software"), Cell(content.software)],
+        ],
+        anchor="summary",
+    )
 
 
 def _calibration(document: Document, content: ReportContent) -> None:
@@ -163,10 +184,10 @@ def _calibration_rows(roi: RoiEntry, calibration: Calibration) -> list[list[Cell
     rows = [
         [
             Cell(f"tilt of view {index}"),
-            Cell(f"{tilt:+.4f}", tilt, f"{roi.id}.tilt_deg[{index}]"),
+            Cell(_signed(value_text(tilt, sigma)), tilt, f"{roi.id}.tilt_deg[{index}]"),
             Cell("°"),
             Cell(source),
-            Cell(number(sigma), sigma if math.isfinite(sigma) else None, f"{roi.id}.tilt_sigma_deg[{index}]"),
+            Cell(uncertainty_text(sigma), sigma if math.isfinite(sigma) else None, f"{roi.id}.tilt_sigma_deg[{index}]"),
         ]
         + ([Cell(f"{nominal[index]:+.4f}", nominal[index], f"{roi.id}.tilt_deg_nominal[{index}]")] if nominal else [])
         for index, (tilt, source, sigma) in enumerate(
@@ -235,10 +256,18 @@ def _roughness(document: Document, content: ReportContent) -> None:
         rows.append(
             [
                 Cell(name),
-                Cell(number(value), value if value is not None and math.isfinite(value) else None, name),
+                Cell(
+                    value_text(value, _finite(parts["u"].get(name))),
+                    value if value is not None and math.isfinite(value) else None,
+                    name,
+                ),
                 Cell(unit),
                 *(
-                    Cell(number(_finite(parts[part].get(name))), _finite(parts[part].get(name)), f"{part}.{name}")
+                    Cell(
+                        uncertainty_text(_finite(parts[part].get(name))),
+                        _finite(parts[part].get(name)),
+                        f"{part}.{name}",
+                    )
                     for part in ("u", "u_tilt", "u_noise")
                 ),
             ]
@@ -252,19 +281,24 @@ def _roughness(document: Document, content: ReportContent) -> None:
             anchor="roughness-table",
             caption=(
                 f"After removing the form ({chain.form}{', fitted robustly' if chain.robust_form else ''}), on a "
-                f"grid of {analysis.pixel_size_um:.4g} µm. {content.filters_note}. Standard uncertainties (k = 1): the "
+                f"grid of {analysis.pixel_size_um:.4g} µm, from the matched heights only "
+                f"({_coverage_text(analysis.coverage) if analysis.coverage else 'coverage unknown'}). "
+                f"{content.filters_note}. Values to the decimal of their uncertainty's second significant digit "
+                "(three significant digits where none is propagated). Standard uncertainties (k = 1): the "
                 "tilt part scales every height by ε_z; the matching part propagates each point's matching sigma, "
                 f"correlated over the {content.area.window_px} px window. — : not propagated (Sal, Str, Std, Spd and "
                 "Spc have no derivative: their tilt part alone is given) or unknown."
             ),
         ),
     )
+    for caveat in analysis.caveats:
+        document.add(Paragraph(caveat[:1].upper() + caveat[1:] + ".", emphasis=True))
     bias = {name: _finite(value) for name, value in (found.noise_bias.items() if found else ())}
     if any(value is not None for value in bias.values()):
         document.add(
             Paragraph(
                 "Matching noise inflates the height parameters: by an estimated "
-                + ", ".join(f"{number(v)} µm for {k}" for k, v in bias.items() if v is not None)
+                + ", ".join(f"{measured(v, 'µm', digits=2)} for {k}" for k, v in bias.items() if v is not None)
                 + " (from the sigma map; not subtracted above)."
             )
         )
@@ -286,8 +320,14 @@ def _scaling(document: Document, content: ReportContent, figures) -> None:
     fits = content.roughness.hurst.fits
     if fits:
         document.add(_hurst_fits_table(fits))
-    if content.roughness.hurst.note:
-        note = content.roughness.hurst.note
+    notes = [content.roughness.hurst.note] if content.roughness.hurst.note else []
+    notes += [
+        f"{_METHOD_NAMES[method]} {side}: H {fit.not_determinable}"
+        for method, sides in fits.items()
+        for side, fit in sides.items()
+        if fit.not_determinable
+    ]
+    for note in notes:
         document.add(Paragraph(note[:1].upper() + note[1:] + ".", emphasis=not fits))
     document.add(
         FigureBlock(
@@ -302,15 +342,16 @@ def _scaling(document: Document, content: ReportContent, figures) -> None:
 def _scaling_table(content: ReportContent) -> Table:
     """The Hurst exponent, its fit range (µm) and the fractal dimension, as the API gives them."""
     values = content.roughness.legacy()
-    undetermined = content.roughness.hurst.fits.get("hhc", {}).get("along")
-    undetermined = bool(undetermined and undetermined.not_determinable)
+    along = content.roughness.hurst.fits.get("hhc", {}).get("along")
+    undetermined = bool(along and along.not_determinable)
+    stderr = along.hurst_stderr if along else None
     return Table(
         ["quantity", "value", "unit"],
         [
             [
                 Cell("Hurst exponent H"),
                 Cell(
-                    "not determinable" if undetermined else number(values["hurst_exponent"], 3),
+                    "not determinable" if undetermined else value_text(values["hurst_exponent"], stderr),
                     _finite(values["hurst_exponent"]),
                     "hurst_exponent",
                 ),
@@ -318,18 +359,26 @@ def _scaling_table(content: ReportContent) -> Table:
             ],
             [
                 Cell("fit from"),
-                Cell(number(values["hurst_fit_min_um"]), _finite(values["hurst_fit_min_um"]), "hurst_fit_min_um"),
+                Cell(
+                    value_text(values["hurst_fit_min_um"], None),
+                    _finite(values["hurst_fit_min_um"]),
+                    "hurst_fit_min_um",
+                ),
                 Cell("µm"),
             ],
             [
                 Cell("fit to"),
-                Cell(number(values["hurst_fit_max_um"]), _finite(values["hurst_fit_max_um"]), "hurst_fit_max_um"),
+                Cell(
+                    value_text(values["hurst_fit_max_um"], None),
+                    _finite(values["hurst_fit_max_um"]),
+                    "hurst_fit_max_um",
+                ),
                 Cell("µm"),
             ],
             [
                 Cell("fractal dimension 3 - H"),
                 Cell(
-                    number(values["fractal_dimension"], 3),
+                    value_text(values["fractal_dimension"], stderr),
                     _finite(values["fractal_dimension"]),
                     "fractal_dimension",
                 ),
@@ -354,7 +403,11 @@ def _hurst_fits_table(fits) -> Table:
                     Cell(
                         "not determinable"
                         if key == "hurst" and fit.not_determinable
-                        else number(value, 3 if key in ("hurst", "hurst_stderr") else 4),
+                        else value_text(value, fit.hurst_stderr)
+                        if key == "hurst"
+                        else uncertainty_text(value)
+                        if key == "hurst_stderr"
+                        else value_text(value, None),
                         value if math.isfinite(value) else None,
                         f"hurst.{method}.{side}.{key}",
                     )
@@ -390,7 +443,11 @@ def _profiles(document: Document, content: ReportContent, figures) -> None:
             iso = [
                 [
                     Cell(name),
-                    Cell(number(value), value if math.isfinite(value) else None, f"{profile.name}.roughness.{name}"),
+                    Cell(
+                        value_text(value, None),
+                        value if math.isfinite(value) else None,
+                        f"{profile.name}.roughness.{name}",
+                    ),
                     Cell(PROFILE_UNITS[name]),
                 ]
                 for name, value in profile.iso.items()
@@ -454,6 +511,19 @@ def _parameters(document: Document, content: ReportContent) -> None:
 
 def _percent(value: float | None) -> str:
     return "unknown" if value is None else f"{100 * value:.3g} %"
+
+
+def _signed(text: str) -> str:
+    """A number's text with its sign, + included (tilts)."""
+    return text if text.startswith(("-", "n/a")) else f"+{text}"
+
+
+def _coverage_text(covered) -> str:
+    """A Coverage (surface.measurement) in words: what share was matched, filled and unknown."""
+    return (
+        f"{100 * covered.measured:.1f} % of the points matched, {100 * covered.filled:.1f} % filled, "
+        f"{100 * covered.unknown:.1f} % unknown"
+    )
 
 
 def _shown(value) -> str:

@@ -77,6 +77,8 @@ class RoiCalibration:
 @dataclass(frozen=True)
 class ReportContent:
     specimen_id: str
+    subject: str  # what is reported: "specimen ID", or a height map file's name
+    datum: dict | None  # where height zero is (surface.datum.Datum.to_dict; None: as measured)
     area_label: str
     region_um: tuple[float, float, float, float] | None
     created: str
@@ -91,21 +93,47 @@ class ReportContent:
 
     @property
     def filters_note(self) -> str:
-        """Which S- and L-filters the areal parameters used and why, in one sentence."""
+        """Which S- and L-filters (cut-offs λs, λc) the areal parameters used, in one sentence, and
+        what ISO 25178-3 would take for this grid and field."""
         chain, spacing_um = self.roughness.chain, self.roughness.pixel_size_um
         field_um = min(self.area.z_um.shape) * self.area.pixel_size_um
         iso = iso_filters.default_nesting_indices(pixel_size_um=spacing_um, field_um=field_um).reason
-        if chain.lambda_s_um or chain.lambda_c_um:
-            used = ", ".join(
-                f"{name} = {value:g} µm"
-                for name, value in (("λs", chain.lambda_s_um), ("λc", chain.lambda_c_um))
-                if value
-            )
-            return f"{used}, as requested (ISO 25178-3's defaults for this grid and field: {iso})"
-        return (
-            "No S- or L-filter, the API's default for areal parameters, so that they are GetRoughness's (ISO "
-            f"25178-3's nesting indices for the {spacing_um:.4g} µm grid and {field_um:.4g} µm field: {iso})"
+        used = ", ".join(
+            f"{name} = {f'{value:g} µm' if value else 'none'}"
+            for name, value in (("λs", chain.lambda_s_um), ("λc", chain.lambda_c_um))
         )
+        why = (
+            "as requested"
+            if chain.lambda_s_um or chain.lambda_c_um
+            else "the API's default for areal parameters, so that they are GetRoughness's"
+        )
+        return (
+            f"Filters: {used} ({why}); ISO 25178-3's nesting indices for the {spacing_um:.4g} µm grid and "
+            f"{field_um:.4g} µm field would be: {iso}"
+        )
+
+    @property
+    def datum_text(self) -> str:
+        """Where height zero is, in words, with the figures that tell whether it is a level."""
+        datum = self.datum
+        if not datum:
+            return "as measured (no datum asked for; the offset is arbitrary)"
+        if datum["level"] == "none":
+            return f"as measured, no plane subtracted: {datum.get('warning') or 'no datum'}"
+        places = {
+            "plane": "the plane through all heights",
+            "substrate": "the substrate",
+            "region": "the region's plane",
+            "background": "the background plane",
+        }
+        sigma = datum.get("sigma_um")
+        text = (
+            f"{places.get(datum['level'], datum['level'])}, tilted {datum['tilt_deg']:.2f}°, fitted on "
+            f"{100 * datum['area_fraction']:.1f} % of the map ({100 * (datum['measured_fraction'] or 0):.0f} % of it "
+            "matched), residual "
+            f"{datum['residual_rms_um']:.2g} µm RMS" + (f" against a sigma of {sigma:.2g} µm" if sigma else "")
+        )
+        return text + (f"; {datum['warning']}" if datum.get("warning") else "")
 
     @property
     def tilt_calibrated(self) -> bool:
@@ -136,8 +164,11 @@ class ReportContent:
         }
 
 
-def report_content(specimen: Specimen, *, roi: str | None = None, region_um=None) -> ReportContent:
-    """Gathers the report of an ROI (default: the overview) or a region (x0, y0, x1, y1) µm."""
+def report_content(
+    specimen: Specimen, *, roi: str | None = None, region_um=None, subject: str | None = None
+) -> ReportContent:
+    """Gathers the report of an ROI (default: the overview) or a region (x0, y0, x1, y1) µm;
+    `subject` names what is reported (default "specimen ID")."""
     analysis = queries.roughness_of(
         specimen, roi=None if region_um is not None else (roi or specimen.rois[0].id), region_um=region_um
     )
@@ -155,6 +186,8 @@ def report_content(specimen: Specimen, *, roi: str | None = None, region_um=None
     trustworthy, note = _trustworthy(area)
     return ReportContent(
         specimen_id=specimen.id,
+        subject=subject or f"specimen {specimen.id}",
+        datum=specimen.rois[0].datum,
         area_label=label,
         region_um=None if region_um is None else bounds,
         created=datetime.now(UTC).isoformat(timespec="seconds"),

@@ -21,6 +21,7 @@ from fractoscope.specimen.queries import SurfaceArea
 
 WIDTH_IN = 7.2  # fits an A4 page's margins and an HTML column
 _UNKNOWN_GREY = (0.55, 0.55, 0.55, 1.0)
+_FILLED = (0.88, 0.84, 0.72, 1.0)  # interpolated heights: a pale sand, apart from every ROI's colour
 
 
 def views_figure(views: list[View]) -> Figure:
@@ -69,26 +70,29 @@ def height_figure(area: SurfaceArea) -> Figure:
 
 
 def maps_figure(area: SurfaceArea) -> Figure:
-    """Coverage (which ROI each point comes from, grey where unknown) and the one-sigma height
-    uncertainty."""
+    """Coverage (which ROI each matched point comes from, the filled points apart, grey where
+    unknown) and the one-sigma matching noise of the heights."""
     figure, (coverage_ax, sigma_ax) = plt.subplots(1, 2, figsize=(WIDTH_IN, 3.4), layout="constrained")
     extent = _extent(area.z_um.shape, area.pixel_size_um, area.origin_um)
-    shown = sorted(set(np.unique(area.source).tolist()) - {-1})
-    palette = [_UNKNOWN_GREY] + [plt.get_cmap("tab10")(i % 10) for i in range(len(shown))]
+    shown = sorted(set(np.unique(area.source[~area.filled]).tolist()) - {-1})
+    palette = [_UNKNOWN_GREY, _FILLED] + [plt.get_cmap("tab10")(i % 10) for i in range(len(shown))]
     codes = np.zeros(area.source.shape, np.int16)
-    for position, index in enumerate(shown, start=1):
-        codes[area.source == index] = position
+    codes[area.filled & np.isfinite(area.z_um)] = 1
+    for position, index in enumerate(shown, start=2):
+        codes[(area.source == index) & ~area.filled] = position
     norm = BoundaryNorm(np.arange(len(palette) + 1) - 0.5, len(palette))
     coverage_ax.imshow(codes, cmap=ListedColormap(palette), norm=norm, extent=extent, interpolation="nearest")
-    measured = float(np.isfinite(area.z_um).mean())
-    coverage_ax.set_title(f"Coverage: {100 * measured:.1f} % measured", fontsize=9)
+    covered = area.coverage
+    coverage_ax.set_title(
+        f"Coverage: {100 * covered.measured:.1f} % matched, {100 * covered.filled:.1f} % filled", fontsize=9
+    )
     bar = figure.colorbar(
         plt.cm.ScalarMappable(norm=norm, cmap=ListedColormap(palette)),
         ax=coverage_ax,
         shrink=0.85,
         ticks=range(len(palette)),
     )
-    bar.ax.set_yticklabels(["unknown"] + [f"ROI {area.sources[index]}" for index in shown], fontsize=7)
+    bar.ax.set_yticklabels(["unknown", "filled"] + [f"ROI {area.sources[index]}" for index in shown], fontsize=7)
     sigma = np.ma.masked_invalid(area.sigma_um)
     if sigma.count():
         image = sigma_ax.imshow(
@@ -99,8 +103,8 @@ def maps_figure(area: SurfaceArea) -> Figure:
             vmin=float(np.nanpercentile(area.sigma_um, 0.5)),
             vmax=float(np.nanpercentile(area.sigma_um, 99.5)),
         )
-        figure.colorbar(image, ax=sigma_ax, shrink=0.85).set_label("σ (µm)")
-        sigma_ax.set_title("Height uncertainty (one sigma)", fontsize=9)
+        figure.colorbar(image, ax=sigma_ax, shrink=0.85).set_label("σ, matching part (µm)")
+        sigma_ax.set_title("Height uncertainty: matching part (one sigma)", fontsize=9)
     else:
         sigma_ax.set_title("Height uncertainty: not stored", fontsize=9)
     for ax in (coverage_ax, sigma_ax):

@@ -41,40 +41,58 @@ def default_build_workers() -> int:
 def build_parser() -> argparse.ArgumentParser:
     """fracto-server's flags, each defaulting to its environment variable."""
     parser = argparse.ArgumentParser(prog="fracto-server", description="Serve Fractoscope's gRPC services.")
-    parser.add_argument("--address", default=os.environ.get("FRACTO_ADDRESS", "[::]:50051"))
+    parser.add_argument(
+        "--address",
+        default=os.environ.get("FRACTO_ADDRESS", "[::]:50051"),
+        help="host:port the gRPC services listen on (FRACTO_ADDRESS; default %(default)s)",
+    )
     parser.add_argument(
         "--services",
         default=os.environ.get("FRACTO_SERVICES", ",".join(SERVICE_NAMES)),
-        help="comma-separated services to serve",
+        help="comma-separated services to serve (FRACTO_SERVICES; default %(default)s)",
     )
     parser.add_argument(
-        "--max-message-mb", type=int, default=int(os.environ.get("FRACTO_MAX_MESSAGE_MB", DEFAULT_MAX_MESSAGE_MB))
+        "--max-message-mb",
+        type=int,
+        default=int(os.environ.get("FRACTO_MAX_MESSAGE_MB", DEFAULT_MAX_MESSAGE_MB)),
+        help="largest gRPC message either way, MB (FRACTO_MAX_MESSAGE_MB; default %(default)s)",
     )
     parser.add_argument(
-        "--workers", type=int, default=int(os.environ.get("FRACTO_WORKERS", "8")), help="threads answering queries"
+        "--workers",
+        type=int,
+        default=int(os.environ.get("FRACTO_WORKERS", "8")),
+        help="threads answering queries (FRACTO_WORKERS; default %(default)s)",
     )
     parser.add_argument(
         "--build-workers",
         type=int,
         default=int(os.environ.get("FRACTO_BUILD_WORKERS", default_build_workers())),
-        help="builds, height maps and meshes run at once (and strips for peers)",
+        help="builds, height maps and meshes run at once, and strips for peers (FRACTO_BUILD_WORKERS; default "
+        "%(default)s: half the CPUs)",
     )
     parser.add_argument(
         "--build-queue",
         type=int,
         default=int(os.environ.get("FRACTO_BUILD_QUEUE", DEFAULT_BUILD_QUEUE)),
-        help="of those, how many may wait; more get RESOURCE_EXHAUSTED",
+        help="of those, how many may wait; more get RESOURCE_EXHAUSTED (FRACTO_BUILD_QUEUE; default %(default)s)",
     )
     max_request_mb = os.environ.get("FRACTO_MAX_REQUEST_MB")
     parser.add_argument(
         "--max-request-mb",
         type=int,
         default=int(max_request_mb) if max_request_mb else None,
-        help="estimated peak memory one request may take (default: 60%% of the server's memory over the build workers)",
+        help="estimated peak memory one request may take, MB (FRACTO_MAX_REQUEST_MB; default: 60%% of the server's "
+        "memory over the build workers)",
     )
-    parser.add_argument("--log-level", default=os.environ.get("FRACTO_LOG_LEVEL", "INFO"))
     parser.add_argument(
-        "--data", default=os.environ.get("FRACTO_DATA_DIR", DEFAULT_DATA_DIR), help="specimen directory"
+        "--log-level",
+        default=os.environ.get("FRACTO_LOG_LEVEL", "INFO"),
+        help="DEBUG, INFO, WARNING or ERROR (FRACTO_LOG_LEVEL; default %(default)s)",
+    )
+    parser.add_argument(
+        "--data",
+        default=os.environ.get("FRACTO_DATA_DIR", DEFAULT_DATA_DIR),
+        help="specimen directory (FRACTO_DATA_DIR; default %(default)s)",
     )
     parser.add_argument(
         "--store",
@@ -103,24 +121,33 @@ def build_parser() -> argparse.ArgumentParser:
         "--strip-pixels",
         type=int,
         default=int(os.environ.get("FRACTO_STRIP_PIXELS", DEFAULT_STRIP_PIXELS)),
-        help="pixels per strip of dense matching",
+        help="pixels per strip of dense matching (FRACTO_STRIP_PIXELS; default %(default)s)",
     )
     parser.add_argument(
         "--strip-in-flight",
         type=int,
         default=int(os.environ.get("FRACTO_STRIP_IN_FLIGHT", "4")),
-        help="strips sent to the peers at a time (about the number of matching replicas)",
+        help="strips sent to the peers at a time, about the number of matching replicas (FRACTO_STRIP_IN_FLIGHT; "
+        "default %(default)s)",
     )
     parser.add_argument(
         "--http-address",
         default=os.environ.get("FRACTO_HTTP_ADDRESS", "0.0.0.0:8080"),
-        help="host:port of the HTTP tile endpoint; empty = off",
+        help="host:port of the HTTP endpoint (tilesets, JSON API, viewer); empty: none (FRACTO_HTTP_ADDRESS; "
+        "default %(default)s)",
     )
     parser.add_argument(
-        "--tls-cert", default=os.environ.get("FRACTO_TLS_CERT") or None, help="PEM certificate: serve TLS"
+        "--tls-cert",
+        default=os.environ.get("FRACTO_TLS_CERT") or None,
+        help="PEM certificate: serve TLS (FRACTO_TLS_CERT; default: none, plain gRPC)",
     )
     parser.add_argument(
-        "--tls-key", default=os.environ.get("FRACTO_TLS_KEY") or None, help="PEM private key of --tls-cert"
+        "--tls-key",
+        default=os.environ.get("FRACTO_TLS_KEY") or None,
+        help="PEM private key of --tls-cert (FRACTO_TLS_KEY; default: none)",
+    )
+    parser.add_argument(
+        "--grace-s", type=float, default=30.0, help="seconds in-flight calls get on SIGTERM (default %(default)s)"
     )
     parser.add_argument(
         "--instruments",
@@ -128,5 +155,4 @@ def build_parser() -> argparse.ArgumentParser:
         help="instrument profiles applied to the images their metadata names (fracto instrument learn writes them; "
         f"default: {ENVIRONMENT_VARIABLE}, else the user's configuration folder: %(default)s)",
     )
-    parser.add_argument("--grace-s", type=float, default=30.0, help="seconds in-flight calls get on SIGTERM")
     return parser

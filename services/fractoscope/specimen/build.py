@@ -31,7 +31,7 @@ from fractoscope.specimen.store import (
 from fractoscope.specimen.tileset import tileset_json
 from fractoscope.stereo import geometry
 from fractoscope.stereo.inputs import MatchingOptions
-from fractoscope.surface import datum, filtering
+from fractoscope.surface import measurement
 
 
 @dataclass(frozen=True)
@@ -153,14 +153,15 @@ def store_height_map(
     pixel_size_um: float,
     report: dict,
     sigma_um: np.ndarray | None = None,
+    filled: np.ndarray | None = None,
     tilt_rel_uncertainty: float | None = None,
     datum: dict | None = None,
 ) -> Specimen:
     """Stores one height map as it is (no filtering, placement, tiles or image files) as a specimen
     of one ROI, "overview": what a measurement report of a height map file reads. z_um (rows, cols)
-    µm, NaN unknown; sigma_um its matching noise, µm (the tilt part left out, see PlacedRoi); the
-    matching `report` (MatchingReport's fields), the relative height error a tilt error makes and
-    the datum as RoiEntry keeps them."""
+    µm, NaN unknown; sigma_um its matching noise, µm (the tilt part left out, see PlacedRoi);
+    `filled` the points interpolated rather than matched; the matching `report` (MatchingReport's
+    fields), the relative height error a tilt error makes and the datum as RoiEntry keeps them."""
     validate_id(specimen_id, field="specimen_id")
     z_um = np.asarray(z_um, np.float32)
     entry = RoiEntry(
@@ -173,9 +174,17 @@ def store_height_map(
         matching=report,
         datum=datum,
         tilt_rel_uncertainty=tilt_rel_uncertainty,
+        coverage=measurement.coverage(z_um, filled).to_dict(),
     )
     placed = PlacedRoi(
-        entry.id, 0.0, pixel_size_um, entry.origin_um, z_um, np.zeros(z_um.shape, np.uint8), sigma_um=sigma_um
+        entry.id,
+        0.0,
+        pixel_size_um,
+        entry.origin_um,
+        z_um,
+        np.zeros(z_um.shape, np.uint8),
+        sigma_um=sigma_um,
+        filled=filled,
     )
     with store.writing(specimen_id) as staging:
         write_roi_arrays(staging, placed)
@@ -202,9 +211,12 @@ def _place(
     entries: list[RoiEntry] = []
     for roi in ordered:
         heights = measured[roi.id]
-        filtered = filtering.filter_heights(heights.z_um, sigma_um=heights.sigma_um)
-        z_um = filtered.z_um.astype(np.float32)
         texture = _grey8(heights.texture)
+        try:
+            kept = _measurement(heights, roi.level or None)
+        except ValueError as error:
+            raise InvalidInputError(f"rois[{indices[roi.id]}].level", str(error)) from None
+        z_um, sigma_um = kept.z_um, kept.local_sigma_um
         entry = RoiEntry(
             roi.id,
             roi.parent,
@@ -213,21 +225,11 @@ def _place(
             (0.0, 0.0),
             z_um.shape,
             matching=heights.report,
+            datum=kept.datum.to_dict() if kept.datum else None,
+            tilt_rel_uncertainty=kept.tilt_rel_uncertainty if sigma_um is not None else None,
+            coverage=measurement.coverage(z_um, kept.filled).to_dict(),
         )
-        sigma_um = _matching_sigma(heights, z_um, filtered.sigma_um, entry)
         walls = _wall_settings(heights, sigma_um)
-        if roi.level:
-            try:
-                z_um, levelled = datum.level_heights(
-                    z_um,
-                    pixel_size_um=heights.pixel_size_um,
-                    level=roi.level,
-                    sigma_um=sigma_um,
-                    filled=filtered.filled,
-                )
-            except ValueError as error:
-                raise InvalidInputError(f"rois[{indices[roi.id]}].level", str(error)) from None
-            entry.datum = levelled.to_dict()
         if roi.parent:
             parent = placed[roi.parent]
             try:
@@ -244,28 +246,33 @@ def _place(
             texture = registration.match_texture(parent, unaligned)
             entry.alignment_residual_um = alignment.residual_um
         placed[roi.id] = PlacedRoi(
-            roi.id, roi.magnification, heights.pixel_size_um, entry.origin_um, z_um, texture, sigma_um=sigma_um, **walls
+            roi.id,
+            roi.magnification,
+            heights.pixel_size_um,
+            entry.origin_um,
+            z_um,
+            texture,
+            sigma_um=sigma_um,
+            filled=kept.filled,
+            **walls,
         )
         entries.append(entry)
     return placed, entries
 
 
-def _matching_sigma(
-    heights: MeasuredHeights, z_um: np.ndarray, sigma_um: np.ndarray | None, entry: RoiEntry
-) -> np.ndarray | None:
-    """The matching-noise part of the filtered heights' sigma (float32 µm, NaN where z_um is;
-    points without one get the median), with the relative tilt uncertainty it leaves out set on
-    `entry`: surface analysis propagates the two apart. The tilt uncertainty is the one the
-    pipeline's sigma used (the report's tilt_uncertainty_deg)."""
-    tilts = heights.report.get("tilt_deg") or []
-    if sigma_um is None or len(tilts) < 2:
-        return None
-    tilt_uncertainty = heights.report.get("tilt_uncertainty_deg", MatchingOptions().tilt_uncertainty_deg)
-    entry.tilt_rel_uncertainty = geometry.series_relative_height_error(tilts, tilt_uncertainty_deg=tilt_uncertainty)
-    noise = geometry.matching_sigma_um(z_um, sigma_um, relative_height_error=entry.tilt_rel_uncertainty)
-    known = np.isfinite(noise)
-    fill = np.float32(np.median(noise[known])) if known.any() else np.float32(np.nan)
-    return np.where(np.isfinite(z_um), np.where(known, noise, fill), np.nan).astype(np.float32)
+def _measurement(heights: MeasuredHeights, level: str | None) -> measurement.Measurement:
+    """An ROI's heights as kept (surface.measurement, as `fracto height` keeps them): cleaned, its
+    matching noise apart from the tilt's part (whose ε_z the entry keeps), levelled on `level`.
+    The tilt uncertainty is the one the pipeline's sigma used (the report's tilt_uncertainty_deg)."""
+    report = heights.report
+    return measurement.measurement(
+        heights.z_um,
+        heights.sigma_um,
+        pixel_size_um=heights.pixel_size_um,
+        tilt_deg=report.get("tilt_deg") or [],
+        tilt_uncertainty_deg=report.get("tilt_uncertainty_deg", MatchingOptions().tilt_uncertainty_deg),
+        level=level,
+    )
 
 
 def _write_tiles(

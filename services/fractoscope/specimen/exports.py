@@ -41,8 +41,9 @@ def export_area(
     units: str = "um",
 ) -> ExportedFile:
     """An ROI (default the overview) or a region of the specimen in `directory`, at `pixel_size_um`
-    (see queries.surface_area), with the calibration of the ROI it shows most of. Regions are
-    sampled in strips and bounded by queries.MAX_EXPORT_SAMPLES."""
+    (see queries.surface_area), with the calibration of the ROI it shows most of and the heights'
+    whole sigma (matching and tilt, as `fracto height` writes it: SurfaceArea.total_sigma_um).
+    Regions are sampled in strips and bounded by queries.MAX_EXPORT_SAMPLES."""
     area = queries.surface_area(
         specimen, roi=roi, region_um=region_um, pixel_size_um=pixel_size_um, max_samples=queries.MAX_EXPORT_SAMPLES
     )
@@ -52,7 +53,7 @@ def export_area(
         name,
         file_format,
         area.z_um,
-        area.sigma_um,
+        area.total_sigma_um,
         area.pixel_size_um,
         area.origin_um,
         area.calibration,

@@ -35,6 +35,8 @@ class PlacedRoi:
         specimen stored before it was kept).
     max_slope: the steepest slope its pair could measure (mesh.walls; None: unknown, no walls).
     noise_um: the typical local uncertainty of its heights, µm (median of sigma_um).
+    filled: (rows, cols) bool, True where a height was interpolated rather than matched (None:
+        not known, a specimen stored before it was kept).
     """
 
     id: str
@@ -46,6 +48,7 @@ class PlacedRoi:
     sigma_um: np.ndarray | None = None
     max_slope: float | None = None
     noise_um: float = 0.0
+    filled: np.ndarray | None = None
 
     @property
     def extent_um(self) -> tuple[float, float, float, float]:
@@ -65,15 +68,18 @@ def footprint_um(
 @dataclass(frozen=True)
 class FusedSamples:
     """Fused values at sample points (any shape): heights µm (NaN unknown), texture 0-255 float32,
-    the index (into FusedSurface.rois) of the ROI that contributes most (-1 where none), and the
-    heights' one-sigma matching noise µm, blended as the heights are (NaN unknown). A finer ROI's
-    sigma is averaged over the sampling cell, not reduced by it: an upper bound for errors that
-    correlate over a matching window."""
+    the index (into FusedSurface.rois) of the ROI that contributes most (-1 where none), the
+    heights' one-sigma matching noise µm, blended as the heights are (NaN unknown), and whether a
+    height is mostly interpolated rather than matched (`filled`, bool: its share of filled points,
+    blended as the heights are, is at least a half). A finer ROI's sigma is averaged over the
+    sampling cell, not reduced by it: an upper bound for errors that correlate over a matching
+    window."""
 
     z_um: np.ndarray
     texture: np.ndarray
     source: np.ndarray
     sigma_um: np.ndarray
+    filled: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -83,6 +89,7 @@ class _PyramidLevel:
     weight: np.ndarray
     texture_weight: np.ndarray
     sigma_um: np.ndarray
+    filled_share: np.ndarray  # of the known points, NaN where none is
 
 
 class FusedSurface:
@@ -118,6 +125,7 @@ class FusedSurface:
         pictured = np.zeros(flat_x.shape, bool)
         source = np.full(flat_x.shape, -1, np.int32)
         sigma = np.full(flat_x.shape, np.nan, np.float32)
+        filled = np.zeros(flat_x.shape, np.float32)
         for index, (roi, pyramid) in enumerate(zip(self.rois, self._pyramids)):
             if not overlaps(roi.extent_um, (flat_x.min(), flat_y.min(), flat_x.max(), flat_y.max())):
                 continue
@@ -135,17 +143,22 @@ class FusedSurface:
             roi_texture = _remap(arrays.texture, maps, inside, 0.0)
             roi_texture_weight = _remap(arrays.texture_weight, maps, inside, 0.0)
             roi_sigma = _remap(arrays.sigma_um, maps, inside, np.nan)
+            roi_filled = np.nan_to_num(_remap(arrays.filled_share, maps, inside, np.nan))
             unknown = ~np.isfinite(z)
             # Where nothing coarser is known, an ROI's height counts in full, up to its very edge.
             blend = np.where(unknown & np.isfinite(roi_z), 1.0, roi_weight).astype(np.float32)
             z = np.where(blend > 0, np.where(unknown, roi_z, z * (1 - blend) + np.nan_to_num(roi_z) * blend), z)
             sigma = np.where(blend > 0, np.where(unknown, roi_sigma, sigma * (1 - blend) + roi_sigma * blend), sigma)
+            filled = np.where(
+                blend > 0, np.where(unknown, roi_filled, filled * (1 - blend) + roi_filled * blend), filled
+            )
             texture_blend = np.where(~pictured & inside, 1.0, roi_texture_weight).astype(np.float32)
             texture = texture * (1 - texture_blend) + roi_texture * texture_blend
             pictured |= inside
             source = np.where(blend >= 0.5, index, source)
+        filled = (filled >= 0.5) & np.isfinite(z)
         return FusedSamples(
-            *(values.ravel()[: x_um.size].reshape(x_um.shape) for values in (z, texture, source, sigma))
+            *(values.ravel()[: x_um.size].reshape(x_um.shape) for values in (z, texture, source, sigma, filled))
         )
 
 
@@ -195,20 +208,22 @@ def _pyramid(roi: PlacedRoi) -> list[_PyramidLevel]:
     valid = np.isfinite(roi.z_um)
     with_sigma = valid & np.isfinite(roi.sigma_um) if roi.sigma_um is not None else np.zeros_like(valid)
     z, counts = np.where(valid, roi.z_um, 0).astype(np.float32), valid.astype(np.float32)
-    sigma, sigma_counts = (
-        (
-            np.where(with_sigma, roi.sigma_um, 0).astype(np.float32)
-            if roi.sigma_um is not None
-            else np.zeros(valid.shape, np.float32)
-        ),
-        with_sigma.astype(np.float32),
-    )
+    sigma, sigma_counts = _zero_where_not(roi.sigma_um, with_sigma), with_sigma.astype(np.float32)
+    filled = _zero_where_not(roi.filled, valid)
     texture, weight = roi.texture.astype(np.float32), _border_weight(valid)
     texture_weight = _border_weight(np.ones(valid.shape, bool))
     levels = [
-        _PyramidLevel(np.where(valid, z, np.nan), texture, weight, texture_weight, np.where(with_sigma, sigma, np.nan))
+        _PyramidLevel(
+            np.where(valid, z, np.nan),
+            texture,
+            weight,
+            texture_weight,
+            np.where(with_sigma, sigma, np.nan),
+            np.where(valid, filled, np.nan),
+        )
     ]
     while min(counts.shape) >= 128:
+        filled, _ = _halved(filled, counts)
         z, counts = _halved(z, counts)
         sigma, sigma_counts = _halved(sigma, sigma_counts)
         texture, weight, texture_weight = (
@@ -222,9 +237,17 @@ def _pyramid(roi: PlacedRoi) -> list[_PyramidLevel]:
                 weight,
                 texture_weight,
                 np.where(kept & (sigma_counts > 0), sigma, np.nan),
+                np.where(kept, filled, np.nan),
             )
         )
     return levels
+
+
+def _zero_where_not(values: np.ndarray | None, known: np.ndarray) -> np.ndarray:
+    """`values` as float32 where `known`, 0 elsewhere and everywhere when they are None."""
+    if values is None:
+        return np.zeros(known.shape, np.float32)
+    return np.where(known, values, 0).astype(np.float32)
 
 
 def _halved(values: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -3,6 +3,7 @@ shared by the gRPC and HTTP endpoints, the command line, the exports and the rep
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -13,7 +14,7 @@ from fractoscope.formats.calibration import Calibration
 from fractoscope.mesh.grid import area_average
 from fractoscope.specimen.store import RoiEntry, Specimen
 from fractoscope.stereo.matching import DEFAULT_WINDOW_PX
-from fractoscope.surface import profile_parameters, profiles, roughness, scaling
+from fractoscope.surface import measurement, profile_parameters, profiles, roughness, scaling
 
 MAX_REGION_SAMPLES = 2048 * 2048  # what roughness is computed on, at most
 MAX_EXPORT_SAMPLES = 8192 * 8192  # what an export samples, at most (z and sigma: 512 MB)
@@ -201,41 +202,32 @@ def height_statistics(specimen: Specimen, region_um) -> dict:
 def roughness_of(
     specimen: Specimen, *, roi: str | None = None, region_um=None, chain: ChainRequest = ChainRequest()
 ) -> roughness.SurfaceAnalysis:
-    """The surface texture chain on one ROI as measured (the overview when neither is given), or on
-    a region of the fused surface (clipped to the specimen) sampled at the finest pixel size of the
-    ROIs that hold all of it (coarser if that would exceed MAX_REGION_SAMPLES), not at that of a finer
-    ROI that meets a part of it, which would upsample the rest. The matching noise is each ROI's stored sigma
-    map (for a region: fused as the heights are; the median where a measured point has none), the tilt
-    uncertainty that of the ROI (for a region: the largest of those it draws on)."""
+    """The surface texture chain on the measured points of one ROI (the overview when neither is
+    given), or of a region of the fused surface (clipped to the specimen) sampled at the finest
+    pixel size of the ROIs that hold all of it (coarser if that would exceed MAX_REGION_SAMPLES),
+    not at that of a finer ROI that meets a part of it, which would upsample the rest: see
+    `roughness_of_map`. The matching noise is each ROI's stored sigma map (for a region: fused as
+    the heights are), the tilt uncertainty that of the ROI (for a region: the largest of those it
+    draws on)."""
     if region_um is not None:
         area = surface_area(specimen, region_um=region_um, pixel_size_um=_holding_cell_um(specimen, region_um))
-        z_um, pixel_size_um, origin_um = area.z_um, area.pixel_size_um, area.origin_um
-        x0, y0 = origin_um
-        rows, cols = z_um.shape
+        x0, y0 = area.origin_um
+        rows, cols = area.z_um.shape
         finest_um = specimen.finest_pixel_size_um(
-            (x0, y0, x0 + (cols - 1) * pixel_size_um, y0 + (rows - 1) * pixel_size_um)
+            (x0, y0, x0 + (cols - 1) * area.pixel_size_um, y0 + (rows - 1) * area.pixel_size_um)
         )
-        window_px = DEFAULT_WINDOW_PX * finest_um / pixel_size_um
-        used = [specimen.roi(area.sources[i]) for i in np.unique(area.source[area.source >= 0])]
-        measured = np.isfinite(z_um)
-        with_sigma = measured & np.isfinite(area.sigma_um)
-        sigma_um = None
-        if with_sigma.any():
-            sigma_um = np.where(measured & ~with_sigma, np.median(area.sigma_um[with_sigma]), area.sigma_um)
-        tilt = [entry.tilt_rel_uncertainty for entry in used]
-        tilt_rel = max(tilt) if tilt and None not in tilt else None
+        window_px = DEFAULT_WINDOW_PX * finest_um / area.pixel_size_um
     else:
-        roi = roi or specimen.rois[0].id  # neither: the overview
-        entry = specimen.roi(roi)
-        placed = specimen.heights(roi)
-        z_um, pixel_size_um, origin_um = placed.z_um, placed.pixel_size_um, placed.origin_um
-        window_px, sigma_um, tilt_rel = DEFAULT_WINDOW_PX, placed.sigma_um, entry.tilt_rel_uncertainty
+        area = surface_area(specimen, roi=roi)
+        window_px = DEFAULT_WINDOW_PX
+    sigma_um = area.sigma_um if np.isfinite(area.sigma_um).any() else None
     return roughness_of_map(
-        z_um,
-        pixel_size_um=pixel_size_um,
-        origin_um=origin_um,
+        area.z_um,
+        pixel_size_um=area.pixel_size_um,
+        origin_um=area.origin_um,
         sigma_um=sigma_um,
-        tilt_rel_uncertainty=tilt_rel,
+        filled=area.filled,
+        tilt_rel_uncertainty=area.tilt_rel_uncertainty,
         chain=chain,
         default_window_px=max(1.0, window_px),
     )
@@ -255,12 +247,25 @@ def roughness_of_map(
     pixel_size_um: float,
     origin_um: tuple[float, float] = (0.0, 0.0),
     sigma_um: np.ndarray | None = None,
+    filled: np.ndarray | None = None,
     tilt_rel_uncertainty: float | None = None,
     chain: ChainRequest = ChainRequest(),
     default_window_px: float = 1.0,
 ) -> roughness.SurfaceAnalysis:
-    """The chain on a height map (rows, cols) µm whose pixel (0, 0) lies at `origin_um` (x, y): the
-    request's settings checked (errors name its fields), the defaults filled in."""
+    """The chain on a height map (rows, cols) µm whose pixel (0, 0) lies at `origin_um` (x, y): on
+    its measured points only, the `filled` ones (bool, interpolated rather than matched) left out
+    (surface.measurement.measured_only), every route's one way (the npz of `fracto height`, a
+    specimen's ROI or region, the report); `sigma_um` the matching noise (the median where a
+    measured point has none). The request's settings checked (errors name its fields), the
+    defaults filled in; the result's `coverage` says what share of the map was measured."""
+    covered = measurement.coverage(z_um, filled)
+    z_um = measurement.measured_only(z_um, filled)
+    if sigma_um is not None:
+        with_sigma = np.isfinite(sigma_um) & np.isfinite(z_um)
+        if not with_sigma.any():
+            sigma_um = None
+        else:
+            sigma_um = np.where(np.isfinite(z_um) & ~with_sigma, np.median(sigma_um[with_sigma]), sigma_um)
     if np.isfinite(z_um).sum() < 64:
         raise InvalidInputError("region", "holds fewer than 64 measured points")
     settings = roughness.surface_chain(
@@ -281,7 +286,7 @@ def roughness_of_map(
         levelling = ((y_um >= y0) & (y_um <= y1))[:, None] & ((x_um >= x0) & (x_um <= x1))[None, :]
         if not levelling.any():
             raise InvalidInputError("levelling_region", "does not meet the analysed area")
-    return roughness.analyse(
+    analysis = roughness.analyse(
         z_um,
         pixel_size_um=pixel_size_um,
         chain=settings,
@@ -289,6 +294,7 @@ def roughness_of_map(
         sigma_um=sigma_um,
         tilt_rel_uncertainty=tilt_rel_uncertainty,
     )
+    return dataclasses.replace(analysis, coverage=covered)
 
 
 def _form(form: str | None) -> str:
@@ -316,6 +322,11 @@ class SurfaceArea:
         where none.
     pixel_size_um: the grid step, µm; origin_um: (x, y) of pixel (0, 0) in the specimen frame, µm.
     roi: the ROI the area shows most of, whose calibration and matching it carries.
+    filled: (rows, cols) bool, True where a height was interpolated rather than matched.
+    tilt_rel_uncertainty: ε_z of the heights (for a region the largest of the ROIs it draws on;
+        None: not known).
+    datum_levelled: whether its heights are above a datum (the overview's), about which ε_z scales
+        them.
     """
 
     z_um: np.ndarray
@@ -326,6 +337,21 @@ class SurfaceArea:
     pixel_size_um: float
     origin_um: tuple[float, float]
     roi: RoiEntry
+    filled: np.ndarray
+    tilt_rel_uncertainty: float | None = None
+    datum_levelled: bool = False
+
+    @property
+    def coverage(self) -> measurement.Coverage:
+        return measurement.coverage(self.z_um, self.filled)
+
+    @property
+    def total_sigma_um(self) -> np.ndarray:
+        """The heights' whole one-sigma uncertainty, matching noise and tilt part (µm; see
+        surface.measurement.total_sigma_um), as `fracto height` writes its sigma_um."""
+        return measurement.total_sigma_um(
+            self.z_um, self.sigma_um, tilt_rel_uncertainty=self.tilt_rel_uncertainty, levelled=self.datum_levelled
+        )
 
     @property
     def calibration(self) -> Calibration | None:
@@ -363,6 +389,7 @@ def surface_area(
     placed = specimen.heights(entry.id)
     z_um = placed.z_um
     sigma_um = placed.sigma_um if placed.sigma_um is not None else np.full(z_um.shape, np.nan, np.float32)
+    filled = placed.filled if placed.filled is not None else np.zeros(z_um.shape, bool)
     texture, step = placed.texture, placed.pixel_size_um
     if pixel_size_um is not None and not math.isclose(pixel_size_um, step, rel_tol=1e-9):
         if pixel_size_um < step:
@@ -373,7 +400,9 @@ def surface_area(
         factor = pixel_size_um / step
         if min(z_um.shape) < factor:
             raise InvalidInputError("pixel_size_um", f"{pixel_size_um} µm leaves no pixel of ROI {entry.id!r}")
+        share = area_average(np.where(np.isfinite(z_um), filled, np.nan).astype(np.float32), factor=factor)
         z_um, sigma_um, step = area_average(z_um, factor=factor), area_average(sigma_um, factor=factor), pixel_size_um
+        filled = np.isfinite(z_um) & (np.nan_to_num(share) >= 0.5)
         texture = np.clip(np.round(area_average(texture.astype(np.float32), factor=factor)), 0, 255).astype(np.uint8)
     if z_um.size > max_samples:
         raise InvalidInputError(
@@ -382,9 +411,18 @@ def surface_area(
         )
     index = [placed_roi.id for placed_roi in specimen.surface.rois].index(entry.id)
     source = np.where(np.isfinite(z_um), index, -1).astype(np.int16)
+    sources = [r.id for r in specimen.surface.rois]
     return SurfaceArea(
-        z_um, sigma_um, texture, source, [r.id for r in specimen.surface.rois], step, placed.origin_um, entry
+        z_um, sigma_um, texture, source, sources, step, placed.origin_um, entry, filled, *_tilt_part(specimen, [entry])
     )
+
+
+def _tilt_part(specimen: Specimen, used: list[RoiEntry]) -> tuple[float | None, bool]:
+    """ε_z of heights drawn from the ROIs `used` (the largest; None when one's is not known) and
+    whether they are above a datum (the overview's: its children are aligned to it)."""
+    tilts = [entry.tilt_rel_uncertainty for entry in used]
+    datum = specimen.rois[0].datum or {}
+    return (max(tilts) if tilts and None not in tilts else None), datum.get("level", "none") != "none"
 
 
 def _region_area(
@@ -404,6 +442,7 @@ def _region_area(
     sigma_um = np.empty((rows, cols), np.float32)
     texture = np.empty((rows, cols), np.uint8)
     source = np.empty((rows, cols), np.int16)
+    filled = np.empty((rows, cols), bool)
     x_um = x0 + np.arange(cols) * cell_um
     strip = max(1, _SAMPLING_STRIP // cols)
     for start in range(0, rows, strip):
@@ -411,11 +450,14 @@ def _region_area(
         samples = specimen.surface.sample(*np.meshgrid(x_um, y_um), cell_um=cell_um)
         block = slice(start, start + len(y_um))
         z_um[block], sigma_um[block], source[block] = samples.z_um, samples.sigma_um, samples.source
+        filled[block] = samples.filled
         texture[block] = np.clip(np.round(samples.texture), 0, 255)
     sources = [roi.id for roi in specimen.surface.rois]
     counts = np.bincount(source[source >= 0].ravel(), minlength=len(sources))
     main = specimen.roi(sources[int(np.argmax(counts))]) if counts.any() else specimen.rois[0]
-    return SurfaceArea(z_um, sigma_um, texture, source, sources, cell_um, (x0, y0), main)
+    used = [specimen.roi(sources[index]) for index in np.flatnonzero(counts)]
+    tilt_part = _tilt_part(specimen, used)
+    return SurfaceArea(z_um, sigma_um, texture, source, sources, cell_um, (x0, y0), main, filled, *tilt_part)
 
 
 def _within_specimen(specimen: Specimen, region, *, allow_point: bool = False) -> tuple[float, float, float, float]:

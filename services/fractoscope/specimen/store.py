@@ -54,7 +54,8 @@ def validate_id(value: str, *, field: str) -> str:
 class RoiEntry:
     """An ROI as stored: placement (origin of pixel (0, 0), µm), shape (rows, cols), fit figures,
     the matching report, the datum its heights were levelled on (surface.datum.Datum.to_dict;
-    None: as measured) and its image files (`views`: {"file": path in the specimen folder,
+    None: as measured), their coverage (surface.measurement.Coverage.to_dict; None: stored before
+    it was kept) and its image files (`views`: {"file": path in the specimen folder,
     "name": the name it was given}, reference first; empty for specimens built before they
     were kept)."""
 
@@ -70,6 +71,7 @@ class RoiEntry:
     datum: dict | None = None
     tilt_rel_uncertainty: float | None = None  # relative height error a tilt error makes (None: not known)
     views: list[dict] = field(default_factory=list)
+    coverage: dict | None = None
 
     @property
     def region_um(self) -> tuple[float, float, float, float]:
@@ -133,8 +135,9 @@ class Specimen:
         placed = []
         for roi in self.rois:
             with self._stored_file(), np.load(io.BytesIO(self.read(f"rois/{roi.id}.npz"))) as arrays:
-                # Specimens built before it was kept have none.
+                # Specimens built before they were kept have none.
                 sigma_um = arrays["sigma_um"] if "sigma_um" in arrays else None
+                filled = arrays["filled"] if "filled" in arrays else None
                 placed.append(
                     PlacedRoi(
                         roi.id,
@@ -144,6 +147,7 @@ class Specimen:
                         arrays["z_um"],
                         arrays["texture"],
                         sigma_um,
+                        filled=filled,
                     )
                 )
         return FusedSurface(placed)
@@ -404,11 +408,10 @@ def write_description(
 
 
 def write_roi_arrays(directory: Path, roi: PlacedRoi) -> None:
-    """rois/{id}.npz: z_um, texture and, when known, sigma_um."""
+    """rois/{id}.npz: z_um, texture and, when known, sigma_um and filled."""
     (directory / "rois").mkdir(exist_ok=True)
-    arrays = {"z_um": roi.z_um, "texture": roi.texture} | (
-        {"sigma_um": roi.sigma_um} if roi.sigma_um is not None else {}
-    )
+    arrays = {"z_um": roi.z_um, "texture": roi.texture}
+    arrays |= {name: value for name in ("sigma_um", "filled") if (value := getattr(roi, name)) is not None}
     np.savez_compressed(directory / "rois" / f"{roi.id}.npz", **arrays)
 
 

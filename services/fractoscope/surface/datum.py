@@ -10,9 +10,13 @@ A datum checks itself (`datum_doubt`): the substrate search always finds some "l
 even on a surface that has none (a rough surface, or a grain on a background the matcher barely
 measured), so the level it finds must be measured over an extensive area and be flat: its
 heights scatter about its plane by little more than their own sigma, or by little against the
-relief standing on it. A substrate that fails is replaced by the plane through all heights,
-with a warning (or refused, when asked to be strict): a long matching is not thrown away for a
-datum, and zero never claims to be a substrate that was not found.
+relief standing on it. A substrate that fails is never replaced by a plane through all heights,
+which goes through whatever stands on the substrate (a particle filling most of a barely
+measured field tilts it by tens of degrees). It is replaced by the background plane
+(`_background`): the plane under the lowest heights of blocks spread over the map, taken only
+when it lies under the whole surface; else the heights stay as measured ("none"). Either comes
+with a warning that says which and why (or is refused, when asked to be strict): a long matching
+is not thrown away for a datum, and zero never claims to be a substrate that was not found.
 """
 
 from __future__ import annotations
@@ -39,13 +43,26 @@ MIN_MEASURED_SHARE = 0.5
 # percentile of the levelled heights; 0.015 on the pollen pairs, about 0.2 on a rough surface).
 MAX_RESIDUAL_SIGMAS = 3.0
 MAX_RELIEF_SHARE = 0.05
+# The background plane: the map is cut into BACKGROUND_BLOCKS x BACKGROUND_BLOCKS blocks, each with
+# at least BACKGROUND_MIN_POINTS measured points giving its low level (the median of its lowest
+# fifth); the plane rests on at least BACKGROUND_MIN_BLOCKS of them, spread over half the map's
+# width and height, each measured on the plane over BACKGROUND_LEVEL_SHARE of its area, and at
+# most BACKGROUND_MAX_BELOW of the measured points lie below it by more than the flatness
+# tolerance (a plane through a feature leaves much of it below).
+BACKGROUND_BLOCKS = 8
+BACKGROUND_MIN_POINTS = 16
+BACKGROUND_MIN_BLOCKS = 4
+BACKGROUND_LEVEL_SHARE = 0.5
+BACKGROUND_MAX_BELOW = 0.01
 
 
 @dataclass(frozen=True)
 class Datum:
-    """How heights were levelled: `level` ("plane", "substrate" or "region"), the region (µm) for
-    "region", and the plane that was subtracted: z = offset_um + slope_x x + slope_y y (x, y µm),
-    with the figures that tell whether it is a measured level:
+    """How heights were levelled: `level` ("plane", "substrate", "region", or where no substrate was
+    found "background" (the background plane) or "none" (heights as measured, nothing subtracted)),
+    the region (µm) for "region", and the plane that was subtracted: z = offset_um + slope_x x +
+    slope_y y (x, y µm), with the figures that tell whether it is a measured level (NaN, None in
+    to_dict, where none was fitted):
 
     fraction: share of the known (measured or filled) points that carry the fit;
     area_fraction: share of the whole map's area that carries it;
@@ -55,7 +72,8 @@ class Datum:
     sigma_um: their heights' median sigma, µm (NaN: not known; None in to_dict);
     relief_um: 1st to 99th percentile of all levelled heights, µm;
     tilt_deg: the plane's angle to the map's x-y plane, degrees;
-    requested: the level asked for ("substrate" where the substrate failed and `level` is "plane");
+    requested: the level asked for ("substrate" where the substrate failed and `level` says what
+        stands in for it);
     warning: why the datum is not the level asked for, or why a region is no level ("" none)."""
 
     level: str
@@ -76,8 +94,8 @@ class Datum:
     def to_dict(self) -> dict:
         values = asdict(self)
         values["region_um"] = list(self.region_um) if self.region_um else None
-        values["sigma_um"] = self.sigma_um if np.isfinite(self.sigma_um) else None  # strict JSON: null unknown
-        return values
+        # strict JSON: null unknown
+        return {k: None if isinstance(v, float) and not np.isfinite(v) else v for k, v in values.items()}
 
 
 def level_heights(
@@ -95,15 +113,17 @@ def level_heights(
     y_max) µm. `sigma_um` (rows, cols) µm: the heights' matching noise (the tilt part, shared by
     neighbours, left out), for the flatness check; `filled` (rows, cols) bool: points interpolated
     rather than measured, which stay out of the fit. A substrate that fails `datum_doubt` gives the
-    plane datum with a warning, or ValueError when `strict`; ValueError too when the region or
-    datum holds too few measured points."""
+    background plane or no levelling ("none"), with a warning that says which and why, or
+    ValueError when `strict`; ValueError too when the region or datum holds too few measured
+    points."""
     z = np.asarray(z_um, np.float64)
     known = np.isfinite(z)
     measured = known & ~np.asarray(filled, bool) if filled is not None else known
     if isinstance(level, str):
         if level not in LEVELS:
             raise ValueError(f"level must be one of {', '.join(LEVELS)} or a region, not {level!r}")
-        region = known if level == "plane" else _substrate(z, known, pixel_size_um)
+        # The substrate grows over measured points only: a fill across a hole is no level.
+        region = known if level == "plane" else _substrate(z, measured, pixel_size_um)
         name, region_um = level, None
     else:
         region_um, region = _region(level, known, pixel_size_um)
@@ -113,10 +133,28 @@ def level_heights(
     if doubt and name == "substrate":
         if strict:
             raise ValueError(f"no measured substrate: {doubt}")
-        levelled, plane = _fitted(z, known, measured, pixel_size_um, "plane", None, sigma_um)
-        warning = f"no measured substrate ({doubt}): zero is on a plane through all heights instead"
-        return levelled, replace(plane, requested=name, warning=warning)
+        return _instead_of_substrate(z, measured, pixel_size_um, sigma_um, doubt)
     return levelled, replace(datum, warning=f"the region is no measured level: {doubt}" if doubt else "")
+
+
+def _instead_of_substrate(z, measured, pixel_size_um, sigma_um, doubt) -> tuple[np.ndarray, Datum]:
+    """The background plane's levelling where the substrate failed (`doubt` says why), else the
+    heights as measured; the datum's warning says which it is."""
+    background, blocks = _background(z, measured, sigma_um)
+    if background is not None:
+        levelled, plane = _fitted(z, background, measured, pixel_size_um, "background", None, sigma_um)
+        warning = (
+            f"no measured substrate ({doubt}): zero is on the background plane under the lowest heights of {blocks} "
+            f"blocks across the map, under all but {100 * BACKGROUND_MAX_BELOW:g} % of the measured heights at most"
+        )
+        return levelled, replace(plane, requested="substrate", warning=warning)
+    nan = float("nan")
+    warning = (
+        f"no measured substrate ({doubt}), and no plane lies under the whole surface: the heights are left as "
+        "measured (no plane subtracted; a plane through all heights would go through what stands on the substrate)"
+    )
+    none = Datum("none", 0.0, 0.0, 0.0, fraction=0.0, area_fraction=0.0, measured_fraction=nan, requested="substrate")
+    return z.astype(np.float32), replace(none, residual_rms_um=nan, relief_um=_relief(z, measured), warning=warning)
 
 
 def datum_doubt(datum: Datum) -> str:
@@ -168,7 +206,6 @@ def _fitted(z, region, measured, pixel_size_um, name, region_um, sigma_um) -> tu
     levelled = z - (offset + slope_x * cols * pixel_size_um + slope_y * rows * pixel_size_um)
     sigma = np.asarray(sigma_um, np.float64)[carrying] if sigma_um is not None else np.empty(0)
     sigma = sigma[np.isfinite(sigma)]
-    low, high = np.percentile(levelled[measured], [1, 99])
     datum = Datum(
         name,
         offset,
@@ -180,7 +217,7 @@ def _fitted(z, region, measured, pixel_size_um, name, region_um, sigma_um) -> tu
         measured_fraction=float(carrying.sum() / region.sum()),
         residual_rms_um=float(np.sqrt(np.mean(levelled[carrying] ** 2))),
         sigma_um=float(np.median(sigma)) if sigma.size else float("nan"),
-        relief_um=float(high - low),
+        relief_um=_relief(levelled, measured),
         tilt_deg=float(np.degrees(np.arctan(np.hypot(slope_x, slope_y)))),
         requested=name,
     )
@@ -216,3 +253,80 @@ def _substrate(z: np.ndarray, measured: np.ndarray, pixel_size_um: float) -> np.
             break
         region = grown
     return region
+
+
+def _relief(z: np.ndarray, measured: np.ndarray) -> float:
+    """1st to 99th percentile of the measured heights, µm."""
+    low, high = np.percentile(z[measured], [1, 99])
+    return float(high - low)
+
+
+def _background(z, measured, sigma_um) -> tuple[np.ndarray | None, int]:
+    """The measured points the background plane rests on (None where there is none) and the number
+    of blocks they lie in: the plane through the blocks' low levels (see BACKGROUND_BLOCKS),
+    dropping the highest block above it by more than the tolerance until none is; then only the
+    blocks mostly measured on it (a flank's lowest points are no level, nor are the few heights of
+    a barely measured background) carry it, and it must lie under the whole surface."""
+    rows, cols = np.indices(z.shape)
+    block = (rows * BACKGROUND_BLOCKS // z.shape[0]) * BACKGROUND_BLOCKS + cols * BACKGROUND_BLOCKS // z.shape[1]
+    lows = _block_lows(z, measured, block)
+    if len(lows) < BACKGROUND_MIN_BLOCKS:
+        return None, 0
+    tolerance = _background_tolerance_um(z, measured, sigma_um)
+    kept = np.ones(len(lows), bool)
+    while kept.sum() >= BACKGROUND_MIN_BLOCKS:
+        plane = _plane_through(lows[kept])
+        residual = lows[:, 3] - (plane[0] + plane[1] * lows[:, 1] + plane[2] * lows[:, 2])
+        above = kept & (residual > tolerance)
+        if not above.any():
+            break
+        kept[np.argmax(np.where(above, residual, -np.inf))] = False  # the highest first: features stand above
+    if kept.sum() < BACKGROUND_MIN_BLOCKS:
+        return None, 0
+    distance = np.abs(np.where(measured, z, np.inf) - (plane[0] + plane[1] * cols + plane[2] * rows))
+    on_plane = measured & (distance <= tolerance)
+    # A block is level where most of its area is measured on the plane: the few heights a barely
+    # measured background gives (a ring biased by a grain's edge) carry no plane.
+    share = np.bincount(block[on_plane], minlength=BACKGROUND_BLOCKS**2) / np.bincount(block.ravel())
+    level = kept & (share[lows[:, 0].astype(int)] >= BACKGROUND_LEVEL_SHARE)
+    spread = np.ptp(lows[level, 1:3], axis=0) if level.any() else np.zeros(2)
+    if level.sum() < BACKGROUND_MIN_BLOCKS or np.any(spread < 0.5 * np.array([z.shape[1], z.shape[0]])):
+        return None, 0
+    below = (z - (plane[0] + plane[1] * cols + plane[2] * rows))[measured] < -tolerance
+    if below.mean() > BACKGROUND_MAX_BELOW:
+        return None, 0
+    return on_plane & np.isin(block, lows[level, 0].astype(int)), int(level.sum())
+
+
+def _background_tolerance_um(z: np.ndarray, measured: np.ndarray, sigma_um) -> float:
+    """How far a point may lie from the background plane and be on it, µm: MAX_RESIDUAL_SIGMAS
+    times the measured heights' median sigma (a background is flat within its noise; the
+    relief's share, which a substrate may also meet, would let a ring of heights biased by a
+    grain's edge pass for one), or that share where the sigma is not known."""
+    sigma = np.asarray(sigma_um, np.float64)[measured] if sigma_um is not None else np.full(1, np.nan)
+    if np.isfinite(sigma).any():
+        return MAX_RESIDUAL_SIGMAS * float(np.nanmedian(sigma))
+    return MAX_RELIEF_SHARE * _relief(z, measured)
+
+
+def _plane_through(lows: np.ndarray) -> np.ndarray:
+    """(offset, slope per column, slope per row) of the least-squares plane through the blocks'
+    low levels (K, 4) (block, col, row, height)."""
+    design = np.column_stack([np.ones(len(lows)), lows[:, 1], lows[:, 2]])
+    return np.linalg.lstsq(design, lows[:, 3], rcond=None)[0]
+
+
+def _block_lows(z: np.ndarray, measured: np.ndarray, block: np.ndarray) -> np.ndarray:
+    """(K, 4) (block, col, row, low height) of the blocks (`block`: each point's block number) with
+    enough measured points: the centroid and median height of each block's lowest fifth (pixels,
+    µm)."""
+    lows = []
+    rows, cols = np.nonzero(measured)
+    labels, heights = block[rows, cols], z[rows, cols]
+    for label in np.unique(labels):
+        inside = labels == label
+        if inside.sum() < BACKGROUND_MIN_POINTS:
+            continue
+        lowest = inside & (heights <= np.quantile(heights[inside], _SUBSTRATE_START_QUANTILE))
+        lows.append((label, cols[lowest].mean(), rows[lowest].mean(), np.median(heights[lowest])))
+    return np.array(lows, np.float64).reshape(-1, 4)

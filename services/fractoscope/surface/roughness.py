@@ -30,7 +30,7 @@ import numba
 import numpy as np
 
 from fractoscope.errors import InvalidInputError
-from fractoscope.surface import areal_parameters, form_removal, iso_filters, scaling, uncertainty
+from fractoscope.surface import areal_parameters, form_removal, iso_filters, measurement, scaling, uncertainty
 
 FORMS = ("none", *form_removal.FORMS)
 HURST_METHODS = ("hhc", "psd")
@@ -105,9 +105,10 @@ def surface_chain(
 
 @dataclass(frozen=True)
 class HurstResult:
-    """The Hurst fits: ``fits[method][side]`` (methods "hhc", "psd"; sides "along", "across"), and
-    the windows the fit range started at (``min_windows`` of the chain, or FALLBACK_MIN_WINDOWS on a
-    field too small for it). Empty fits with a ``note`` when even that does not fit."""
+    """The Hurst fits: ``fits[method][side]`` (methods "hhc", "psd"; sides "along", "across"; each
+    fit says itself why it does not determine H), and the windows the fit range started at
+    (``min_windows`` of the chain, or FALLBACK_MIN_WINDOWS on a field too small for it, which the
+    ``note`` says). Empty fits with a ``note`` when even that does not fit."""
 
     fits: dict[str, dict[str, scaling.ScalingFit]]
     min_windows: float
@@ -125,6 +126,8 @@ class SurfaceAnalysis:
     hurst: the Hurst fits.
     psd_q_per_um, psd_um4: the radially averaged areal PSD of the S-F surface (cycles/µm, µm⁴).
     form_parameters: the fitted form's geometry (form_removal.FormFit.parameters).
+    coverage: what share of the map was measured, filled (and left out) or unknown (None: not
+        told, a map analysed as it is).
     """
 
     chain: SurfaceChain
@@ -136,6 +139,12 @@ class SurfaceAnalysis:
     psd_q_per_um: np.ndarray
     psd_um4: np.ndarray
     form_parameters: dict = field(default_factory=dict)
+    coverage: measurement.Coverage | None = None
+
+    @property
+    def caveats(self) -> list[str]:
+        """One line per parameter family that does not suit this surface (`parameter_caveats`)."""
+        return parameter_caveats(self.parameters, self.coverage)
 
     def legacy(self) -> dict:
         """The keys Fractoscope reported before the chain: Sa ... Sdr, and the Hurst exponent by
@@ -163,6 +172,32 @@ class SurfaceAnalysis:
             "hhc_lag_um": fit.scale_um.tolist(),
             "hhc_rms_um": fit.value.tolist(),
         }
+
+
+# Unknown points beyond this share leave Spd and Spc counting a fraction of the hills.
+_FEATURE_UNKNOWN_SHARE = 0.05
+
+
+def parameter_caveats(parameters: dict[str, float], coverage: measurement.Coverage | None) -> list[str]:
+    """Why some parameters do not describe a surface, one line each: the Sk family where the areal
+    material ratio curve has no straight core (Spk or Svk beyond Sz, or Sk + Spk + Svk beyond it:
+    heights of two levels, a grain on a substrate), Spd and Spc where unknown points leave hills
+    uncounted (ISO 25178-2 counts only complete hills)."""
+    lines = []
+    sz, sk, spk, svk = (parameters.get(name, math.nan) for name in ("Sz", "Sk", "Spk", "Svk"))
+    if sz > 0 and (spk > sz or svk > sz or sk + spk + svk > sz):
+        lines.append(
+            f"Sk, Spk, Svk, Smr1, Smr2 do not describe this surface: Sk + Spk + Svk = {sk + spk + svk:.3g} µm exceeds "
+            f"Sz = {sz:.3g} µm, so the material ratio curve has no straight core (heights of two levels, such as a "
+            "grain on a substrate)"
+        )
+    unknown = coverage.unknown + coverage.filled if coverage is not None else 0.0
+    if unknown > _FEATURE_UNKNOWN_SHARE:
+        lines.append(
+            f"Spd and Spc count only the hills that touch no unmeasured point ({100 * unknown:.0f} % of the area is "
+            "unmeasured or filled): they describe the measured part"
+        )
+    return lines
 
 
 def analyse(
@@ -394,13 +429,7 @@ def _hurst(sf_um: np.ndarray, pixel_size_um: float, chain: SurfaceChain) -> Hurs
             )
         else:
             note = ""
-        undetermined = [
-            f"{method} {side}: H {fit.not_determinable}"
-            for method, by_side in fits.items()
-            for side, fit in by_side.items()
-            if fit.not_determinable
-        ]
-        return HurstResult(fits, min_windows, "; ".join(filter(None, [note, *undetermined])))
+        return HurstResult(fits, min_windows, note)
     return HurstResult({}, chain.min_windows, note)
 
 

@@ -46,6 +46,7 @@ def specimen_message(specimen: Specimen) -> tiles_pb2.Specimen:
                 registration_score=roi.registration_score,
                 level=(roi.datum or {}).get("level", ""),
                 datum=datum_message(roi.datum),
+                coverage=coverage_message(roi.coverage) if roi.coverage else None,
             )
         )
     return message
@@ -53,11 +54,17 @@ def specimen_message(specimen: Specimen) -> tiles_pb2.Specimen:
 
 def datum_message(datum: dict | None) -> tiles_pb2.HeightDatum | None:
     """A stored datum (surface.datum.Datum.to_dict) as its message, None for none; a specimen built
-    before datums checked themselves has their plane only."""
+    before datums checked themselves has their plane only. An unknown figure (None) is NaN, or
+    absent where the field is optional."""
     if not datum:
         return None
     fields = tiles_pb2.HeightDatum.DESCRIPTOR.fields_by_name
-    return tiles_pb2.HeightDatum(**{key: value for key, value in datum.items() if key in fields and value is not None})
+    values = {
+        key: math.nan if value is None else value
+        for key, value in datum.items()
+        if key in fields and not (value is None and fields[key].has_presence)
+    }
+    return tiles_pb2.HeightDatum(**values)
 
 
 def with_tile(response, specimen: Specimen, record: TileRecord):
@@ -296,7 +303,15 @@ def roughness_response(analysis: SurfaceAnalysis, request: ChainRequest) -> tile
     response.hurst_note = analysis.hurst.note
     response.psd_q_per_um.extend(analysis.psd_q_per_um)
     response.psd_um4.extend(analysis.psd_um4)
+    if analysis.coverage is not None:
+        response.coverage.CopyFrom(coverage_message(analysis.coverage.to_dict()))
+    response.caveats.extend(analysis.caveats)
     return response
+
+
+def coverage_message(coverage: dict) -> tiles_pb2.Coverage:
+    """A Coverage (surface.measurement.Coverage.to_dict) as its message."""
+    return tiles_pb2.Coverage(**{key: value for key, value in coverage.items() if key.endswith("_fraction")})
 
 
 def profile_response(found: SpecimenProfile) -> tiles_pb2.GetProfileResponse:

@@ -83,7 +83,7 @@ def test_the_numbers_in_the_report_are_the_apis(http_api, built):
             assert shown[f"hurst.{fit['method']}.{fit['side']}.{key}"] == fit[key], (fit["method"], fit["side"], key)
     chain = roughness["chain"]  # the roughness table names the chain the API ran
     assert f"After removing the form ({chain['form']}" in text and chain["s_filter_um"] == chain["l_filter_um"] == 0.0
-    assert "No S- or L-filter" in text and f"correlated over the {chain['window_px']:g} px window" in text
+    assert "Filters: λs = none, λc = none" in text and f"correlated over the {chain['window_px']:g} px window" in text
     assert NOT_CALIBRATED in text and "argument" in text  # the manifest gave the tilts and the pixel size
 
 

@@ -96,9 +96,17 @@ def relief_sign_sentence(report: dict) -> str:
 def datum_sentence(datum: dict) -> str:
     """Where height zero is and the figures that say whether it is a measured level, from a datum
     (surface.datum.Datum.to_dict, or a Datum message as a dict), with its warning."""
-    places = {"plane": "a plane through all heights", "substrate": "the substrate", "region": "the region's plane"}
+    places = {
+        "plane": "a plane through all heights",
+        "substrate": "the substrate",
+        "region": "the region's plane",
+        "background": "the background plane (no substrate was found)",
+    }
     sigma = datum.get("sigma_um")
     against = f" against a sigma of {sigma:.3g} µm" if sigma is not None and math.isfinite(sigma) else ""
+    if datum["level"] == "none":
+        sentence = "datum: none, the heights as measured (no plane subtracted)"
+        return sentence + (f"; warning: {datum['warning']}" if datum.get("warning") else "")
     sentence = (
         f"datum: 0 µm on {places.get(datum['level'], datum['level'])}, tilted {datum['tilt_deg']:.2f}°; fitted on "
         f"{100 * datum['area_fraction']:.1f} % of the map ({100 * datum['measured_fraction']:.0f} % of it measured), "

@@ -163,6 +163,8 @@ def run_demo(
             )
             built.append(specimen_id)
             for roi in summary["rois"]:
+                # Seconds per ROI (the Hurst fits, Spd): said, so that a log is never silent meanwhile.
+                console.print(f"{specimen_id}: roughness of ROI {roi['id']} ...", soft_wrap=True, highlight=False)
                 values = client.roughness(specimen_id, roi=roi["id"])
                 rows.append(_summary_row(specimen_id, roi, values))
                 checks.extend(_checks(specimen_id, roi, values, truth))

@@ -28,7 +28,7 @@ from fractoscope.cli.common import (
 from fractoscope.client import FractoscopeClient, HeightMap
 
 if TYPE_CHECKING:
-    from fractoscope.surface.datum import Datum
+    from fractoscope.surface.measurement import Measurement
 
 
 def add_parsers(commands) -> None:
@@ -184,21 +184,15 @@ def command_height(args) -> int:
     for warning in result.report.get("warnings", []):
         print(f"warning: {warning}", file=sys.stderr)
     report = result.report
-    local_sigma_um = geometry.matching_sigma_um(
-        result.z_um,
-        result.sigma_um,
-        relative_height_error=geometry.series_relative_height_error(
-            report["tilt_deg"], tilt_uncertainty_deg=report["tilt_uncertainty_deg"]
-        ),
-    )
-    result, levelled = _levelled(result, args.level, sigma_um=local_sigma_um, strict=args.strict_level)
+    kept = _kept(result, args.level, strict=args.strict_level)
     write_height_npz(
         out,
-        z_um=result.z_um,
-        sigma_um=result.sigma_um,
+        z_um=kept.z_um,
+        sigma_um=kept.sigma_um,
         confidence=result.confidence,
         views_used=result.views_used,
-        local_sigma_um=local_sigma_um,
+        local_sigma_um=kept.local_sigma_um,
+        filled=kept.filled,
         calibration=Calibration.from_report(report),
         record={
             "tilt_axis_deg": report["tilt_axis_deg"],
@@ -206,13 +200,14 @@ def command_height(args) -> int:
             "method": report.get("method", ""),
             "parameters": matching_parameters(args),
             "report": report,
-            "datum": levelled.to_dict() if levelled else None,
+            "datum": kept.datum.to_dict() if kept.datum else None,
         },
         tilt_deg_estimated=np.array(report["tilt_deg"]) if args.calibrate_tilt else None,
     )
-    summary = {"output": str(out), **height_summary(result)}
-    if levelled:
-        summary["datum"] = levelled.to_dict()
+    result = dataclasses.replace(result, z_um=kept.z_um, sigma_um=kept.sigma_um)
+    summary = {"output": str(out), **height_summary(result, kept)}
+    if kept.datum:
+        summary["datum"] = kept.datum.to_dict()
     if picture:
         plot_height_map(result, picture)
         summary["png"] = str(picture)
@@ -223,31 +218,28 @@ def command_height(args) -> int:
     return 0
 
 
-def _levelled(
-    result: HeightMap,
-    level: str | tuple[float, float, float, float] | None,
-    *,
-    sigma_um: np.ndarray,
-    strict: bool,
-) -> tuple[HeightMap, Datum | None]:
-    """The heights with height zero at `level` (see level_choice; None: as measured), and the
-    datum they were levelled to, checked against the heights' matching noise `sigma_um` (µm);
-    its warning, if any, printed. `strict`: a substrate that is not found fails (UsageError)."""
-    from fractoscope.surface import datum
+def _kept(result: HeightMap, level: str | tuple[float, float, float, float] | None, *, strict: bool) -> Measurement:
+    """The heights as every route keeps them (surface.measurement: cleaned, their matching noise
+    apart, levelled on `level`, see level_choice; None: as measured), the datum's warning, if any,
+    printed. `strict`: a substrate that is not found fails (UsageError)."""
+    from fractoscope.surface.measurement import measurement
 
-    if level is None:
-        return result, None
-    flag = f"--level {level if isinstance(level, str) else ','.join(f'{v:g}' for v in level)}"
+    flag = "" if level is None else f"--level {level if isinstance(level, str) else ','.join(f'{v:g}' for v in level)}"
     try:
-        z_um, plane = datum.level_heights(
-            result.z_um, pixel_size_um=result.pixel_size_um, level=level, sigma_um=sigma_um, strict=strict
+        kept = measurement(
+            result.z_um,
+            result.sigma_um,
+            pixel_size_um=result.pixel_size_um,
+            tilt_deg=result.report["tilt_deg"],
+            tilt_uncertainty_deg=result.report["tilt_uncertainty_deg"],
+            level=level,
+            strict_level=strict,
         )
     except ValueError as error:
         raise UsageError(f"{flag}: {error}") from None
-    if plane.warning:
-        print(f"warning: {flag}: {plane.warning}", file=sys.stderr)
-    levelled = dataclasses.replace(result, z_um=z_um)
-    return levelled, plane
+    if kept.datum and kept.datum.warning:
+        print(f"warning: {flag}: {kept.datum.warning}", file=sys.stderr)
+    return kept
 
 
 def _print_summary(summary: dict, shape: tuple[int, ...], *, with_tilts: bool) -> None:
@@ -314,14 +306,21 @@ def plot_height_map(result: HeightMap, path: Path) -> None:
     plt.close(figure)
 
 
-def height_summary(result: HeightMap) -> dict:
-    """Figures worth printing about a height map (µm where dimensional)."""
+def height_summary(result: HeightMap, kept: Measurement) -> dict:
+    """Figures worth printing about a height map as kept (µm where dimensional): its extremes,
+    the share the matching measured (`valid_fraction`, as its report has it), the coverage
+    (surface.measurement.coverage: filled points apart, rejected outliers unknown) and the
+    median sigma."""
+    from fractoscope.surface.measurement import coverage
+
     valid = np.isfinite(result.z_um)
     z = result.z_um[valid]
+    covered = coverage(result.z_um, kept.filled)
     return {
         "z_min_um": float(z.min()) if z.size else float("nan"),
         "z_max_um": float(z.max()) if z.size else float("nan"),
-        "valid_fraction": float(valid.mean()),
+        "valid_fraction": result.report.get("valid_fraction", covered.measured),
+        "coverage": covered.to_dict(),
         "median_sigma_um": float(np.median(result.sigma_um[valid])) if z.size else float("nan"),
         "report": result.report,
     } | _views_summary(result, valid)

@@ -30,6 +30,7 @@ from fractoscope.cli.common import (
     relief_sign_sentence,
 )
 from fractoscope.client.manifest import load_manifest
+from fractoscope.numbers import measured, with_uncertainty
 from fractoscope.rpc import wire
 
 FORMS = tuple(wire.FORMS)
@@ -215,13 +216,22 @@ def command_profile(args) -> int:
     if args.json:
         print_json({"output": str(out), "samples": len(result.z_um), **result.parameters, "chain": result.chain})
     else:
-        figures = ", ".join(f"{k} {v:.4g}" for k, v in result.parameters.items() if v is not None)
-        chain = result.chain
-        used = (
-            f" (form {chain['form']}, λs {chain['s_filter_um']:g} µm, λc {chain['l_filter_um']:g} µm)" if chain else ""
-        )
-        print(f"wrote {out}: {len(result.z_um)} samples; {figures}{used}")
+        print(f"wrote {out}: {len(result.z_um)} samples; {profile_figures(result.parameters, result.chain)}")
     return 0
+
+
+def profile_figures(parameters: dict, chain: dict | None) -> str:
+    """A profile's ISO 21920-2 parameters with their units (three significant digits: the profile
+    carries no uncertainty) and the chain that made its roughness profile: Ra and the others are
+    of the profile after the λc filter, not of the primary profile's relief."""
+    figures = ", ".join(f"{k} {measured(v, wire.profile_unit(k))}" for k, v in parameters.items() if v is not None)
+    if not chain:
+        return figures
+    cutoffs = ", ".join(
+        f"{name} {f'{chain[key]:g} µm' if chain[key] else 'none'}"
+        for name, key in (("λs", "s_filter_um"), ("λc", "l_filter_um"))
+    )
+    return f"{figures} (roughness profile: form {chain['form']}, {cutoffs})"
 
 
 def plot_profile(result, path: Path, *, title: str) -> None:
@@ -266,33 +276,47 @@ def command_roughness(args) -> int:
     if args.json:
         print_json(values)
         return 0
+    print_roughness(values)
+    return 0
+
+
+def print_roughness(values: dict) -> None:
+    """GetRoughness's answer (wire.response_to_roughness) as text: the chain with its cut-offs,
+    the coverage, each parameter with its uncertainty's digits and its unit (fractoscope.numbers),
+    the caveats, the noise bias and each Hurst fit once, with its reason where it determines no H."""
     used = values["chain"]
-    filters = (
-        ", ".join(
-            f"{name} {used[key]:g} µm" for name, key in (("λs", "s_filter_um"), ("λc", "l_filter_um")) if used[key]
-        )
-        or "no filters"
+    filters = ", ".join(
+        f"{name} {f'{used[key]:g} µm' if used[key] else 'none'}"
+        for name, key in (("λs", "s_filter_um"), ("λc", "l_filter_um"))
     )
     print(
         f"chain: form {used['form']}{' (levelled on a region)' if used['levelling_region_um'] else ''}, {filters}; "
-        f"{values['pixel_size_um']:.4g} µm/px"
+        f"grid {values['pixel_size_um']:.4g} µm"
     )
+    if covered := values.get("coverage"):
+        print(
+            f"on the matched heights: {100 * covered['measured_fraction']:.1f} % of the points "
+            f"({100 * covered['filled_fraction']:.1f} % filled and {100 * covered['unknown_fraction']:.1f} % unknown "
+            "left out)"
+        )
     for name, unit in values["units"].items():
-        value, u = values[name], values["uncertainty"][name]["u_total"]
-        shown = "n/a" if value is None else f"{value:.4g}" + ("" if u is None else f" ± {u:.2g}")
-        print(f"{name:5} {shown} {'' if unit == '1' else unit}")
+        print(f"{name:5} {with_uncertainty(values[name], values['uncertainty'][name]['u_total'], unit)}")
+    for caveat in values.get("caveats", []):
+        print(f"caveat: {caveat}")
     bias = values["noise_bias"]
     if bias["Sq"] is not None:
-        print(f"matching noise inflates Sa by {bias['Sa']:.3g} µm and Sq by {bias['Sq']:.3g} µm")
+        print(
+            f"matching noise inflates Sa by {measured(bias['Sa'], 'µm', digits=2)} and Sq by "
+            f"{measured(bias['Sq'], 'µm', digits=2)}"
+        )
     for fit in values["hurst"]:
-        shown = fit.get("not_determinable") or (
-            f"{fit['hurst']:.3f} ± {fit['hurst_stderr']:.3f} "
-            f"(fit {fit['fit_min_um']:.3g} to {fit['fit_max_um']:.3g} µm)"
+        shown = fit["not_determinable"] or (
+            f"{with_uncertainty(fit['hurst'], fit['hurst_stderr'], '1')} "
+            f"(fit {measured(fit['fit_min_um'], 'µm')} to {measured(fit['fit_max_um'], 'µm')})"
         )
         print(f"Hurst {fit['method']} {fit['side']:6} ({fit['direction_deg']:g}°): {shown}")
     if values["hurst_note"]:
-        print(values["hurst_note"])
-    return 0
+        print(f"Hurst: {values['hurst_note']}")
 
 
 def roughness_of_file(path: Path, chain: dict, *, pixel_size_um: float | None) -> dict:
@@ -304,7 +328,7 @@ def roughness_of_file(path: Path, chain: dict, *, pixel_size_um: float | None) -
     from fractoscope.stereo.matching import DEFAULT_WINDOW_PX
     from fractoscope.tiles.messages import roughness_response
 
-    sigma_um, tilt_rel, origin_um = None, None, (0.0, 0.0)
+    sigma_um, tilt_rel, origin_um, filled = None, None, (0.0, 0.0), None
     if path.suffix.lower() == ".x3p":
         surface = read_x3p(path)
         if not np.isclose(surface.step_x_um, surface.step_y_um, rtol=1e-6):
@@ -313,7 +337,7 @@ def roughness_of_file(path: Path, chain: dict, *, pixel_size_um: float | None) -
     else:
         stored = read_height_npz(path)
         z_um, file_pixel_um, window_px = stored.z_um.astype(np.float64), stored.pixel_size_um, DEFAULT_WINDOW_PX
-        sigma_um, tilt_rel = _matching_noise(stored)
+        (sigma_um, tilt_rel), filled = _matching_noise(stored), stored.filled
     pixel_um = pixel_size_um if pixel_size_um is not None else recorded_pixel_size_um(path, file_pixel_um)
     request = ChainRequest(**chain)
     analysis = roughness_of_map(
@@ -321,6 +345,7 @@ def roughness_of_file(path: Path, chain: dict, *, pixel_size_um: float | None) -
         pixel_size_um=pixel_um,
         origin_um=origin_um,
         sigma_um=sigma_um,
+        filled=filled,
         tilt_rel_uncertainty=tilt_rel,
         chain=request,
         default_window_px=window_px,
@@ -329,10 +354,9 @@ def roughness_of_file(path: Path, chain: dict, *, pixel_size_um: float | None) -
 
 
 def _matching_noise(stored) -> tuple[np.ndarray | None, float | None]:
-    """The matching noise of a height map file (formats.height_npz.HeightMapFile), µm, on its grid
-    (unknown points: the median), and the relative height error its tilts' uncertainty makes
-    (None: not recorded): the chain propagates the tilt part, which scales all heights together,
-    apart from the noise."""
+    """The matching noise of a height map file (formats.height_npz.HeightMapFile), µm, on its grid,
+    and the relative height error its tilts' uncertainty makes (None: not recorded): the chain
+    propagates the tilt part, which scales all heights together, apart from the noise."""
     from fractoscope.stereo import geometry
     from fractoscope.stereo.inputs import MatchingOptions
 
@@ -345,9 +369,6 @@ def _matching_noise(stored) -> tuple[np.ndarray | None, float | None]:
         tilt_rel = geometry.series_relative_height_error(
             stored.calibration.tilt_deg, tilt_uncertainty_deg=tilt_uncertainty
         )
-    if sigma_um is not None:
-        known = np.isfinite(sigma_um) & np.isfinite(stored.z_um)
-        sigma_um = np.where(known, sigma_um, np.median(sigma_um[known]) if known.any() else 0.0)
     return sigma_um, tilt_rel
 
 
@@ -381,11 +402,17 @@ def report_of_file(path: Path, outputs: list[Path], *, pixel_size_um: float | No
                 **stored.record.get("report", {}),
             },
             sigma_um=sigma_um,
+            filled=stored.filled,
             tilt_rel_uncertainty=tilt_rel,
             datum=stored.record.get("datum"),
         )
         for output in outputs:
-            written = write_report(specimen, Path(folder), file_format=output.suffix.lower().removeprefix("."))
+            written = write_report(
+                specimen,
+                Path(folder),
+                file_format=output.suffix.lower().removeprefix("."),
+                subject=f"height map file {path.name}",
+            )
             shutil.move(written, output)
 
 

@@ -249,7 +249,9 @@ def response_to_roughness(response: tiles_pb2.GetRoughnessResponse) -> dict:
     "hurst" (one dict per fit: method "hhc" or "psd", side "along" or "across", direction_deg,
     hurst, hurst_stderr, fit_min_um, fit_max_um, fit_min_windows, scale_um, value, in_fit,
     not_determinable: why H is not determinable, "" when it is),
-    "hurst_note" and "psd" {"q_per_um", "c_um4"}. Unknown numbers are None."""
+    "hurst_note", "psd" {"q_per_um", "c_um4"}, "coverage" {"measured_fraction",
+    "filled_fraction", "unknown_fraction"} (None: not told) and "caveats" (lines). Unknown numbers
+    are None."""
     values = {name: _number(getattr(response, field)) for name, field in _ROUGHNESS_FIELDS.items()}
     values |= {parameter.name: _number(parameter.value) for parameter in response.parameters}
     values |= {name: _number(getattr(response, name)) for name in _HURST_FIELDS}
@@ -282,6 +284,15 @@ def response_to_roughness(response: tiles_pb2.GetRoughnessResponse) -> dict:
     ]
     values["hurst_note"] = response.hurst_note
     values["psd"] = {"q_per_um": list(response.psd_q_per_um), "c_um4": [_number(v) for v in response.psd_um4]}
+    values["coverage"] = (
+        {
+            name: getattr(response.coverage, name)
+            for name in ("measured_fraction", "filled_fraction", "unknown_fraction")
+        }
+        if response.HasField("coverage")
+        else None
+    )
+    values["caveats"] = list(response.caveats)
     return values
 
 
@@ -347,6 +358,13 @@ def specimen_area(
 def profile_parameters_message(values: dict) -> tiles_pb2.ProfileParameters:
     """ISO 21920-2 profile parameters by ISO name (Ra ... Rmr2) to their message."""
     return tiles_pb2.ProfileParameters(**{field: values[name] for name, field in _PROFILE_FIELDS.items()})
+
+
+def profile_unit(name: str) -> str:
+    """The unit of a profile parameter by ISO name ("Ra" -> "µm", "Rmr1" -> "%", "Rsk" -> "1"), as
+    its message field's name says it."""
+    field = _PROFILE_FIELDS[name]
+    return "µm" if field.endswith("_um") else "%" if field.endswith("_percent") else "1"
 
 
 def message_to_profile_parameters(message: tiles_pb2.ProfileParameters) -> dict:
