@@ -52,11 +52,11 @@ def oriented(
         direction = ((direction[0] + 360.0) % 360.0 - 180.0, direction[1])  # the lighting of the heights returned
     sentence = verdict_sentence(verdict, inverted=inverted, mode=mode, detector=detector)
     evidence = lighting_evidence(direction, detector, tilt_axis_deg)
-    warnings = []
-    if mode is ReliefSignMode.AUTO and (inverted or not verdict.decided):
-        warnings.append(sentence + (f" {evidence}" if evidence and not verdict.decided else ""))
-    elif mode is not ReliefSignMode.AUTO and verdict.decided and verdict.inverted != inverted:
-        warnings.append(sentence)
+    # Undecided is the usual case without a known detector: it is the sentence, not a warning.
+    warned = (mode is ReliefSignMode.AUTO and inverted) or (
+        mode is not ReliefSignMode.AUTO and verdict.decided and verdict.inverted != inverted
+    )
+    warnings = [sentence] if warned else []
     fields = {
         "relief_sign": "inverted" if inverted else "nominal",
         "relief_sign_cue": verdict.cue,

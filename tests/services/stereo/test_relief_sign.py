@@ -146,7 +146,7 @@ def test_nominal_keeps_the_tilts_as_given_and_warns_where_the_images_disagree():
 
 
 @pytest.mark.slow
-def test_where_the_images_cannot_tell_the_tilts_as_given_are_kept_with_a_warning():
+def test_where_the_images_cannot_tell_the_tilts_as_given_are_kept_and_the_sentence_says_so():
     """A flat specimen with material contrast only: no slope lights anything, even with the
     detector's place known."""
     flat = np.zeros((256 + 64, 256 + 64))
@@ -155,7 +155,8 @@ def test_where_the_images_cannot_tell_the_tilts_as_given_are_kept_with_a_warning
     )
     result = _heights(pair, (5.0, -5.0), detector_from_tilt_axis_deg=0.0)
     assert result.report["relief_sign"] == "nominal" and not result.report["relief_sign_decided"]
-    assert any("cannot tell which way up" in warning for warning in result.report["warnings"])
+    assert "cannot tell which way up" in result.report["relief_sign_sentence"]
+    assert not any("which way up" in warning for warning in result.report["warnings"])  # the usual case
 
 
 @pytest.mark.slow
