@@ -38,12 +38,12 @@ from aiohttp.log import server_logger
 
 from fractoscope.errors import FractoscopeError, NotFoundError, outcome_of
 from fractoscope.runtime.auth import TokenTable
+from fractoscope.runtime.budget import Budget
 from fractoscope.runtime.caches import BoundedCache
 from fractoscope.runtime.process import CredentialFilter
 from fractoscope.specimen.quadtree import TILE_URI
 from fractoscope.specimen.store import SpecimenStore
 from fractoscope.tiles.api import JsonApi
-from fractoscope.tiles.build_jobs import DEFAULT_ANALYSIS_WORKERS, DEFAULT_QUEUED_ANALYSES
 from fractoscope.tiles.http_json import json_error
 from fractoscope.tiles.uploads import DEFAULT_MAX_UPLOAD_BYTES
 
@@ -444,15 +444,15 @@ def start_http_server(
     tokens: TokenTable | None = None,
     grpc_address: str | None = None,
     max_upload_bytes: int = DEFAULT_MAX_UPLOAD_BYTES,
-    analysis_workers: int = DEFAULT_ANALYSIS_WORKERS,
-    queued_analyses: int = DEFAULT_QUEUED_ANALYSES,
+    budget: Budget | None = None,
 ) -> HttpTileServer:
     """Serves the store's tilesets, the viewer and the JSON API over HTTP from a daemon thread;
     `server_port` is the bound port. With `tokens`, everything but the viewer's static files and
     the OpenAPI document needs a bearer token, and the API's builds a write token. Builds go to the
     gRPC endpoint at `grpc_address` (None: the API refuses them); uploads are kept next to the
-    specimens (DATA/uploads), at most `max_upload_bytes` each. Analyses run `analysis_workers` at
-    a time with `queued_analyses` waiting (by default one per CPU and 16; see api.Analyses)."""
+    specimens (DATA/uploads), at most `max_upload_bytes` each. Analyses, exports, reports and the
+    checks of uploads are admitted by `budget`: pass the one this process's gRPC server has (see
+    runtime.budget); by default one of the endpoint's own."""
     tokens = tokens or TokenTable({})
     api = JsonApi(
         store,
@@ -460,7 +460,6 @@ def start_http_server(
         grpc_address=grpc_address,
         uploads_root=store.scratch_root.parent / "uploads",
         max_upload_bytes=max_upload_bytes,
-        analysis_workers=analysis_workers,
-        queued_analyses=queued_analyses,
+        budget=budget or Budget.for_server(None, concurrent_requests=1, scratch_root=store.scratch_root),
     )
     return HttpTileServer(store, host, port, tokens, api)
