@@ -107,22 +107,17 @@ def create_server(
     request under `budget` (default: one of this server's; pass the one an HTTP endpoint of this
     process shares, see runtime.budget); health checks have threads of their own. The tile
     service keeps specimens in `store` (default: a store under `data_dir`; pass the one an HTTP
-    endpoint of this process serves) and
-    calls matching and meshing at their addresses (default: in this process). With `tokens`, calls
-    need a bearer token (see auth); with a certificate and key, the port speaks TLS. The matching
-    service farms strips of about `strip_pixels` out to `strip_peers` when given,
-    `strip_in_flight` at a time."""
+    endpoint of this process serves) and calls matching and meshing at their addresses (default:
+    in this process). With `tokens`, calls need a bearer token (see auth); with a certificate and
+    key, the port speaks TLS. The matching service farms strips of about `strip_pixels` out to
+    `strip_peers` when given, `strip_in_flight` at a time."""
     _check_known(services)
     filter_grpc_logs()  # a token in a call's metadata must not reach the log through gRPC's own lines
     build_workers = build_workers or default_build_workers()
     builds = JobRunner("builds", workers=build_workers, queue_limit=build_queue)
     strips = JobRunner("strips", workers=build_workers, queue_limit=build_queue)
     store = store or (SpecimenStore(Path(data_dir)) if "tiles" in services else None)
-    budget = budget or Budget.for_server(
-        max_request_mb,
-        concurrent_requests=build_workers,
-        scratch_root=store.scratch_root if store is not None else Path(data_dir) / "tmp",
-    )
+    budget = budget or process_budget(max_request_mb, build_workers=build_workers, store=store, data_dir=data_dir)
     servicers = {}
     if "matching" in services:
         servicers["matching"] = MatchingServicer(
@@ -142,11 +137,25 @@ def create_server(
     interceptors = _interceptors(tokens, servicers.get("tiles"), job_runners=(builds, strips), budget=budget)
     server = _grpc_server(servicers, interceptors, workers=workers, max_message_mb=max_message_mb)
     port = _bind(server, address, tls_cert_path, tls_key_path)
+    _log_limits(build_workers, build_queue, budget)
+    return server, port
+
+
+def process_budget(
+    max_request_mb: int | None, *, build_workers: int, store: StoredSpecimens | None, data_dir: str | Path
+) -> Budget:
+    """The admission budget of a server process, one for its gRPC and HTTP front ends (see
+    runtime.budget): `max_request_mb` a request (default: its share over the build workers),
+    files written under the store's scratch folder (else `data_dir`/tmp)."""
+    scratch_root = store.scratch_root if store is not None else Path(data_dir) / "tmp"
+    return Budget.for_server(max_request_mb, concurrent_requests=build_workers, scratch_root=scratch_root)
+
+
+def _log_limits(build_workers: int, build_queue: int, budget: Budget) -> None:
     _log.info(
         f"builds: {build_workers} at a time, {build_queue} waiting, {budget.limit_bytes // 2**20} MiB of memory per "
         f"request; {budget.memory_bytes // 2**20} MiB and {budget.cpu_slots} CPUs for all requests"
     )
-    return server, port
 
 
 def _check_known(services: tuple[str, ...]) -> None:
@@ -285,11 +294,7 @@ def main(argv: list[str] | None = None) -> None:
     tokens = TokenTable.from_environment()
     services = tuple(name.strip() for name in args.services.split(",") if name.strip())
     store = open_specimen_store(args.store, Path(args.data)) if "tiles" in services else None
-    budget = Budget.for_server(  # one for both front ends
-        args.max_request_mb,
-        concurrent_requests=args.build_workers,
-        scratch_root=store.scratch_root if store is not None else Path(args.data) / "tmp",
-    )
+    budget = process_budget(args.max_request_mb, build_workers=args.build_workers, store=store, data_dir=args.data)
     server, port = create_server(
         args.address,
         services=services,
@@ -312,19 +317,7 @@ def main(argv: list[str] | None = None) -> None:
     settle_garbage_collector()
     server.start()
     _log.info(f"serving {', '.join(services)} on port {port}")
-    http = None
-    if store is not None and args.http_address:
-        host, _, http_port = args.http_address.rpartition(":")
-        http = start_http_server(
-            store,
-            host or "0.0.0.0",
-            int(http_port),
-            tokens=tokens,
-            grpc_address=f"127.0.0.1:{port}",
-            max_upload_bytes=args.max_message_mb * 1024 * 1024,
-            budget=budget,
-        )
-        _log.info(f"serving tilesets over HTTP on port {http.server_port}")
+    http = _http(args, store, tokens, port, budget) if store is not None and args.http_address else None
     stopped = threading.Event()
 
     def stop(signum, frame):
@@ -343,6 +336,22 @@ def main(argv: list[str] | None = None) -> None:
     # both stores are made for (a folder's SpecimenStore.recover; a bucket's lease and sweep).
     logging.shutdown()
     os._exit(0)
+
+
+def _http(args, store: StoredSpecimens, tokens: TokenTable, grpc_port: int, budget: Budget):
+    """The HTTP endpoint at --http-address, sending builds to this process's gRPC port, sharing its budget."""
+    host, _, http_port = args.http_address.rpartition(":")
+    http = start_http_server(
+        store,
+        host or "0.0.0.0",
+        int(http_port),
+        tokens=tokens,
+        grpc_address=f"127.0.0.1:{grpc_port}",
+        max_upload_bytes=args.max_message_mb * 1024 * 1024,
+        budget=budget,
+    )
+    _log.info(f"serving tilesets over HTTP on port {http.server_port}")
+    return http
 
 
 if __name__ == "__main__":

@@ -124,10 +124,7 @@ class _TileApp:
         if path == "/livez":  # the process answers: what a liveness probe asks, whatever the store's state
             return _plain(HTTPStatus.OK, "ok\n")
         if path == "/healthz":
-            problem = await self._store_problem()
-            if problem is not None:
-                return _plain(HTTPStatus.SERVICE_UNAVAILABLE, f"degraded: {problem}\n", **{"Retry-After": "5"})
-            return _plain(HTTPStatus.OK, "ok\n")
+            return await self._health()
         if path == "/":
             return web.Response(status=HTTPStatus.FOUND, headers={"Location": "/viewer/"})
         if self.tokens.enabled and not path.startswith(("/viewer/", "/vendor/")):
@@ -140,10 +137,13 @@ class _TileApp:
         route = _ROUTE.fullmatch(request.raw_path.partition("?")[0])
         if route is None:
             return _plain(HTTPStatus.NOT_FOUND, "not found\n")
-        relative = route["path"]
+        return await self._tileset_file(request, route["specimen"], route["path"])
+
+    async def _tileset_file(self, request: web.Request, specimen_id: str, relative: str) -> web.Response:
+        """tileset.json or a tile it names (`relative`), of the build its `?v=` names (410 for one replaced)."""
         build = (request.query.get("v") or None) if relative != "tileset.json" else None
         try:
-            specimen = await self._specimen(route["specimen"], build)
+            specimen = await self._specimen(specimen_id, build)
             if build is not None and build != str(specimen.version):
                 return _plain(
                     HTTPStatus.GONE,
@@ -166,6 +166,13 @@ class _TileApp:
             return _plain(status, f"{error}\n", **retry)
         caching = _SHORT_CACHING if build is None else _TILE_CACHING
         return _body_response(request, body, _TYPES[relative[relative.rfind(".") :]], caching)
+
+    async def _health(self) -> web.Response:
+        """200 "ok", or 503 "degraded" saying why the store cannot serve now."""
+        problem = await self._store_problem()
+        if problem is not None:
+            return _plain(HTTPStatus.SERVICE_UNAVAILABLE, f"degraded: {problem}\n", **{"Retry-After": "5"})
+        return _plain(HTTPStatus.OK, "ok\n")
 
     async def _store_problem(self) -> str | None:
         """Why the store cannot serve now (None: it can): an object store held out of reach, or
