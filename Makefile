@@ -119,10 +119,12 @@ bench: install $(WRK) $(GHZ)
 	$(BIN)/python -m benchmarks.scale_out --out bench-results --one-cpu-per-replica --peers 1 2
 	$(BIN)/python -m benchmarks.page_faults --out bench-results
 
-## load: tiles over HTTP (wrk) and tiles, zooms and profiles over gRPC (ghz) at concurrency 50 for 60 s each, into bench-results/load.json; then one tile replica against two (bench-results/replicas.json)
-load: install $(WRK) $(GHZ)
+## load: tiles over HTTP (wrk) and tiles, zooms and profiles over gRPC (ghz) at concurrency 50 for 60 s each, into bench-results/load.json; then one tile replica against two (bench-results/replicas.json); then the hostile probe's long cases (tests/hostile, pytest --load) and its figures (bench-results/hostile.json)
+load: install $(WRK) $(GHZ) $(CURL) $(WEED)
 	$(BIN)/python -m benchmarks.serving --out bench-results --name load --concurrency 50 --duration-s 60
 	$(BIN)/python -m benchmarks.replicas --out bench-results --concurrency 50 --duration-s 60
+	$(BIN)/python -m pytest -q --load -m load tests/hostile
+	$(BIN)/python -m benchmarks.hostile --out bench-results
 
 ## lint: formatting, lint rules and the import layering
 lint: install

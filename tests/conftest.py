@@ -33,6 +33,21 @@ from fractoscope.synthetic.examples import write_multiscale_specimen
 # wants profiles names its own file.
 os.environ["FRACTO_INSTRUMENTS"] = str(Path(tempfile.gettempdir()) / "fractoscope-tests" / "no-instruments.json")
 
+
+def pytest_addoption(parser):
+    parser.addoption("--load", action="store_true", help="also run the probe suite's long cases (make load)")
+
+
+def pytest_collection_modifyitems(config, items):
+    """Tests marked `load` (minutes of hostile load) run with --load only."""
+    if config.getoption("--load"):
+        return
+    skip = pytest.mark.skip(reason="a long probe: make load runs it (pytest --load)")
+    for item in items:
+        if "load" in item.keywords:
+            item.add_marker(skip)
+
+
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 POLLEN_SERIES = SHARED_DATA / "real" / "potamogeton-tilt-series"
 

@@ -23,6 +23,7 @@ from s3_server import free_ports
 
 from fractoscope import synthetic
 from fractoscope.runtime.auth import TokenTable
+from fractoscope.runtime.budget import Budget
 from fractoscope.server.main import create_server
 from fractoscope.specimen.fusion import PlacedRoi
 from fractoscope.specimen.quadtree import OPTICAL, QuadtreeLayout, TileKey, TileRecord
@@ -58,9 +59,10 @@ def live(tmp_path_factory):
     data = tmp_path_factory.mktemp("hostile") / "data"
     store = SpecimenStore(data)
     tokens = TokenTable.from_text(TOKENS)
-    server, port = create_server("127.0.0.1:0", store=store, tokens=tokens)
+    budget = Budget.for_server(None, concurrent_requests=1, scratch_root=store.scratch_root)  # one for both
+    server, port = create_server("127.0.0.1:0", store=store, tokens=tokens, budget=budget)
     server.start()
-    endpoint = start_http_server(store, tokens=tokens, grpc_address=f"127.0.0.1:{port}")
+    endpoint = start_http_server(store, tokens=tokens, grpc_address=f"127.0.0.1:{port}", budget=budget)
     yield Live(f"127.0.0.1:{port}", f"http://127.0.0.1:{endpoint.server_port}", store, data)
     endpoint.shutdown()
     server.stop(grace=None)

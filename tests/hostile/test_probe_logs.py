@@ -39,7 +39,9 @@ def test_no_token_reaches_the_log_from_grpc_or_http(server_process):
     for method in ("fractoscope.v1.TileService/ListSpecimens", "fractoscope.v1.MatchingService/ComputeHeightMap"):
         for value in values:
             done = _grpc_with_authorization(server.grpc_address, value, method)
-            assert done.stdout == b"200", done  # answered (UNAUTHENTICATED in the trailers), not dropped
+            # Answered (UNAUTHENTICATED in the trailers); curl's 92 when the refusal, which reads no
+            # request, resets the stream while curl still sends it.
+            assert done.stdout == b"200" or done.returncode == 92, done
     for headers in ({"Authorization": f"Bearer {PROBE_SECRET}"}, {"Authorization": f"{WRITE_TOKEN} x"}):
         assert requests.get(f"{server.http}/api/specimens", headers=headers, timeout=30).status_code == 401
     assert requests.get(f"{server.http}/api/specimens?token={PROBE_SECRET}", timeout=30).status_code == 401

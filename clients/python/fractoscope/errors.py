@@ -54,6 +54,14 @@ class ResourceExhaustedError(FractoscopeError):
         self.retry_after_s = retry_after_s
 
 
+class TooLargeError(ResourceExhaustedError):
+    """A request larger than this server ever takes (its estimated memory, a file it would write):
+    a retry unchanged cannot succeed, so it carries no retry hint (HTTP 413)."""
+
+    def __init__(self, message: str):
+        super().__init__(message, retry_after_s=None)
+
+
 class UnauthenticatedError(FractoscopeError):
     """Credentials are missing or refused: the caller's, or this server's toward a service it calls."""
 
@@ -71,8 +79,9 @@ class Outcome:
 # The one table from failures to what callers see; gRPC (rpc.status), the HTTP API (tiles.api)
 # and the command line (cli.main) all read it. Codes a server never sends on purpose (INTERNAL,
 # UNKNOWN) and those only the transport gives (DEADLINE_EXCEEDED) have rows too, for the callers
-# that pass a status on.
-OUTCOMES = {
+# that pass a status on. Rows go by their gRPC code, but for TOO_LARGE: RESOURCE_EXHAUSTED that
+# no retry mends, which HTTP tells apart (413, not 429).
+OUTCOMES = {"TOO_LARGE": Outcome("RESOURCE_EXHAUSTED", 413, 3)} | {
     outcome.grpc_code: outcome
     for outcome in (
         Outcome("INVALID_ARGUMENT", 400, 2),
@@ -95,6 +104,7 @@ _ERROR_CODES: tuple[tuple[type[Exception], str], ...] = (
     (NotFoundError, "NOT_FOUND"),
     (AlreadyExistsError, "ALREADY_EXISTS"),
     (UnauthenticatedError, "UNAUTHENTICATED"),
+    (TooLargeError, "TOO_LARGE"),
     (ResourceExhaustedError, "RESOURCE_EXHAUSTED"),
     (UnavailableError, "UNAVAILABLE"),
     (CancelledError, "CANCELLED"),

@@ -30,6 +30,7 @@ from scipy import ndimage
 from fractoscope.formats._validate import height_grid, require_positive
 from fractoscope.formats.calibration import software
 from fractoscope.mesh.grid import area_average, quad_triangles
+from fractoscope.progress import checkpoint
 
 UNITS_PER_UM = {"um": 1.0, "mm": 1e-3}
 _TRIMESH_UNITS = {"um": "microns", "mm": "mm"}
@@ -242,6 +243,7 @@ def _write_binary_stl(path, blocks, *, header: str) -> None:
     with open(path, "wb") as out, ThreadPoolExecutor(max_workers=1) as writer:
         out.write(header.encode("ascii")[:80].ljust(80, b" ") + bytes(4))  # the count follows at the end
         for number, (vertices, faces) in enumerate(blocks):
+            checkpoint()  # a block a checkpoint: a 6 GB file is written by the hundred
             if len(buffers[number % 2]) < len(faces):
                 buffers[number % 2] = np.zeros(len(faces), dtype=_STL_TRIANGLE)
             block = buffers[number % 2][: len(faces)]

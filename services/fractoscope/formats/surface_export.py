@@ -15,6 +15,7 @@ import tifffile
 
 from fractoscope.formats._validate import height_grid, origin
 from fractoscope.formats.calibration import Calibration, export_description
+from fractoscope.progress import checkpoint
 
 CSV_COLUMNS = ("x_um", "y_um", "z_um", "sigma_um")
 UM_PER_CM = 1e4
@@ -86,6 +87,7 @@ def write_height_csv(
     with opened as out:
         out.write(",".join(CSV_COLUMNS) + "\n")
         for start in range(0, rows, block_rows):
+            checkpoint()
             z = z_um[start : start + block_rows]
             row, col = np.nonzero(np.isfinite(z))
             sigma = (

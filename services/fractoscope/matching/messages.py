@@ -11,10 +11,12 @@ import numpy as np
 
 from fractoscope.errors import InvalidInputError
 from fractoscope.rpc import wire
+from fractoscope.runtime import budget
 from fractoscope.sem import image as sem_image
 from fractoscope.stereo import alignment
 from fractoscope.stereo.disparity import DisparityResult, MatchingMethod, StripTask
 from fractoscope.stereo.inputs import MatchingOptions, validate_options, validate_same_size, validate_tilt_axis_deg
+from fractoscope.stereo.matching import DEFAULT_STRIP_PIXELS
 from fractoscope.stereo.pipeline import DEFAULT_TILT_AXIS_DEG, HeightMapResult
 from fractoscope.stereo.relief_sign import ReliefSignMode
 from fractoscope.v1 import matching_pb2
@@ -119,6 +121,24 @@ def checked_height_map_request(
             f"the {sem_image.MAX_SIDE_PX} px OpenCV takes; send smaller images",
         )
     return shape, options
+
+
+def peak_bytes(
+    request: matching_pb2.ComputeHeightMapRequest, *, strip_pixels: int = DEFAULT_STRIP_PIXELS
+) -> tuple[int, tuple[int, int]]:
+    """The request's estimated peak memory matched in strips of `strip_pixels` (see
+    runtime.budget), from its images' declared sizes, and the first image's (rows, cols);
+    InvalidInputError (checked_height_map_request) for what cannot be matched at all."""
+    shape, options = checked_height_map_request(request)
+    estimate = budget.height_map_bytes(
+        shape,
+        len(request.images),
+        tilt_axis_deg=tilt_axis_deg(request),
+        window_px=options.window_px,
+        max_disparity_px=options.max_disparity_px,
+        strip_pixels=strip_pixels,
+    )
+    return estimate, shape
 
 
 def tilt_axis_deg(request: matching_pb2.ComputeHeightMapRequest) -> float:

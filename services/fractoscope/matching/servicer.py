@@ -44,7 +44,7 @@ class MatchingServicer(matching_pb2_grpc.MatchingServiceServicer):
         *,
         builds: JobRunner,
         strips: JobRunner,
-        memory: budget.MemoryBudget,
+        budget: budget.Budget,
         strip_peers: str | None = None,
         strip_pixels: int = DEFAULT_STRIP_PIXELS,
         strip_in_flight: int = 4,
@@ -54,7 +54,7 @@ class MatchingServicer(matching_pb2_grpc.MatchingServiceServicer):
         self.strip_pixels = strip_pixels
         self.strip_in_flight = strip_in_flight
         self.strip_peers = strip_peers
-        self._builds, self._strips, self._memory = builds, strips, memory
+        self._builds, self._strips, self._budget = builds, strips, budget
         self._peers = StripPeers(strip_peers) if strip_peers else None
         self._call_timeout_s = call_timeout_s
         self.instruments = tuple(instruments)
@@ -62,8 +62,13 @@ class MatchingServicer(matching_pb2_grpc.MatchingServiceServicer):
     @abort_on_error
     def ComputeHeightMap(self, request, context):
         estimate, (rows, cols) = self._estimate(request)
-        self._memory.check(estimate, f"a height map of {len(request.images)} images of {cols} x {rows} pixels")
-        for event in self._builds.follow(context, lambda job: self.height_map(request, job, job.progress)):
+        self._budget.check(estimate, f"a height map of {len(request.images)} images of {cols} x {rows} pixels")
+
+        def work(job: Job):
+            with self._budget.held(estimate):
+                return self.height_map(request, job, job.progress)
+
+        for event in self._builds.follow(context, work):
             if isinstance(event, common_pb2.Progress):
                 yield matching_pb2.ComputeHeightMapResponse(progress=event)
             else:
@@ -78,16 +83,7 @@ class MatchingServicer(matching_pb2_grpc.MatchingServiceServicer):
 
     def _estimate(self, request: matching_pb2.ComputeHeightMapRequest) -> tuple[int, tuple[int, int]]:
         """`peak_bytes` and the first image's (rows, cols)."""
-        shape, options = rpc_matching.checked_height_map_request(request)
-        estimate = budget.height_map_bytes(
-            shape,
-            len(request.images),
-            tilt_axis_deg=rpc_matching.tilt_axis_deg(request),
-            window_px=options.window_px,
-            max_disparity_px=options.max_disparity_px,
-            strip_pixels=self.strip_pixels,
-        )
-        return estimate, shape
+        return rpc_matching.peak_bytes(request, strip_pixels=self.strip_pixels)
 
     def height_map(
         self, request: matching_pb2.ComputeHeightMapRequest, job: Job, progress: ProgressCallback
@@ -128,11 +124,12 @@ class MatchingServicer(matching_pb2_grpc.MatchingServiceServicer):
     def MatchStrip(self, request, context):
         for name in ("left", "right"):  # the estimate below trusts the declared sizes: the data must hold them
             wire.raster_to_array(getattr(request, name), field=name)
-        self._memory.check(
-            budget.strip_bytes((request.left.rows, request.left.cols)),
-            f"a strip of {request.left.cols} x {request.left.rows} pixels",
-        )
+        estimate = budget.strip_bytes((request.left.rows, request.left.cols))
+        self._budget.check(estimate, f"a strip of {request.left.cols} x {request.left.rows} pixels")
         task = rpc_matching.request_to_strip_task(request)
-        return self._strips.result(
-            context, lambda job: rpc_matching.strip_response(match_strip(task), worker=WORKER_ID)
-        )
+
+        def work(job: Job):
+            with self._budget.held(estimate):
+                return rpc_matching.strip_response(match_strip(task), worker=WORKER_ID)
+
+        return self._strips.result(context, work)

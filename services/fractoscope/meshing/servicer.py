@@ -9,7 +9,7 @@ from fractoscope.meshing import messages as rpc_meshing
 from fractoscope.progress import ProgressCallback
 from fractoscope.rpc.status import abort_on_error
 from fractoscope.runtime import budget
-from fractoscope.runtime.jobs import JobRunner
+from fractoscope.runtime.jobs import Job, JobRunner
 from fractoscope.v1 import common_pb2, meshing_pb2, meshing_pb2_grpc
 
 _log = logging.getLogger("fractoscope.meshing")
@@ -19,15 +19,21 @@ class MeshingServicer(meshing_pb2_grpc.MeshingServiceServicer):
     """Checks the request against the memory budget, then runs `mesh_height_map` as one of the
     `builds` jobs, streaming progress, tiles and the filter report."""
 
-    def __init__(self, *, builds: JobRunner, memory: budget.MemoryBudget):
-        self._builds, self._memory = builds, memory
+    def __init__(self, *, builds: JobRunner, budget: budget.Budget):
+        self._builds, self._budget = builds, budget
 
     @abort_on_error
     def BuildMesh(self, request, context):
         arguments = _mesh_arguments(request)
         rows, cols = arguments["z_um"].shape
-        self._memory.check(budget.mesh_bytes((rows, cols)), f"a mesh of a {cols} x {rows} height map")
-        for event in self._builds.follow(context, lambda job: mesh_height_map(**arguments, progress=job.progress)):
+        estimate = budget.mesh_bytes((rows, cols))
+        self._budget.check(estimate, f"a mesh of a {cols} x {rows} height map")
+
+        def work(job: Job):
+            with self._budget.held(estimate):
+                return mesh_height_map(**arguments, progress=job.progress)
+
+        for event in self._builds.follow(context, work):
             if isinstance(event, common_pb2.Progress):
                 yield meshing_pb2.BuildMeshResponse(progress=event)
                 continue

@@ -1,6 +1,7 @@
 """Which threads answer which calls: health checks on a pool of their own, calls that follow jobs
-(see jobs) on theirs, everything else on the server's workers. However many builds wait and
-however busy the tiles are, a health check finds a free thread."""
+(see jobs) on theirs, analyses (admitted by the budget, see budget) on theirs, everything else
+on the server's workers. However many builds wait, however many analyses run and however busy
+the tiles are, a health check and a tile find a free thread."""
 
 from __future__ import annotations
 
@@ -14,24 +15,31 @@ _HEALTH_THREADS = 2
 
 
 class ThreadPoolRouting(grpc.ServerInterceptor):
-    """Routes health checks to their own threads and the methods in `job_methods` to
+    """Routes health checks to their own threads, the methods in `job_methods` to
     `job_call_threads` threads (enough for every call the job runners admit, plus some to refuse
-    the rest quickly). gRPC Python runs a method on the pool its behavior names in
+    the rest quickly) and those in `analysis_methods` to `analysis_threads` (likewise for what
+    the budget admits). gRPC Python runs a method on the pool its behavior names in
     `experimental_thread_pool`, else on the server's."""
 
-    def __init__(self, job_methods: Iterable[str], *, job_call_threads: int):
-        self._job_methods = frozenset(job_methods)
-        self._health = ThreadPoolExecutor(max_workers=_HEALTH_THREADS, thread_name_prefix="fractoscope-health")
-        self._job_calls = ThreadPoolExecutor(max_workers=job_call_threads, thread_name_prefix="fractoscope-job-call")
+    def __init__(
+        self,
+        job_methods: Iterable[str],
+        *,
+        job_call_threads: int,
+        analysis_methods: Iterable[str] = (),
+        analysis_threads: int = 1,
+    ):
+        health = ThreadPoolExecutor(max_workers=_HEALTH_THREADS, thread_name_prefix="fractoscope-health")
+        job_calls = ThreadPoolExecutor(max_workers=job_call_threads, thread_name_prefix="fractoscope-job-call")
+        analyses = ThreadPoolExecutor(max_workers=analysis_threads, thread_name_prefix="fractoscope-analysis")
+        self._pools = {method: job_calls for method in job_methods} | {method: analyses for method in analysis_methods}
+        self._health = health
         self._routed: dict[str, grpc.RpcMethodHandler] = {}
 
     def intercept_service(self, continuation, handler_call_details):
         method = handler_call_details.method
-        if method.startswith(HEALTH_PREFIX):
-            pool = self._health
-        elif method in self._job_methods:
-            pool = self._job_calls
-        else:
+        pool = self._health if method.startswith(HEALTH_PREFIX) else self._pools.get(method)
+        if pool is None:
             return continuation(handler_call_details)
         routed = self._routed.get(method)
         if routed is None:

@@ -25,7 +25,7 @@ from fractoscope.matching.servicer import MatchingServicer
 from fractoscope.meshing.servicer import MeshingServicer
 from fractoscope.rpc.limits import DEFAULT_MAX_MESSAGE_MB, message_size_options
 from fractoscope.runtime.auth import AuthInterceptor, TokenTable, peer_token_problem
-from fractoscope.runtime.budget import MemoryBudget
+from fractoscope.runtime.budget import Budget
 from fractoscope.runtime.decoding import MalformedRequests
 from fractoscope.runtime.jobs import JobRunner
 from fractoscope.runtime.process import (
@@ -69,7 +69,14 @@ _JOB_METHODS = (
     "/fractoscope.v1.MeshingService/BuildMesh",
     "/fractoscope.v1.TileService/ReconstructSpecimen",
 )
-# Threads beyond those for every call the job runners admit, to refuse the others at once.
+# The analyses the budget admits (see budget), answered on threads of their own (see threads).
+_ANALYSIS_METHODS = (
+    "/fractoscope.v1.TileService/GetRoughness",
+    "/fractoscope.v1.TileService/GetProfile",
+    "/fractoscope.v1.TileService/Export",
+    "/fractoscope.v1.TileService/GetReport",
+)
+# Threads beyond those for every call the job runners or the budget admit, to refuse the others at once.
 _SPARE_JOB_CALL_THREADS = 8
 
 
@@ -93,47 +100,63 @@ def create_server(
     strip_pixels: int = DEFAULT_STRIP_PIXELS,
     strip_in_flight: int = 4,
     instruments: Sequence[InstrumentProfile] = (),
+    budget: Budget | None = None,
 ) -> tuple[grpc.Server, int]:
     """A server with the named services, health and reflection, bound to `address`; returns it
     (not started) with the bound port. `workers` threads answer queries; builds, height maps and
     meshes run `build_workers` at a time (default: half the CPUs), `build_queue` waiting, strips for
-    peers likewise, each within `max_request_mb` of estimated memory (budget). The tile service
-    keeps specimens in `store` (default: under `data_dir`) and calls matching and meshing at their
-    addresses (default: in-process). `tokens`: bearer tokens (auth); a certificate and key: TLS.
-    The matching service farms strips of about `strip_pixels` to `strip_peers`, `strip_in_flight`
-    at a time, and applies the `instruments` profiles images' metadata names."""
+    peers likewise, each within `max_request_mb` of estimated memory, every request under `budget`
+    (default: one of this server's; pass the one an HTTP endpoint of this process shares, see
+    runtime.budget). The tile service keeps specimens in `store` (default: under `data_dir`) and
+    calls matching and meshing at their addresses (default: in-process). `tokens`: bearer tokens
+    (auth); a certificate and key: TLS. Matching farms strips (`strip_pixels`) to `strip_peers`,
+    `strip_in_flight` at a time, and applies the `instruments` profiles images' metadata names."""
     _check_known(services)
     filter_grpc_logs()  # a token in a call's metadata must not reach the log through gRPC's own lines
     build_workers = build_workers or default_build_workers()
     builds = JobRunner("builds", workers=build_workers, queue_limit=build_queue)
     strips = JobRunner("strips", workers=build_workers, queue_limit=build_queue)
-    memory = MemoryBudget.for_server(max_request_mb, concurrent_requests=build_workers)
+    store = store or (SpecimenStore(Path(data_dir)) if "tiles" in services else None)
+    budget = budget or process_budget(max_request_mb, build_workers=build_workers, store=store, data_dir=data_dir)
     servicers = {}
     if "matching" in services:
         servicers["matching"] = MatchingServicer(
             builds=builds,
             strips=strips,
-            memory=memory,
+            budget=budget,
             strip_peers=strip_peers,
             strip_pixels=strip_pixels,
             strip_in_flight=strip_in_flight,
             instruments=instruments,
         )
     if "meshing" in services:
-        servicers["meshing"] = MeshingServicer(builds=builds, memory=memory)
+        servicers["meshing"] = MeshingServicer(builds=builds, budget=budget)
     if "tiles" in services:
-        store = store or SpecimenStore(Path(data_dir))
-        servicers["tiles"] = _tile_servicer(store, builds, memory, servicers, matching_address, meshing_address)
+        servicers["tiles"] = _tile_servicer(store, builds, budget, servicers, matching_address, meshing_address)
     tokens = tokens if tokens is not None and tokens.enabled else None
     _warn_of_peer_credentials(tokens, servicers)
-    interceptors = _interceptors(tokens, servicers.get("tiles"), job_runners=(builds, strips))
+    interceptors = _interceptors(tokens, servicers.get("tiles"), job_runners=(builds, strips), budget=budget)
     server = _grpc_server(servicers, interceptors, workers=workers, max_message_mb=max_message_mb)
     port = _bind(server, address, tls_cert_path, tls_key_path)
-    _log.info(
-        f"builds: {build_workers} at a time, {build_queue} waiting, {memory.limit_bytes // 2**20} MiB of memory per "
-        "request"
-    )
+    _log_limits(build_workers, build_queue, budget)
     return server, port
+
+
+def process_budget(
+    max_request_mb: int | None, *, build_workers: int, store: StoredSpecimens | None, data_dir: str | Path
+) -> Budget:
+    """The admission budget of a server process, one for its gRPC and HTTP front ends (see
+    runtime.budget): `max_request_mb` a request (default: its share over the build workers),
+    files written under the store's scratch folder (else `data_dir`/tmp)."""
+    scratch_root = store.scratch_root if store is not None else Path(data_dir) / "tmp"
+    return Budget.for_server(max_request_mb, concurrent_requests=build_workers, scratch_root=scratch_root)
+
+
+def _log_limits(build_workers: int, build_queue: int, budget: Budget) -> None:
+    _log.info(
+        f"builds: {build_workers} at a time, {build_queue} waiting, {budget.limit_bytes // 2**20} MiB of memory per "
+        f"request; {budget.memory_bytes // 2**20} MiB and {budget.cpu_slots} CPUs for all requests"
+    )
 
 
 def _check_known(services: tuple[str, ...]) -> None:
@@ -146,7 +169,7 @@ def _check_known(services: tuple[str, ...]) -> None:
 def _tile_servicer(
     store: StoredSpecimens,
     builds: JobRunner,
-    memory: MemoryBudget,
+    budget: Budget,
     servicers: dict,
     matching_address: str | None,
     meshing_address: str | None,
@@ -161,7 +184,7 @@ def _tile_servicer(
     return TileServicer(
         store,
         builds=builds,
-        memory=memory,
+        budget=budget,
         local_matching=servicers.get("matching") if matching_address is None else None,
         matching_address=matching_address,
         local_meshing=servicers.get("meshing") if meshing_address is None else None,
@@ -170,13 +193,19 @@ def _tile_servicer(
 
 
 def _interceptors(
-    tokens: TokenTable | None, tiles: TileServicer | None, *, job_runners: tuple[JobRunner, ...]
+    tokens: TokenTable | None, tiles: TileServicer | None, *, job_runners: tuple[JobRunner, ...], budget: Budget
 ) -> list[grpc.ServerInterceptor]:
-    """The token check (with `tokens`), then the routing of job calls to threads of their own,
-    one for every call the `job_runners` admit and some spare, then the rest."""
+    """The token check (with `tokens`), then the routing of job calls and analyses to threads of
+    their own, one for every call the `job_runners` or the `budget` admit and some spare, then the rest."""
     job_call_threads = sum(runner.max_followers for runner in job_runners) + _SPARE_JOB_CALL_THREADS
     interceptors = [AuthInterceptor(tokens)] if tokens else []
-    interceptors.append(ThreadPoolRouting(_JOB_METHODS, job_call_threads=job_call_threads))
+    routing = ThreadPoolRouting(
+        _JOB_METHODS,
+        job_call_threads=job_call_threads,
+        analysis_methods=_ANALYSIS_METHODS,
+        analysis_threads=budget.cpu_slots + budget.queue_limit + _SPARE_JOB_CALL_THREADS,
+    )
+    interceptors.append(routing)
     interceptors.append(MalformedRequests())  # within the routing, which keeps its deserializer
     if tiles is not None:
         interceptors.append(SerializedGetTile(tiles))  # after the token check
@@ -269,6 +298,7 @@ def main(argv: list[str] | None = None) -> None:
     tokens = TokenTable.from_environment()
     services = tuple(name.strip() for name in args.services.split(",") if name.strip())
     store = open_specimen_store(args.store, Path(args.data)) if "tiles" in services else None
+    budget = process_budget(args.max_request_mb, build_workers=args.build_workers, store=store, data_dir=args.data)
     server, port = create_server(
         args.address,
         services=services,
@@ -287,22 +317,12 @@ def main(argv: list[str] | None = None) -> None:
         strip_pixels=args.strip_pixels,
         strip_in_flight=args.strip_in_flight,
         instruments=load_profiles(Path(args.instruments)),
+        budget=budget,
     )
     settle_garbage_collector()
     server.start()
     _log.info(f"serving {', '.join(services)} on port {port}")
-    http = None
-    if store is not None and args.http_address:
-        host, _, http_port = args.http_address.rpartition(":")
-        http = start_http_server(
-            store,
-            host or "0.0.0.0",
-            int(http_port),
-            tokens=tokens,
-            grpc_address=f"127.0.0.1:{port}",
-            max_upload_bytes=args.max_message_mb * 1024 * 1024,
-        )
-        _log.info(f"serving tilesets over HTTP on port {http.server_port}")
+    http = _http(args, store, tokens, port, budget) if store is not None and args.http_address else None
     stopped = threading.Event()
 
     def stop(signum, frame):
@@ -321,6 +341,22 @@ def main(argv: list[str] | None = None) -> None:
     # both stores are made for (a folder's SpecimenStore.recover; a bucket's lease and sweep).
     logging.shutdown()
     os._exit(0)
+
+
+def _http(args, store: StoredSpecimens, tokens: TokenTable, grpc_port: int, budget: Budget):
+    """The HTTP endpoint at --http-address, sending builds to this process's gRPC port, sharing its budget."""
+    host, _, http_port = args.http_address.rpartition(":")
+    http = start_http_server(
+        store,
+        host or "0.0.0.0",
+        int(http_port),
+        tokens=tokens,
+        grpc_address=f"127.0.0.1:{grpc_port}",
+        max_upload_bytes=args.max_message_mb * 1024 * 1024,
+        budget=budget,
+    )
+    _log.info(f"serving tilesets over HTTP on port {http.server_port}")
+    return http
 
 
 if __name__ == "__main__":

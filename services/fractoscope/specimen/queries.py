@@ -12,6 +12,7 @@ import numpy as np
 from fractoscope.errors import InvalidInputError
 from fractoscope.formats.calibration import Calibration
 from fractoscope.mesh.grid import area_average
+from fractoscope.progress import checkpoint
 from fractoscope.specimen.store import RoiEntry, Specimen
 from fractoscope.stereo.matching import DEFAULT_WINDOW_PX
 from fractoscope.surface import measurement, profile_parameters, profiles, roughness, scaling
@@ -425,9 +426,40 @@ def _tilt_part(specimen: Specimen, used: list[RoiEntry]) -> tuple[float | None, 
     return (max(tilts) if tilts and None not in tilts else None), datum.get("level", "none") != "none"
 
 
-def _region_area(
+def area_shape(
+    specimen: Specimen,
+    *,
+    roi: str | None = None,
+    region_um=None,
+    pixel_size_um: float | None = None,
+    max_samples: int = MAX_REGION_SAMPLES,
+    allow_point: bool = False,
+) -> tuple[int, int]:
+    """The (rows, cols) of what surface_area would sample, from the specimen's description alone
+    (no heights read), for estimates before any work; its inputs checked as surface_area checks
+    them, but for a pixel size too coarse for an ROI, which surface_area refuses."""
+    if pixel_size_um is not None:
+        positive_input(pixel_size_um, "pixel_size_um")
+    if region_um is not None:
+        region = checked_region(region_um, allow_point=allow_point)
+        *_, rows, cols = _region_grid(specimen, region, pixel_size_um, max_samples, allow_point)
+        return rows, cols
+    entry = specimen.roi(roi) if roi is not None else specimen.rois[0]
+    factor = max(1.0, (pixel_size_um or entry.pixel_size_um) / entry.pixel_size_um)
+    return max(1, int(entry.shape[0] / factor)), max(1, int(entry.shape[1] / factor))
+
+
+def roughness_shape(specimen: Specimen, *, roi: str | None = None, region_um=None) -> tuple[int, int]:
+    """The (rows, cols) of the map roughness_of analyses (see area_shape)."""
+    if region_um is None:
+        return area_shape(specimen, roi=roi or specimen.rois[0].id)
+    return area_shape(specimen, region_um=region_um, pixel_size_um=_holding_cell_um(specimen, region_um))
+
+
+def _region_grid(
     specimen: Specimen, region, pixel_size_um: float | None, max_samples: int, allow_point: bool
-) -> SurfaceArea:
+) -> tuple[float, float, float, int, int]:
+    """(x0, y0, cell_um, rows, cols) of the grid a region is sampled on (see surface_area)."""
     x0, y0, x1, y1 = _within_specimen(specimen, region, allow_point=allow_point)
     if pixel_size_um is None:
         cell_um = max(specimen.finest_pixel_size_um(region), math.sqrt((x1 - x0) * (y1 - y0) / max_samples))
@@ -438,6 +470,13 @@ def _region_area(
         raise InvalidInputError(
             "pixel_size_um", f"{cols} x {rows} points exceed the limit of {max_samples}; choose a coarser one"
         )
+    return x0, y0, cell_um, rows, cols
+
+
+def _region_area(
+    specimen: Specimen, region, pixel_size_um: float | None, max_samples: int, allow_point: bool
+) -> SurfaceArea:
+    x0, y0, cell_um, rows, cols = _region_grid(specimen, region, pixel_size_um, max_samples, allow_point)
     z_um = np.empty((rows, cols), np.float32)
     sigma_um = np.empty((rows, cols), np.float32)
     texture = np.empty((rows, cols), np.uint8)
@@ -446,6 +485,7 @@ def _region_area(
     x_um = x0 + np.arange(cols) * cell_um
     strip = max(1, _SAMPLING_STRIP // cols)
     for start in range(0, rows, strip):
+        checkpoint()
         y_um = y0 + np.arange(start, min(start + strip, rows)) * cell_um
         samples = specimen.surface.sample(*np.meshgrid(x_um, y_um), cell_um=cell_um)
         block = slice(start, start + len(y_um))

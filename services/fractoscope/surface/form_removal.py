@@ -20,6 +20,7 @@ import numpy as np
 from numpy.polynomial import legendre
 from scipy import optimize
 
+from fractoscope.progress import checkpoint
 from fractoscope.units import HEIGHT_ROUNDING_UM
 
 FORMS = ("plane", "poly2", "poly3", "poly4", "poly5", "poly6", "sphere", "cylinder")
@@ -138,6 +139,7 @@ def _irls(solve, residual_of, start, robust: bool) -> tuple[np.ndarray, np.ndarr
     if not robust:
         return params, weights
     for iteration in range(_HUBER_ITERATIONS + _TUKEY_ITERATIONS):
+        checkpoint()
         new_weights = _robust_weights(residual_of(params), iteration)
         converged = iteration > _HUBER_ITERATIONS and np.max(np.abs(new_weights - weights)) < 1e-3
         weights = new_weights
@@ -356,6 +358,7 @@ def _fit_tangent_quadric(p: np.ndarray, starts: list[np.ndarray], robust: bool, 
     than the plane does. Returns (parameters, weights)."""
 
     def residuals(params):
+        checkpoint()  # each evaluation takes 0.1 s on a 1024² map, hundreds of them a fit
         return quadric_of(params).residuals(p)
 
     def vertical_spread(params):

@@ -30,6 +30,7 @@ import numba
 import numpy as np
 
 from fractoscope.errors import InvalidInputError
+from fractoscope.progress import carried, checkpoint
 from fractoscope.surface import areal_parameters, form_removal, iso_filters, measurement, scaling, uncertainty
 
 FORMS = ("none", *form_removal.FORMS)
@@ -235,12 +236,12 @@ def analyse(
         parameters |= futures["feature parameters"].result()
         parameters = {name: parameters[name] for name in areal_parameters.UNITS}
         uncertain = pool.submit(
-            step.timed,
+            carried(step.timed),
             "uncertainty",
             lambda: _uncertainty(surface.z_um, sigma_um, pixel_size_um, parameters, tilt_rel_uncertainty, chain),
         )
         psd = pool.submit(
-            step.timed, "areal PSD", lambda: scaling.radial_psd(surface.sf_um, pixel_size_um=pixel_size_um)
+            carried(step.timed), "areal PSD", lambda: scaling.radial_psd(surface.sf_um, pixel_size_um=pixel_size_um)
         )
         hurst = futures["Hurst exponents"].result()
         q, c = psd.result()
@@ -347,7 +348,7 @@ def _submit_parameters(pool, step, surface, pixel_size_um: float, chain: Surface
         "functional parameters": lambda: areal_parameters.functional_parameters(sl),
         "Hurst exponents": lambda: _hurst(surface.sf_um, pixel_size_um, chain),
     }
-    return {name: pool.submit(step.timed, name, task) for name, task in pending.items()}
+    return {name: pool.submit(carried(step.timed), name, task) for name, task in pending.items()}
 
 
 STEPS = (
@@ -373,6 +374,7 @@ class _Stopwatch:
 
     @contextlib.contextmanager
     def __call__(self, name: str):
+        checkpoint()  # between steps: a caller gone stops the chain
         started = time.perf_counter()
         try:
             yield

@@ -33,6 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from fractoscope.progress import checkpoint
 from fractoscope.surface import _kernels, areal_parameters
 from fractoscope.units import HEIGHT_ROUNDING_UM
 
@@ -79,6 +80,7 @@ def areal_uncertainty(
     u_noise = _extremes_noise(z.shape, sigma, highest, lowest, correlation_px)
     sdr_scale_derivative = 0.0
     for name, sums in _block_sums(z, sigma, mean, n, pixel_size_um, set(parameters), block):
+        checkpoint()
         if name == "Sdr scale":
             sdr_scale_derivative = sums
         else:

@@ -13,6 +13,7 @@ token, so they follow the same path, limits and scopes as any gRPC build.
 
 from __future__ import annotations
 
+import functools
 import logging
 import re
 from dataclasses import dataclass
@@ -29,17 +30,12 @@ from fractoscope.formats.exports import MEDIA_TYPES
 from fractoscope.rpc import wire
 from fractoscope.rpc.limits import MAX_REQUEST_ID_CHARS
 from fractoscope.runtime.auth import READ, WRITE, Grant, TokenTable
+from fractoscope.runtime.budget import Budget, Cost
 from fractoscope.specimen import exports, quadtree, queries
 from fractoscope.specimen.store import SpecimenStore, validate_id
 from fractoscope.stereo.geometry import validate_pixel_size_um
-from fractoscope.tiles import openapi
-from fractoscope.tiles.build_jobs import (
-    DEFAULT_ANALYSIS_WORKERS,
-    DEFAULT_QUEUED_ANALYSES,
-    Analyses,
-    BuildJobs,
-    FolderRecords,
-)
+from fractoscope.tiles import admission, openapi
+from fractoscope.tiles.build_jobs import Analyses, BuildJobs, FolderRecords
 from fractoscope.tiles.http_json import (
     CORS_HEADERS,
     JSON_TYPE,
@@ -54,6 +50,7 @@ from fractoscope.tiles.http_json import (
 )
 from fractoscope.tiles.http_requests import (
     CHAIN_PARAMETERS,
+    NPZ_BYTES_PER_POINT,
     PROFILE_CHAIN_PARAMETERS,
     area_of,
     chain_request,
@@ -61,6 +58,7 @@ from fractoscope.tiles.http_requests import (
     export_options,
     json_body,
     npz_height_map,
+    npz_shape,
     number,
     numbers,
     query_parameters,
@@ -112,7 +110,8 @@ _ROUTES = [
 
 class JsonApi:
     """The API's request handling. `grpc_address` is this server's gRPC endpoint, which builds go
-    to (None: builds are refused with 503); uploads are kept under `uploads_root`."""
+    to (None: builds are refused with 503); uploads are kept under `uploads_root`; analyses,
+    exports, reports and the checks of uploads are admitted by `budget` (shared with gRPC)."""
 
     def __init__(
         self,
@@ -124,15 +123,15 @@ class JsonApi:
         max_upload_bytes: int = DEFAULT_MAX_UPLOAD_BYTES,
         build_workers: int = 2,
         queued_builds: int = 8,
-        analysis_workers: int = DEFAULT_ANALYSIS_WORKERS,
-        queued_analyses: int = DEFAULT_QUEUED_ANALYSES,
+        budget: Budget,
     ):
         self.store = store
         self.tokens = tokens
-        self.uploads = Uploads(uploads_root, max_upload_bytes, objects=store.objects)
+        self.budget = budget
+        self.analyses = Analyses(budget)
+        self.uploads = Uploads(uploads_root, max_upload_bytes, analyses=self.analyses, objects=store.objects)
         records = store.objects or FolderRecords(uploads_root.parent)  # a folder store's: beside its uploads
         self.jobs = BuildJobs(grpc_address, workers=build_workers, queue_limit=queued_builds, objects=records)
-        self.analyses = Analyses(workers=analysis_workers, queue_limit=queued_analyses)
 
     async def handle(self, request: web.Request) -> web.StreamResponse:
         try:
@@ -185,13 +184,15 @@ class JsonApi:
     async def roughness(self, request, match, grant):
         query = query_parameters(request, {"roi", "region", *CHAIN_PARAMETERS})
         area, chain = area_of(query), chain_request(query)
+        area["roi"] = area["roi"] or None
+        specimen = await off_loop(self._specimen, match)
 
         def answer():
-            specimen = self._specimen(match)
-            analysis = queries.roughness_of(specimen, roi=area["roi"] or None, region_um=area["region_um"], chain=chain)
+            analysis = queries.roughness_of(specimen, **area, chain=chain)
             return wire.response_to_roughness(roughness_response(analysis, chain))
 
-        return json_response(await self.analyses.run(answer))
+        cost = await off_loop(lambda: admission.roughness_cost(specimen, **area))
+        return json_response(await self.analyses.run(request, cost, answer))
 
     async def profile(self, request, match, grant):
         query = query_parameters(request, {"from", "to", "magnification", "spacing_um", *PROFILE_CHAIN_PARAMETERS})
@@ -226,11 +227,13 @@ class JsonApi:
                 else None,
             }
 
-        return json_response(await self.analyses.run(answer))
+        return json_response(await self.analyses.run(request, admission.profile_cost(), answer))
 
     async def heights(self, request, match, grant):
         region = numbers(query_parameters(request, {"region"}), "region", 4)
-        return json_response(await self.analyses.run(lambda: queries.height_statistics(self._specimen(match), region)))
+        specimen = await off_loop(self._specimen, match)
+        cost = await off_loop(admission.heights_cost, specimen, region)
+        return json_response(await self.analyses.run(request, cost, queries.height_statistics, specimen, region))
 
     async def zoom(self, request, match, grant):
         query = query_parameters(request, {"region", "magnification"})
@@ -251,12 +254,18 @@ class JsonApi:
         query = query_parameters(request, {"format", "roi", "region", "pixel_size_um", "solid", "units"})
         options = export_options(query)
         area = area_of(query)
+        specimen = await off_loop(self._specimen, match)
 
         def write(directory: Path) -> tuple[Path, str]:
-            exported = exports.export_area(self._specimen(match), directory, **area, **options)
+            exported = exports.export_area(specimen, directory, **area, **options)
             return exported.path, MEDIA_TYPES[exported.file_format]
 
-        return await file_response(request, self.analyses.run, write, scratch_root=self.store.scratch_root)
+        cost = await off_loop(
+            lambda: admission.area_export_cost(
+                specimen, **area, **{key: options[key] for key in ("pixel_size_um", "file_format", "solid")}
+            )
+        )
+        return await self._file(request, cost, write)
 
     async def export_height_map(self, request, match, grant):
         query_parameters(request, set())
@@ -268,6 +277,13 @@ class JsonApi:
         )
         options = export_options(form)
         export_pixel_size_um = options.pop("pixel_size_um")
+        shape = await off_loop(npz_shape, form.get("height_map"))  # from its headers: nothing decoded yet
+        cost = admission.map_export_cost(
+            shape,
+            file_format=options["file_format"],
+            solid=options["solid"],
+            source_bytes_per_point=NPZ_BYTES_PER_POINT,
+        )
 
         def write(directory: Path) -> tuple[Path, str]:
             # Decoded here, on the analysis threads: a map near the pixel limit takes seconds and
@@ -287,18 +303,25 @@ class JsonApi:
             )
             return exported.path, MEDIA_TYPES[exported.file_format]
 
-        return await file_response(request, self.analyses.run, write, scratch_root=self.store.scratch_root)
+        return await self._file(request, cost, write)
 
     async def report(self, request, match, grant):
         query = query_parameters(request, {"format", "roi", "region"})
         file_format = choice(query, "format", tuple(report.MEDIA_TYPES), default="html")
         area = area_of(query)
+        specimen = await off_loop(self._specimen, match)
 
         def write(directory: Path) -> tuple[Path, str]:
-            path = report.write_report(self._specimen(match), directory, file_format=file_format, **area)
+            path = report.write_report(specimen, directory, file_format=file_format, **area)
             return path, report.MEDIA_TYPES[file_format]
 
-        return await file_response(request, self.analyses.run, write, scratch_root=self.store.scratch_root)
+        return await self._file(request, await off_loop(lambda: admission.report_cost(specimen, **area)), write)
+
+    async def _file(self, request: web.Request, cost: Cost, write) -> web.StreamResponse:
+        """`write`'s file (see file_response), admitted as `cost`: its disk held until it is sent."""
+        with self.budget.scratch(cost):
+            run = functools.partial(self.analyses.run, request, cost)
+            return await file_response(request, run, write, scratch_root=self.store.scratch_root)
 
     async def upload(self, request, match, grant):
         query_parameters(request, set())

@@ -27,21 +27,18 @@ from dataclasses import dataclass, field
 from http import HTTPStatus
 from pathlib import Path
 
+from aiohttp import web
 from google.protobuf import json_format
 
 from fractoscope.errors import FractoscopeError, InvalidInputError, NotFoundError
 from fractoscope.rpc.channel import open_channel
 from fractoscope.rpc.status import ClientError, raised_as_client_errors
+from fractoscope.runtime.budget import Budget, Cost
 from fractoscope.specimen.store import process_identity
 from fractoscope.store.objects import Listed, ObjectMissing, S3Objects, Stored
 from fractoscope.tiles.http_json import ApiError
 from fractoscope.v1 import tiles_pb2, tiles_pb2_grpc
 
-# Analyses at once (CPU-bound: one per CPU) and waiting before 429.
-DEFAULT_ANALYSIS_WORKERS = len(os.sched_getaffinity(0))
-
-
-DEFAULT_QUEUED_ANALYSES = 16
 # How often a running job's progress is written to object storage at most, s.
 _PROGRESS_WRITE_S = 1.0
 # How long another replica's unfinished job may go without its record being rewritten before it
@@ -161,34 +158,43 @@ class FolderRecords:
 
 
 class Analyses:
-    """The API's analyses (roughness, profiles, height statistics, exports, reports) on `workers`
-    threads of their own, so lookups, jobs and the viewer's tiles never wait behind them (twelve
-    roughness queries at once once held a specimen lookup for 77 s); more than `queue_limit`
-    waiting get 429. Used from the event loop's thread only."""
+    """The API's analyses (roughness, profiles, height statistics, exports, reports, the checks of
+    uploads) on threads of their own, one for every request the `budget` admits at once (its CPU
+    slots and its queue), so that lookups, jobs and the viewer's tiles never wait behind them
+    (twelve roughness queries at once once held a specimen lookup for 77 s). Each is admitted
+    by the budget first, which refuses at once what cannot fit (413, 429: it is shared with gRPC),
+    and stopped when its caller has gone (the request's connection closed). Used from the event
+    loop's thread only."""
 
-    def __init__(self, *, workers: int, queue_limit: int):
-        self.limit = workers + queue_limit
-        self._pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="fractoscope-http-analysis")
-        self._under_way = 0
+    def __init__(self, budget: Budget):
+        self.budget = budget
+        self._pool = ThreadPoolExecutor(
+            max_workers=budget.cpu_slots + budget.queue_limit, thread_name_prefix="fractoscope-http-analysis"
+        )
 
-    async def run(self, function, *args):
-        """`function(*args)` on the analysis threads, or 429 when `limit` are under way."""
-        if self._under_way >= self.limit:
-            raise ApiError(
-                HTTPStatus.TOO_MANY_REQUESTS,
-                f"{self._under_way} analyses are running or waiting; retry later",
-                None,
-                **{"Retry-After": "5"},
-            )
-        self._under_way += 1
+    async def run(self, request: web.Request, cost: Cost, function, *args):
+        """`function(*args)` admitted as `cost` on the analysis threads, stopped if `request`'s
+        client goes away; ResourceExhaustedError (TooLargeError) at once when it does not fit."""
+        ticket = self.budget.admit(cost)
+
+        def admitted():
+            with ticket.running(stopped=lambda: _gone(request)):
+                return function(*args)
+
         try:
-            return await asyncio.get_running_loop().run_in_executor(self._pool, function, *args)
+            return await asyncio.get_running_loop().run_in_executor(self._pool, admitted)
         finally:
-            self._under_way -= 1
+            ticket.release()  # a no-op once it ran
 
     def close(self) -> None:
         """Waiting analyses never start; returns once running ones end."""
         self._pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _gone(request: web.Request) -> bool:
+    """Whether the client of a request has closed its connection (read from any thread)."""
+    transport = request.transport
+    return transport is None or transport.is_closing()
 
 
 class BuildJobs:

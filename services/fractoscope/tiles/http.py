@@ -38,12 +38,12 @@ from aiohttp.log import server_logger
 
 from fractoscope.errors import FractoscopeError, NotFoundError, outcome_of
 from fractoscope.runtime.auth import TokenTable
+from fractoscope.runtime.budget import Budget
 from fractoscope.runtime.caches import BoundedCache
 from fractoscope.runtime.process import CredentialFilter
 from fractoscope.specimen.quadtree import TILE_URI
 from fractoscope.specimen.store import SpecimenStore
 from fractoscope.tiles.api import JsonApi
-from fractoscope.tiles.build_jobs import DEFAULT_ANALYSIS_WORKERS, DEFAULT_QUEUED_ANALYSES
 from fractoscope.tiles.http_json import json_error
 from fractoscope.tiles.uploads import DEFAULT_MAX_UPLOAD_BYTES
 
@@ -124,10 +124,7 @@ class _TileApp:
         if path == "/livez":  # the process answers: what a liveness probe asks, whatever the store's state
             return _plain(HTTPStatus.OK, "ok\n")
         if path == "/healthz":
-            problem = await self._store_problem()
-            if problem is not None:
-                return _plain(HTTPStatus.SERVICE_UNAVAILABLE, f"degraded: {problem}\n", **{"Retry-After": "5"})
-            return _plain(HTTPStatus.OK, "ok\n")
+            return await self._health()
         if path == "/":
             return web.Response(status=HTTPStatus.FOUND, headers={"Location": "/viewer/"})
         if self.tokens.enabled and not path.startswith(("/viewer/", "/vendor/")):
@@ -140,10 +137,13 @@ class _TileApp:
         route = _ROUTE.fullmatch(request.raw_path.partition("?")[0])
         if route is None:
             return _plain(HTTPStatus.NOT_FOUND, "not found\n")
-        relative = route["path"]
+        return await self._tileset_file(request, route["specimen"], route["path"])
+
+    async def _tileset_file(self, request: web.Request, specimen_id: str, relative: str) -> web.Response:
+        """tileset.json or a tile it names (`relative`), of the build its `?v=` names (410 for one replaced)."""
         build = (request.query.get("v") or None) if relative != "tileset.json" else None
         try:
-            specimen = await self._specimen(route["specimen"], build)
+            specimen = await self._specimen(specimen_id, build)
             if build is not None and build != str(specimen.version):
                 return _plain(
                     HTTPStatus.GONE,
@@ -166,6 +166,13 @@ class _TileApp:
             return _plain(status, f"{error}\n", **retry)
         caching = _SHORT_CACHING if build is None else _TILE_CACHING
         return _body_response(request, body, _TYPES[relative[relative.rfind(".") :]], caching)
+
+    async def _health(self) -> web.Response:
+        """200 "ok", or 503 "degraded" saying why the store cannot serve now."""
+        problem = await self._store_problem()
+        if problem is not None:
+            return _plain(HTTPStatus.SERVICE_UNAVAILABLE, f"degraded: {problem}\n", **{"Retry-After": "5"})
+        return _plain(HTTPStatus.OK, "ok\n")
 
     async def _store_problem(self) -> str | None:
         """Why the store cannot serve now (None: it can): an object store held out of reach, or
@@ -444,15 +451,15 @@ def start_http_server(
     tokens: TokenTable | None = None,
     grpc_address: str | None = None,
     max_upload_bytes: int = DEFAULT_MAX_UPLOAD_BYTES,
-    analysis_workers: int = DEFAULT_ANALYSIS_WORKERS,
-    queued_analyses: int = DEFAULT_QUEUED_ANALYSES,
+    budget: Budget | None = None,
 ) -> HttpTileServer:
     """Serves the store's tilesets, the viewer and the JSON API over HTTP from a daemon thread;
     `server_port` is the bound port. With `tokens`, everything but the viewer's static files and
     the OpenAPI document needs a bearer token, and the API's builds a write token. Builds go to the
     gRPC endpoint at `grpc_address` (None: the API refuses them); uploads are kept next to the
-    specimens (DATA/uploads), at most `max_upload_bytes` each. Analyses run `analysis_workers` at
-    a time with `queued_analyses` waiting (by default one per CPU and 16; see api.Analyses)."""
+    specimens (DATA/uploads), at most `max_upload_bytes` each. Analyses, exports, reports and the
+    checks of uploads are admitted by `budget`: pass the one this process's gRPC server has (see
+    runtime.budget); by default one of the endpoint's own."""
     tokens = tokens or TokenTable({})
     api = JsonApi(
         store,
@@ -460,7 +467,6 @@ def start_http_server(
         grpc_address=grpc_address,
         uploads_root=store.scratch_root.parent / "uploads",
         max_upload_bytes=max_upload_bytes,
-        analysis_workers=analysis_workers,
-        queued_analyses=queued_analyses,
+        budget=budget or Budget.for_server(None, concurrent_requests=1, scratch_root=store.scratch_root),
     )
     return HttpTileServer(store, host, port, tokens, api)

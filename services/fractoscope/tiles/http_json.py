@@ -93,8 +93,8 @@ async def file_response(
         )
         await response.prepare(request)
         if request.method != "HEAD":
-            with open(path, "rb") as source:
-                while chunk := source.read(CHUNK_BYTES):
+            with open(path, "rb") as source:  # read off the event loop: a file of gigabytes may come from a slow disk
+                while chunk := await off_loop(source.read, CHUNK_BYTES):
                     await response.write(chunk)
         await response.write_eof()
         return response

@@ -250,16 +250,27 @@ _HEIGHT_MAP_ARRAYS = ("z_um", "sigma_um", "pixel_size_um")
 _NPY_HEADER_READERS = {(1, 0): npy_format.read_array_header_1_0, (2, 0): npy_format.read_array_header_2_0}
 
 
-def npz_height_map(content: bytes | None) -> tuple[np.ndarray, np.ndarray | None, float | None]:
-    """z_um (and sigma_um, pixel_size_um if stored) of an uploaded npz, as `fracto height` writes it;
-    its arrays are checked from their headers before any is read (see _check_npz_headers)."""
+# What an uploaded map's arrays take once decoded, per point: z_um and sigma_um as float64 at most.
+NPZ_BYTES_PER_POINT = 16
+
+
+def npz_shape(content: bytes | None) -> tuple[int, int]:
+    """The (rows, cols) of an uploaded npz's z_um, from the .npy headers alone (see
+    _check_npz_headers), for estimates before anything is decoded."""
     if not content:
         raise InvalidInputError("height_map", "is required: an .npz with z_um (as fracto height writes it)")
     if not content.startswith(b"PK"):  # npz files are zip archives; np.load would try a pickle
         raise InvalidInputError(
             "height_map", "is not an npz file (a zip archive with z_um, as fracto height writes it)"
         )
-    _check_npz_headers(content)
+    shape = _check_npz_headers(content)
+    return (shape[0] if shape else 1), math.prod(shape[1:])
+
+
+def npz_height_map(content: bytes | None) -> tuple[np.ndarray, np.ndarray | None, float | None]:
+    """z_um (and sigma_um, pixel_size_um if stored) of an uploaded npz, as `fracto height` writes it;
+    its arrays are checked from their headers before any is read (see npz_shape)."""
+    npz_shape(content)
     try:
         with np.load(io.BytesIO(content), allow_pickle=False) as arrays:
             z_um = np.asarray(arrays["z_um"])
@@ -270,10 +281,10 @@ def npz_height_map(content: bytes | None) -> tuple[np.ndarray, np.ndarray | None
     return z_um, sigma_um, stored
 
 
-def _check_npz_headers(content: bytes) -> None:
+def _check_npz_headers(content: bytes) -> tuple[int, ...]:
     """Refuses, from the .npy headers alone, an npz that np.load would allocate too much for (an
     array of more values than an image may have pixels, sem.image.MAX_IMAGE_PIXELS: 413; a header
-    may declare any shape in a few bytes) or that is not a height map (400)."""
+    may declare any shape in a few bytes) or that is not a height map (400); z_um's shape."""
     limit = sem_image.MAX_IMAGE_PIXELS
     headers = _npy_headers(content)
     for name, shape, dtype in headers:
@@ -286,8 +297,10 @@ def _check_npz_headers(content: bytes) -> None:
             )
         if name in _HEIGHT_MAP_ARRAYS and dtype.kind not in "fiu":
             raise InvalidInputError("height_map", f"its {name} array holds {dtype}, not real numbers")
-    if "z_um" not in {name for name, _, _ in headers}:
+    shapes = {name: shape for name, shape, _ in headers}
+    if "z_um" not in shapes:
         raise InvalidInputError("height_map", "holds no z_um array (as fracto height writes it)")
+    return tuple(shapes["z_um"])
 
 
 def _npy_headers(content: bytes) -> list[tuple[str, tuple[int, ...], np.dtype]]:

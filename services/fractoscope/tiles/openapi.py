@@ -147,12 +147,12 @@ def document() -> dict:
     }
 
 
-_BUSY = {"429": "Too many analyses are running or waiting; retry after Retry-After seconds."}
+_BUSY = {"413": "More than this server takes at all (memory, file).", "429": "Busy; retry after Retry-After s."}
 
 
 def _specimen_get(operation_id: str, summary: str, parameters: list, ok: dict, *, analysis: bool = False) -> dict:
-    """A GET on a specimen: its id in the path, `parameters` in the query; an `analysis` runs on
-    the analysis threads (429 when too many wait)."""
+    """A GET on a specimen: its id in the path, `parameters` in the query; an `analysis` runs under
+    the server's budget (413 when it can never fit, 429 when it cannot now)."""
     return {
         "get": {
             "operationId": operation_id,
@@ -299,10 +299,10 @@ def _upload_paths() -> dict:
                     "401",
                     "404",
                     **{
-                        "413": "The body is too large, or the map has more pixels than an image may have.",
+                        "413": "The body, the map (pixels) or its export (memory, file) is more than the server takes.",
                         "415": "The body is not multipart/form-data.",
                     },
-                    **_BUSY,
+                    **{"429": _BUSY["429"]},
                 ),
             }
         },
@@ -326,7 +326,7 @@ def _upload_paths() -> dict:
                     "401",
                     "403",
                     "507",
-                    **{"413": "The upload is too large.", "415": "The body is not multipart/form-data."},
+                    **{"413": "Too large a body or build.", "415": "Not multipart/form-data.", "429": _BUSY["429"]},
                 ),
             }
         },

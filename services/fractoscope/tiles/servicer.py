@@ -34,6 +34,7 @@ from fractoscope.specimen.build import MeasuredHeights, RoiRequest, reconstruct_
 from fractoscope.specimen.quadtree import MESH_MARGIN_CELLS, TileSamples
 from fractoscope.specimen.store import Specimen, SpecimenStore, scratch_folder, validate_id
 from fractoscope.stereo.pipeline import HeightMapResult
+from fractoscope.tiles import admission
 from fractoscope.tiles import messages as rpc_tiles
 from fractoscope.v1 import (
     common_pb2,
@@ -227,7 +228,7 @@ class TileServicer(tiles_pb2_grpc.TileServiceServicer):
         store: SpecimenStore,
         *,
         builds: JobRunner,
-        memory: budget.MemoryBudget,
+        budget: budget.Budget,
         local_matching: LocalMatching | None = None,
         local_meshing: LocalMeshing | None = None,
         matching_address: str | None = None,
@@ -243,7 +244,7 @@ class TileServicer(tiles_pb2_grpc.TileServiceServicer):
                 "(--matching-address, --meshing-address)"
             )
         self.store = store
-        self._builds, self._memory = builds, memory
+        self._builds, self._budget = builds, budget
         self.matching_address = matching_address
         self.meshing_address = meshing_address
         self._matching: BuildMatching = (
@@ -271,14 +272,17 @@ class TileServicer(tiles_pb2_grpc.TileServiceServicer):
             )  # before it takes a place in the queue
             estimate = self._estimate(height_requests, shapes)
             rows, cols = max(shapes, key=lambda shape: shape[0] * shape[1])
-            self._memory.check(
+            self._budget.check(
                 estimate, f"specimen {specimen_id!r} ({len(rois)} ROIs, the largest of {cols} x {rows} pixels)"
             )
             key = (specimen_id, request.request_id) if request.request_id else None
+
+            def work(job: Job) -> Specimen:
+                with self._budget.held(estimate):
+                    return self._reconstruct(request, digest, rois, height_requests, job)
+
             with self._claims.claimed(specimen_id, request.request_id, digest):
-                for event in self._builds.follow(
-                    context, lambda job: self._reconstruct(request, digest, rois, height_requests, job), key=key
-                ):
+                for event in self._builds.follow(context, work, key=key):
                     if isinstance(event, common_pb2.Progress):
                         yield tiles_pb2.ReconstructSpecimenResponse(progress=event)
                     else:
@@ -388,7 +392,7 @@ class TileServicer(tiles_pb2_grpc.TileServiceServicer):
     @abort_on_error
     def GetProfile(self, request, context):
         specimen = self.store.load(request.specimen_id)
-        with rpc_tiles.chain_fields():
+        with self._admitted(admission.profile_cost(), context), rpc_tiles.chain_fields():
             found = specimen_queries.profile_along(
                 specimen,
                 [[p.x_um, p.y_um] for p in request.points],
@@ -401,21 +405,20 @@ class TileServicer(tiles_pb2_grpc.TileServiceServicer):
     @abort_on_error
     def GetRoughness(self, request, context):
         specimen = self.store.load(request.specimen_id)
-        area = request.WhichOneof("area")
+        roi = request.roi or None
+        region = rpc_tiles.region(request.region, "region") if request.WhichOneof("area") == "region" else None
         chain = rpc_tiles.chain_request(request.chain)
-        with rpc_tiles.chain_fields():
-            analysis = specimen_queries.roughness_of(
-                specimen,
-                roi=request.roi or None,
-                region_um=rpc_tiles.region(request.region, "region") if area == "region" else None,
-                chain=chain,
-            )
+        cost = admission.roughness_cost(specimen, roi=roi, region_um=region)
+        with self._admitted(cost, context), rpc_tiles.chain_fields():
+            analysis = specimen_queries.roughness_of(specimen, roi=roi, region_um=region, chain=chain)
         return rpc_tiles.roughness_response(analysis, chain)
 
     @abort_on_error
     def Export(self, request, context):
-        with scratch_folder(self.store.scratch_root, "export") as directory:
-            exported = rpc_tiles.export(request, directory, self.store)
+        cost = admission.export_request_cost(request, self.store)
+        with self._budget.scratch(cost), scratch_folder(self.store.scratch_root, "export") as directory:
+            with self._admitted(cost, context):
+                exported = rpc_tiles.export(request, directory, self.store)
             first = tiles_pb2.ExportResponse(grid=rpc_tiles.export_grid(exported))
             media_type = MEDIA_TYPES[exported.file_format]
             yield from rpc_tiles.streamed_file(
@@ -426,13 +429,18 @@ class TileServicer(tiles_pb2_grpc.TileServiceServicer):
     def GetReport(self, request, context):
         file_format = wire.report_format_name(request.format)
         area = rpc_tiles.area_of(request.area, "area")
-        with scratch_folder(self.store.scratch_root, "report") as directory:
-            path = report.write_report(
-                self.store.load(request.area.specimen_id), directory, file_format=file_format, **area
-            )
+        specimen = self.store.load(request.area.specimen_id)
+        cost = admission.report_cost(specimen, **area)
+        with self._budget.scratch(cost), scratch_folder(self.store.scratch_root, "report") as directory:
+            with self._admitted(cost, context):
+                path = report.write_report(specimen, directory, file_format=file_format, **area)
             yield from rpc_tiles.streamed_file(
                 tiles_pb2.GetReportResponse(), path, file_name=path.name, media_type=report.MEDIA_TYPES[file_format]
             )
+
+    def _admitted(self, cost: budget.Cost, context: grpc.ServicerContext):
+        """The budget's admission of a query of `cost` for the call of `context`, stopped when it ends."""
+        return self._budget.admitted(cost, stopped=lambda: not context.is_active())
 
     def _stored(self, specimen_id: str, request_id: str, digest: str) -> Specimen | None:
         """The stored specimen that a request with `request_id` and content `digest` built, if any

@@ -21,12 +21,16 @@ from typing import NamedTuple
 from aiohttp import web
 
 from fractoscope.errors import InvalidInputError, NotFoundError
+from fractoscope.matching import messages as rpc_matching
 from fractoscope.rpc.limits import MAX_REQUEST_ID_CHARS, MAX_ROIS
 from fractoscope.rpc.manifest import manifest_field, parse_manifest
+from fractoscope.runtime import budget
+from fractoscope.runtime.budget import Cost
 from fractoscope.sem.image import read_sem_image
 from fractoscope.specimen.store import validate_id
 from fractoscope.stereo.inputs import resolve_calibration
 from fractoscope.store.objects import S3Objects
+from fractoscope.tiles.build_jobs import Analyses
 from fractoscope.tiles.http_json import ApiError, off_loop
 from fractoscope.tiles.http_requests import form_parts, multipart_reader, read_chunk
 from fractoscope.tiles.messages import check_child_centres, checked_rois, in_roi
@@ -50,11 +54,21 @@ class Uploads:
     folder and renamed into place once complete and valid: never half of one. Uploads older than
     `max_age_s` (default FRACTO_UPLOAD_MAX_AGE_S, else DEFAULT_MAX_AGE_S) are removed at start and
     whenever an upload is received; until then they are not found. With `objects`, uploads are
-    shared through object storage (see the module docstring)."""
+    shared through object storage (see the module docstring). Receiving one needs `analyses`,
+    under whose budget its images are decoded (and its build's estimate checked first)."""
 
-    def __init__(self, root: Path, max_bytes: int, *, max_age_s: float | None = None, objects: S3Objects | None = None):
+    def __init__(
+        self,
+        root: Path,
+        max_bytes: int,
+        *,
+        analyses: Analyses | None = None,
+        max_age_s: float | None = None,
+        objects: S3Objects | None = None,
+    ):
         self.root = Path(root)
         self.max_bytes = max_bytes
+        self.analyses = analyses
         self.objects = objects
         if max_age_s is None:
             max_age_s = float(os.environ.get("FRACTO_UPLOAD_MAX_AGE_S", DEFAULT_MAX_AGE_S))
@@ -94,7 +108,10 @@ class Uploads:
         upload_id = uuid.uuid4().hex
         with self._staging() as staging:
             await self._receive_parts(reader, staging)
-            specimen_id, rois = await off_loop(self._check, staging)
+            specimen_id, rois, shapes = await off_loop(self._parse, staging)  # from the images' headers
+            # The images are decoded under the budget, as the build would take them.
+            cost = Cost(f"the images of {len(rois)} ROIs", budget.decode_bytes(shapes))
+            await self.analyses.run(request, cost, self._check, staging, rois, shapes)
             staging.rename(self.root / upload_id)
         if self.objects is not None:
             await off_loop(self._share, upload_id)
@@ -182,20 +199,20 @@ class Uploads:
         if "manifest" not in fields:
             raise InvalidInputError("manifest", "is required: the specimen manifest (JSON)")
 
-    def _check(self, directory: Path) -> tuple[str, list[tiles_pb2.RoiSpec]]:
-        """A received upload checked whole: its manifest and images as the build will check them,
-        and no image part the manifest does not name."""
-        specimen_id, rois, shapes = self._parse(directory)
+    def _check(self, directory: Path, rois: list[tiles_pb2.RoiSpec], shapes: list[tuple[int, int]]) -> None:
+        """A received upload (parsed by `_parse`) checked whole: its images as the build will check
+        them, and no image part the manifest does not name."""
         named = {item.image.filename for roi in rois for item in roi.images}
         for name in sorted(path.name for path in (directory / "images").iterdir()):
             if name not in named:
                 raise InvalidInputError(f"images[{name!r}]", "is not an image the manifest names")
         with _as_manifest_entries(rois):
             _check_images(rois, shapes)
-        return specimen_id, rois
 
     def _parse(self, directory: Path) -> tuple[str, list[tiles_pb2.RoiSpec], list[tuple[int, int]]]:
-        """The specimen id, the ROIs and their images' (rows, cols) of a stored manifest, checked."""
+        """The specimen id, the ROIs and their images' (rows, cols) of a stored manifest, checked
+        from the images' headers, and the build's estimated memory against the budget's limit of
+        one request (TooLargeError, as ReconstructSpecimen refuses it), before any is decoded."""
 
         def read_image(name: str, field_name: str) -> bytes:
             path = directory / "images" / name
@@ -213,7 +230,15 @@ class Uploads:
         )
         validate_id(specimen_id, field="manifest.specimen")
         with _as_manifest_entries(rois):  # what the build would refuse, refused before a job is accepted
-            _, _, shapes = checked_rois(rois)
+            _, height_requests, shapes = checked_rois(rois)
+            estimate = budget.specimen_bytes(
+                shapes, matched_here=[rpc_matching.peak_bytes(request)[0] for request in height_requests]
+            )
+        rows, cols = max(shapes, key=lambda shape: shape[0] * shape[1])
+        if self.analyses is not None:
+            self.analyses.budget.check(
+                estimate, f"specimen {specimen_id!r} ({len(rois)} ROIs, the largest of {cols} x {rows} pixels)"
+            )
         return specimen_id, rois, shapes
 
     def load(self, upload_id: str) -> tuple[str, list[tiles_pb2.RoiSpec]]:

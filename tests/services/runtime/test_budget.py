@@ -118,10 +118,8 @@ def test_a_request_over_the_memory_budget_is_refused_before_any_work_naming_its_
 def test_the_default_limit_shares_the_servers_memory_among_its_build_workers():
     memory = budget.server_memory_bytes()
     assert 0 < memory <= os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-    assert budget.MemoryBudget.for_server(None, concurrent_requests=2).limit_bytes == int(
-        budget.REQUEST_SHARE * memory / 2
-    )
-    assert budget.MemoryBudget.for_server(300, concurrent_requests=2).limit_bytes == 300 * 2**20
+    assert budget.Budget.for_server(None, concurrent_requests=2).limit_bytes == int(budget.REQUEST_SHARE * memory / 2)
+    assert budget.Budget.for_server(300, concurrent_requests=2).limit_bytes == 300 * 2**20
 
 
 def test_estimates_grow_with_the_views_the_rotated_canvas_and_the_strips():

@@ -34,6 +34,7 @@ from surfalize import Surface
 
 from fractoscope.formats.x3p import read_x3p
 from fractoscope.runtime.auth import TokenTable
+from fractoscope.runtime.budget import Budget
 from fractoscope.server.main import create_server
 from fractoscope.specimen.store import SpecimenStore
 from fractoscope.tiles import openapi
@@ -186,7 +187,8 @@ def test_analyses_have_threads_of_their_own_and_too_many_get_429(built, monkeypa
         return statistics(*args, **kwargs)
 
     monkeypatch.setattr(queries, "height_statistics", held)
-    endpoint = start_http_server(SpecimenStore(data), analysis_workers=1, queued_analyses=0)
+    one_at_a_time = Budget(memory_bytes=1 << 40, request_limit_bytes=1 << 40, cpu_slots=1, queue_limit=0)
+    endpoint = start_http_server(SpecimenStore(data), budget=one_at_a_time)
     base = f"http://127.0.0.1:{endpoint.server_port}"
     specimen = requests.get(f"{base}/api/specimens", timeout=30).json()[0]["id"]
     heights = f"{base}/api/specimens/{specimen}/heights?region=0,0,10,10"
