@@ -11,6 +11,7 @@ from fractoscope.errors import InvalidInputError
 from fractoscope.mesh.levels import Simplification
 from fractoscope.mesh.outline import Unmeasured
 from fractoscope.mesh.pipeline import EncodedTile, MeshingOptions, MeshReport
+from fractoscope.mesh.walls import max_meshed_sigma_um
 from fractoscope.rpc import wire
 from fractoscope.stereo.geometry import validate_pixel_size_um
 from fractoscope.v1 import common_pb2, meshing_pb2
@@ -44,6 +45,7 @@ def options_from_request(request: meshing_pb2.BuildMeshRequest) -> MeshingOption
         unmeasured=UNMEASURED.get(request.unmeasured) or _invalid("unmeasured", f"unknown value {request.unmeasured}"),
         min_island_px=request.min_island_px if request.HasField("min_island_px") else defaults.min_island_px,
         margin_cells=request.margin_cells,
+        max_sigma_um=_max_sigma_um(request),
     )
     if not options.outlier_threshold_sigma > 0:
         _invalid("filter.outlier_threshold_sigma", "must be > 0")
@@ -64,6 +66,18 @@ def options_from_request(request: meshing_pb2.BuildMeshRequest) -> MeshingOption
             "margin_cells", f"needs level_count 1 (a margin is one level's), got level_count {request.level_count}"
         )
     return options
+
+
+def _max_sigma_um(request: meshing_pb2.BuildMeshRequest) -> float | None:
+    """The request's max_sigma_um (0: none), or by default the height two pixels of disparity make
+    (mesh.walls.max_meshed_sigma_um) where the request gives a max_slope; None: every height."""
+    if request.HasField("max_sigma_um"):
+        if not (math.isfinite(request.max_sigma_um) and request.max_sigma_um >= 0):
+            _invalid("max_sigma_um", f"must be 0 (mesh every height) or positive, got {request.max_sigma_um} µm")
+        return request.max_sigma_um or None
+    if not (request.max_slope > 0 and math.isfinite(request.max_slope) and request.height_map.pixel_size_um > 0):
+        return None
+    return max_meshed_sigma_um(max_slope=request.max_slope, pixel_size_um=request.height_map.pixel_size_um)
 
 
 def _invalid(field: str, message: str):
@@ -140,5 +154,6 @@ def filter_report_response(report: MeshReport) -> meshing_pb2.BuildMeshResponse:
             holes_filled=report.filtered.holes_filled,
             points_smoothed=report.filtered.points_smoothed,
             islands_dropped=report.islands_dropped,
+            uncertain_dropped=report.uncertain_dropped,
         )
     )
