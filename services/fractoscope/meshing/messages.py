@@ -46,6 +46,7 @@ def options_from_request(request: meshing_pb2.BuildMeshRequest) -> MeshingOption
         min_island_px=request.min_island_px if request.HasField("min_island_px") else defaults.min_island_px,
         margin_cells=request.margin_cells,
         max_sigma_um=_max_sigma_um(request),
+        resolution_px=max(request.resolution_px, 1.0),
     )
     if not options.outlier_threshold_sigma > 0:
         _invalid("filter.outlier_threshold_sigma", "must be > 0")
@@ -59,6 +60,8 @@ def options_from_request(request: meshing_pb2.BuildMeshRequest) -> MeshingOption
         _invalid("max_slope", f"must be 0 (no walls) or positive, got {request.max_slope}")
     if not (np.isfinite(options.min_island_px) and options.min_island_px >= 0):
         _invalid("min_island_px", f"must be 0 (keep every island) or positive, got {options.min_island_px} px")
+    if not (math.isfinite(request.resolution_px) and 0 <= request.resolution_px <= 1000):
+        _invalid("resolution_px", f"must be 0 to 1000 pixels, got {request.resolution_px}")
     if not 0 <= request.margin_cells <= MAX_MARGIN_CELLS:
         _invalid("margin_cells", f"must be 0 to {MAX_MARGIN_CELLS}, got {request.margin_cells}")
     if request.margin_cells and request.level_count != 1:

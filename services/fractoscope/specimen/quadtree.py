@@ -27,6 +27,7 @@ from fractoscope.mesh.walls import (
     WALL_SIGMA_FACTOR,
     grid_wall_triangles,
     max_meshed_sigma_um,
+    real_jumps,
     wall_vertices,
     within_distance,
 )
@@ -149,7 +150,8 @@ class TileSamples:
     the tile's vertex (0, 0) (x, y) µm, the wall settings of the ROI that shows most of it (see
     PlacedRoi), the least island area in cells (mesh.outline), how unmeasured areas are drawn, the
     heights' fused matching noise on the same grid (µm, NaN unknown; None: not known) and the
-    largest a meshed height may have (mesh.walls.max_meshed_sigma_um of that ROI; 0: none)."""
+    largest a meshed height may have (mesh.walls.max_meshed_sigma_um of that ROI; 0: none), and the
+    heights' horizontal resolution in cells (that ROI's matching window)."""
 
     z_um: np.ndarray
     texture: np.ndarray
@@ -161,6 +163,7 @@ class TileSamples:
     unmeasured: Unmeasured = Unmeasured.ABSENT
     sigma_um: np.ndarray | None = None
     max_sigma_um: float = 0.0
+    resolution_cells: float = 1.0
 
     @property
     def core_z_um(self) -> np.ndarray:
@@ -201,29 +204,9 @@ def build_tiles(
         if not below:
             return False
         cell_um = layout.cell_um(key.level)
-        x_um, y_um = layout.vertex_grid_um(key, MESH_MARGIN_CELLS)
-        samples = surface.sample(x_um, y_um, cell_um=cell_um)
-        shown = surface.rois[_dominant_source(samples.source[_CORE], below, surface)]
-        max_sigma_um = (
-            max_meshed_sigma_um(max_slope=shown.max_slope, pixel_size_um=shown.pixel_size_um)
-            if shown.max_slope
-            else 0.0
-        )
-        z_um = _certain(samples.z_um, samples.sigma_um, max_sigma_um)
-        if not _has_a_quad(z_um[_CORE]):
+        shown, tile = _tile_samples(surface, layout, key, below, unmeasured)
+        if not _has_a_quad(tile.core_z_um):
             return False
-        tile = TileSamples(
-            z_um,
-            np.clip(samples.texture, 0, 255).astype(np.uint8),
-            cell_um,
-            (bounds[0], bounds[1]),
-            shown.max_slope,
-            shown.noise_um,
-            DEFAULT_MIN_ISLAND_PX * min(shown.pixel_size_um / cell_um, 1.0) ** 2,
-            unmeasured,
-            samples.sigma_um if np.isfinite(samples.sigma_um).any() else None,
-            max_sigma_um,
-        )
         emit(key, tile)
         announce(f"tile {key.uri}")
         record = records[key] = _leaf_record(key, shown, tile)
@@ -240,6 +223,32 @@ def build_tiles(
 
     visit(TileKey(0, 0, 0))
     return records
+
+
+def _tile_samples(
+    surface: FusedSurface, layout: QuadtreeLayout, key: TileKey, below: list[PlacedRoi], unmeasured: Unmeasured
+) -> tuple[PlacedRoi, TileSamples]:
+    """The ROI that shows most of a tile and what the tile is meshed from (see build_tiles)."""
+    cell_um = layout.cell_um(key.level)
+    samples = surface.sample(*layout.vertex_grid_um(key, MESH_MARGIN_CELLS), cell_um=cell_um)
+    shown = surface.rois[_dominant_source(samples.source[_CORE], below, surface)]
+    max_sigma_um = (
+        max_meshed_sigma_um(max_slope=shown.max_slope, pixel_size_um=shown.pixel_size_um) if shown.max_slope else 0.0
+    )
+    x0, y0, _, _ = layout.bounds_um(key)
+    return shown, TileSamples(
+        _certain(samples.z_um, samples.sigma_um, max_sigma_um),
+        np.clip(samples.texture, 0, 255).astype(np.uint8),
+        cell_um,
+        (x0, y0),
+        shown.max_slope,
+        shown.noise_um,
+        DEFAULT_MIN_ISLAND_PX * min(shown.pixel_size_um / cell_um, 1.0) ** 2,
+        unmeasured,
+        samples.sigma_um if np.isfinite(samples.sigma_um).any() else None,
+        max_sigma_um,
+        DEFAULT_WINDOW_PX * shown.pixel_size_um / cell_um,
+    )
 
 
 _ABOVE_CHILDREN = 1.01
@@ -322,9 +331,9 @@ def _deviation_um(
     in_upper = u + v <= 1.0
     coarse = np.where(in_upper, a + u * (b - a) + v * (c - a), d + (1 - u) * (c - d) + (1 - v) * (b - d))
     x_um, y_um = layout.vertex_grid_um(key)
-    upper, lower = grid_wall_triangles(x_um, y_um, z, max_slope=tile.max_slope, sigma_um=tile.noise_um)
+    upper, lower = real_jumps(*grid_wall_triangles(x_um, y_um, z, max_slope=tile.max_slope, sigma_um=tile.noise_um))
     fine_walls = wall_vertices(
-        *grid_wall_triangles(fine_x, fine_y, fine_z, max_slope=tile.max_slope, sigma_um=tile.noise_um)
+        *real_jumps(*grid_wall_triangles(fine_x, fine_y, fine_z, max_slope=tile.max_slope, sigma_um=tile.noise_um))
     )
     left_out = np.where(in_upper, upper[rows, cols], lower[rows, cols]) | within_distance(fine_walls, factor)
     deviation = np.abs(coarse - fine_z)[~left_out] - WALL_SIGMA_FACTOR * tile.noise_um

@@ -80,17 +80,11 @@ def filter_heights(
     distance = cv2.distanceTransform((~kept).astype(np.uint8), cv2.DIST_L2, 3)
     fillable = ~kept & (distance <= max_fill_distance_px)
     width = max(max_fill_distance_px / 2.0, 0.5)
-    interpolated = _normalized_fill(heights, kept, width)
+    interpolated = normalized_mean(heights, kept, width)
     filled = fillable & np.isfinite(interpolated)
     known = kept | filled
     result = np.where(kept, heights, np.where(filled, interpolated, np.nan)).astype(np.float32)
-    sigma_result = None
-    if sigma_um is not None:
-        sigma = np.asarray(sigma_um, np.float32)
-        with_sigma = kept & np.isfinite(sigma)
-        sigma_result = np.where(
-            with_sigma, sigma, np.where(filled, _normalized_fill(sigma, with_sigma, width), np.nan)
-        ).astype(np.float32)
+    sigma_result = _carried_sigma(sigma_um, kept, filled, width) if sigma_um is not None else None
 
     smoothed_count = 0
     if smoothing_um > 0:
@@ -100,6 +94,15 @@ def filter_heights(
         smoothed_count = int(changed.sum())
     report = FilterReport(int(outliers.sum()), int((filled & ~outliers).sum()), smoothed_count)
     return FilteredHeights(result, filled, report, sigma_result)
+
+
+def _carried_sigma(sigma_um: np.ndarray, kept: np.ndarray, filled: np.ndarray, width_px: float) -> np.ndarray:
+    """The sigma of the filtered heights: the kept points' own, the filled points' the Gaussian
+    mean of their kept neighbours' (`width_px`), NaN elsewhere (float32 µm)."""
+    sigma = np.asarray(sigma_um, np.float32)
+    with_sigma = kept & np.isfinite(sigma)
+    filled_sigma = normalized_mean(sigma, with_sigma, width_px)
+    return np.where(with_sigma, sigma, np.where(filled, filled_sigma, np.nan)).astype(np.float32)
 
 
 def _spikes(heights: np.ndarray, measured: np.ndarray, height_per_px_um: float, sigma_um) -> np.ndarray:
@@ -119,7 +122,7 @@ def _spikes(heights: np.ndarray, measured: np.ndarray, height_per_px_um: float, 
         return measured & ((heights - opened > allowed) | (closed - heights > allowed))
 
 
-def _normalized_fill(values: np.ndarray, kept: np.ndarray, width_px: float) -> np.ndarray:
+def normalized_mean(values: np.ndarray, kept: np.ndarray, width_px: float) -> np.ndarray:
     """The Gaussian-weighted (sigma `width_px`) mean of the `kept` values around every point
     (normalized convolution), NaN where none is near enough to weigh."""
     total = cv2.GaussianBlur(np.where(kept, values, 0.0).astype(np.float32), (0, 0), width_px)

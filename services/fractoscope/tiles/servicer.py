@@ -469,6 +469,7 @@ def _mesh_request(tile: TileSamples) -> meshing_pb2.BuildMeshRequest:
         max_slope=tile.max_slope or 0.0,
         sigma_um=tile.sigma_um if tile.sigma_um is not None else np.full(tile.z_um.shape, tile.noise_um, np.float32),
         max_sigma_um=tile.max_sigma_um,
+        resolution_px=tile.resolution_cells,
         margin_cells=MESH_MARGIN_CELLS,
         min_island_px=tile.min_island_cells,
         unmeasured=rpc_meshing.UNMEASURED_CODES[tile.unmeasured],
