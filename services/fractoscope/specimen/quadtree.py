@@ -46,12 +46,13 @@ MESH_MARGIN_CELLS = DEFAULT_WINDOW_PX + 1
 # A sampled tile's own vertices, without the margin.
 _CORE = (slice(MESH_MARGIN_CELLS, -MESH_MARGIN_CELLS),) * 2
 _REFINE_RATIO = math.sqrt(2)
-# A tile with children stands for them while a cell of its texture is at most a third of its
-# geometric error: viewers refine to an error of a few pixels on screen (the web viewer's 6 px),
-# where a cell as large as the error shows the SEM image blurred (6 px texels, the demo's top view
-# stopping at its 4 coarsest tiles), and where tiles of neighbouring levels meet, a blurred and a
-# crisp texture side by side make a seam.
-TEXEL_ERROR_CELLS = 3.0
+# A tile with children stands for them while a cell of its texture is at most half its geometric
+# error: viewers refine to an error of a few pixels on screen (the web viewer's 6 px), where a cell
+# as large as the error shows the SEM image blurred (6 px texels, the demo's top view stopping at
+# its 4 coarsest tiles), and where tiles of neighbouring levels meet, a blurred and a crisp texture
+# side by side make a seam. Half, not less: the pollen overview's first view then still asks for
+# at most 60 tiles (a third asked for 73).
+TEXEL_ERROR_CELLS = 2.0
 # A tile URI's one form: numbers of up to 6 ASCII digits without leading zeros.
 _NUMBER = r"(0|[1-9][0-9]{0,5})"
 TILE_URI = re.compile(rf"tiles/{_NUMBER}/{_NUMBER}/{_NUMBER}\.glb", re.ASCII)
