@@ -18,6 +18,7 @@ import tifffile
 from conftest import ReportNumbers
 
 from fractoscope import synthetic
+from fractoscope.numbers import value_text
 from fractoscope.specimen.store import SpecimenStore
 
 FRACTO = str(Path(sys.executable).with_name("fracto"))
@@ -122,7 +123,8 @@ def test_the_specimen_keeps_and_reports_the_calibrated_tilts_with_their_sigmas(m
             ["pdftotext", "-layout", str(folder / "series.pdf"), "-"], capture_output=True, text=True, check=True
         ).stdout
         words = " ".join(pdf.split())
-        assert "tilt_calibration" in words and f"{tilts[2]:+.4f}" in words
+        # The tilt to its sigma's second significant digit (fractoscope.numbers), with its sign.
+        assert "tilt_calibration" in words and f"+{value_text(tilts[2], sigmas[2])}" in words
         assert "starting from the nominal tilts -4.5, +0, +4.5 °" in words
     roughness = _run("roughness", folder / "calibrated.npz", "--json")
     assert roughness.returncode == 0, roughness.stderr
