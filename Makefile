@@ -44,8 +44,10 @@ $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
 
+# setuptools warns of every editable install, in a banner of a dozen lines each (the folders of
+# one name it warns of are these distributions' own): that one warning is filtered, no other.
 $(STAMP): pyproject.toml $(DISTRIBUTIONS) $(PROTOS) | $(BIN)/python
-	$(BIN)/pip install --quiet -e clients/python -e services -e 'clients/cli[local]' --group dev
+	PYTHONWARNINGS="ignore:Editable installation" $(BIN)/pip install --quiet -e clients/python -e services -e 'clients/cli[local]' --group dev
 	touch $@
 
 ## proto: regenerate the gRPC stubs (the client's build does it from proto/)

@@ -6,7 +6,7 @@ import * as THREE from "three";
 import { Line2 } from "three/addons/lines/Line2.js";
 import { LineGeometry } from "three/addons/lines/LineGeometry.js";
 import { LineMaterial } from "three/addons/lines/LineMaterial.js";
-import { formatUm, plotProfiles } from "./plot.js";
+import { formatMeasured, formatUm, plotProfiles } from "./plot.js";
 
 const METRES_PER_UM = 1e-6;
 const COLOURS = ["#ff3355", "#33c3ff", "#ffd23f", "#b27bff", "#3dff8f", "#ff8c1a"];
@@ -166,13 +166,15 @@ export class Measurements {
       case "distance":
         return `${label}: ${formatUm(r.distance_um)} (horizontal ${formatUm(r.horizontal_um)}, Δz ${formatUm(r.dz_um)})`;
       case "step":
-        return `${label}: ${formatUm(r.step_um)} ± ${formatUm(r.uncertainty_um)} (area means ${formatUm(r.areas[0].mean_um)}, ${formatUm(r.areas[1].mean_um)})`;
+        return `${label}: ${formatMeasured(r.step_um, r.uncertainty_um, "µm")} (area means ${formatUm(r.areas[0].mean_um)}, ${formatUm(r.areas[1].mean_um)})`;
       case "angle":
         return `${label}: ${r.angle_deg.toFixed(1)}°`;
       default: {
         const p = r.parameters;
         const length = Math.hypot(r.end.x_um - r.start.x_um, r.end.y_um - r.start.y_um);
-        return `${label}: ${formatUm(length)} long` + (p ? `, Ra ${formatUm(p.Ra)}, Rq ${formatUm(p.Rq)}, Rz ${formatUm(p.Rz)}` : ", no heights along it");
+        // Ra, Rq and Rz are the roughness profile's, after the ISO 21920-3 filters: their cut-offs say what.
+        const cutoffs = r.chain ? ` (roughness profile, λs ${formatUm(r.chain.s_filter_um)}, λc ${formatUm(r.chain.l_filter_um)})` : "";
+        return `${label}: ${formatUm(length)} long` + (p ? `, Ra ${formatUm(p.Ra)}, Rq ${formatUm(p.Rq)}, Rz ${formatUm(p.Rz)}${cutoffs}` : ", no heights along it");
       }
     }
   }

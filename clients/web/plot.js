@@ -20,6 +20,30 @@ export function formatNumber(value, significant = 3) {
   return text.includes("e") ? String(+text) : text;
 }
 
+// A measured value with its standard uncertainty and unit, as fractoscope.numbers writes it (the
+// report and the command line): the uncertainty with two significant digits, the value to the
+// same decimal place ("16.1 ± 1.6 µm"); without an uncertainty, three significant digits.
+export function formatMeasured(value, uncertainty, unit) {
+  if (value === null || value === undefined || !Number.isFinite(value)) return `n/a ${unit}`;
+  if (!(uncertainty > 0) || !Number.isFinite(uncertainty)) return `${formatNumber(value, 3)} ${unit}`;
+  const places = decimalsFor(uncertainty);
+  return `${plain(value, places)} ± ${plain(uncertainty, places)} ${unit}`;
+}
+
+// The decimal places at which `uncertainty` (> 0) shows two significant digits (negative: tens...).
+function decimalsFor(uncertainty) {
+  let exponent = Math.floor(Math.log10(Math.abs(uncertainty)));
+  const rounded = +Math.abs(uncertainty).toPrecision(2);
+  exponent = Math.floor(Math.log10(rounded));
+  return Math.min(1 - exponent, 12);
+}
+
+// `value` rounded to `places` decimals (negative: to tens, hundreds...), without "-0".
+function plain(value, places) {
+  const text = places >= 0 ? value.toFixed(places) : (Math.round(value / 10 ** -places) * 10 ** -places).toFixed(0);
+  return /^-[0.]+$/.test(text) ? text.slice(1) : text;
+}
+
 // A length or height in µm with as many decimals as its size asks for.
 export function formatUm(value, digits = 3) {
   if (value === null || !Number.isFinite(value)) return "–";

@@ -8,7 +8,7 @@ import { TilesRenderer } from "3d-tiles-renderer";
 import { GLTFExtensionsPlugin } from "3d-tiles-renderer/plugins";
 import { VIEWS, ViewCamera } from "./camera.js";
 import { Measurements } from "./measure.js";
-import { formatNumber, formatUm, niceTicks } from "./plot.js";
+import { formatMeasured, formatNumber, formatUm, niceTicks } from "./plot.js";
 import { SpecimenList, isUnderWay } from "./specimens.js";
 import { MAX_ROIS, RAMP, isWallMesh, lightDirection, rampGradient, sharedUniforms, surfaceMaterial } from "./surface.js";
 
@@ -339,21 +339,22 @@ async function measureRoughness() {
 
 function describeRoughness(result) {
   // Each value with its standard uncertainty where known, then the chain that produced them.
-  const withUncertainty = (name, digits, unit) => {
-    const u = result.uncertainty[name]?.u_total;
-    return `${name} ${result[name].toFixed(digits)}${u == null ? "" : ` ± ${formatNumber(u, 2)}`} ${unit}`;
-  };
+  // Digits follow the uncertainty (formatMeasured, as the report and the command line write them).
+  const withUncertainty = (name) => `${name} ${formatMeasured(result[name], result.uncertainty[name]?.u_total, result.units[name])}`;
   const chain = result.chain;
-  const filters = [["λs", chain.s_filter_um], ["λc", chain.l_filter_um]].filter(([, v]) => v).map(([n, v]) => `${n} ${v} µm`);
+  const filters = [["λs", chain.s_filter_um], ["λc", chain.l_filter_um]].map(([n, v]) => `${n} ${v ? `${v} µm` : "none"}`);
   const hurst = result.hurst.find((fit) => fit.method === "hhc" && fit.side === "along");
+  const covered = result.coverage;
   const lines = [
-    `${withUncertainty("Sa", 3, "µm")}, ${withUncertainty("Sq", 3, "µm")}, ${withUncertainty("Sdr", 2, "%")}`,
-    hurst
-      ? `Hurst ${hurst.hurst.toFixed(2)} ± ${hurst.hurst_stderr.toFixed(2)} (h(r), ${formatNumber(hurst.fit_min_um, 2)}–${formatNumber(hurst.fit_max_um, 2)} µm)`
-      : result.hurst_note,
-    `chain: form ${chain.form}, ${filters.length ? filters.join(", ") : "no filters"}, ${formatNumber(result.pixel_size_um)} µm/px`,
+    `${withUncertainty("Sa")}, ${withUncertainty("Sq")}, ${withUncertainty("Sdr")}`,
+    hurst && !hurst.not_determinable
+      ? `Hurst ${formatMeasured(hurst.hurst, hurst.hurst_stderr, "1")} (h(r), ${formatNumber(hurst.fit_min_um, 2)}–${formatNumber(hurst.fit_max_um, 2)} µm)`
+      : `Hurst: ${hurst ? hurst.not_determinable : result.hurst_note}`,
+    `chain: form ${chain.form}, ${filters.join(", ")}, ${formatNumber(result.pixel_size_um)} µm/px`,
   ];
+  if (covered) lines.push(`on the matched heights: ${formatNumber(100 * covered.measured_fraction, 3)} % of the view (${formatNumber(100 * covered.filled_fraction, 2)} % filled left out)`);
   if (result.noise_bias.Sq != null) lines.push(`noise adds ${formatNumber(result.noise_bias.Sq, 2)} µm to Sq`);
+  for (const caveat of result.caveats ?? []) lines.push(`caveat: ${caveat}`);
   return lines.join("\n");
 }
 

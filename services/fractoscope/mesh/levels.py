@@ -34,10 +34,12 @@ from fractoscope.mesh.outline import Unmeasured, chamfer_triangles, drop_islands
 from fractoscope.mesh.walls import (
     WALL_SIGMA_FACTOR,
     grid_wall_triangles,
+    real_jumps,
     wall_triangles,
     wall_vertices,
     within_distance,
 )
+from fractoscope.surface.filtering import normalized_mean
 
 LOD_TILE_MAX_CELLS = 254  # 255 x 255 vertices: indices fit 16 bits below the restart value 65535
 COARSEST_TRIANGLES = 5_000
@@ -58,6 +60,7 @@ class ClusterLevel:
     texture: mean grey value of each cell's pixels.
     complete: True where every pixel of the cell is measured (its centroid is its centre).
     sigma_um: mean local uncertainty of each cell's measured pixels (0 where none was given).
+    shading_z_um: the heights the normals are taken from (`_shading_heights`; None: z_um).
     """
 
     cell_px: int
@@ -67,6 +70,7 @@ class ClusterLevel:
     texture: np.ndarray
     complete: np.ndarray
     sigma_um: np.ndarray
+    shading_z_um: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -166,6 +170,7 @@ def iter_tiles(
     margin_cells: int = 0,
     min_island_px: float = 0.0,
     unmeasured: Unmeasured = Unmeasured.ABSENT,
+    resolution_px: float = 1.0,
 ) -> Iterator[LodTile]:
     """The tiles of every level, finest level first, as they are built. Each tile carries its
     measured geometric error: the largest vertical distance between its surface and the
@@ -178,7 +183,7 @@ def iter_tiles(
     does not know its own surface better), and is at least the errors of the finer level's tiles
     under it (those leave out less around walls; a viewer that refines a tile must not find its
     children worse). Tiles without triangles are skipped. The outer `margin_cells` (one level only)
-    shape normals but get no vertex; levels 1 up drop islands below `min_island_px` (0: the caller)."""
+    shape normals but get no vertex; see `_meshed_level` for `min_island_px` and `resolution_px`."""
     if z_um.shape != texture.shape or z_um.ndim != 2:
         raise ValueError(f"z_um and texture must be 2D of one shape, got {z_um.shape} and {texture.shape}")
     count = level_count or level_count_for(z_um.shape)
@@ -186,8 +191,7 @@ def iter_tiles(
     finer_errors: dict[tuple[int, int], float] = {}  # the finer level's tiles' errors by (row, col)
     for level, cluster in enumerate(cluster_levels(z_um, texture, count=count, sigma_um=sigma_um)):
         errors: dict[tuple[int, int], float] = {}
-        if level > 0 and min_island_px > 0:
-            cluster = replace(cluster, z_um=drop_islands(cluster.z_um, min_area_cells=min_island_px / 4**level)[0])
+        cluster = _meshed_level(cluster, level, min_island_px, resolution_px)
         grid_walls = _level_walls(cluster, pixel_size_um=pixel_size_um, max_slope=max_slope)
         if level == 0:
             full_resolution_walls = grid_walls
@@ -250,9 +254,9 @@ def _footprint(cell_px: int, row_cells, col_cells, shape) -> tuple[slice, slice]
 def _level_walls(
     cluster: ClusterLevel, *, pixel_size_um: float, max_slope: float | None
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(upper, lower) wall flags of the level's grid quads (see mesh.walls)."""
+    """(upper, lower) wall flags of the level's grid quads (see mesh.walls), real jumps only."""
     x_um, y_um = cluster.col_px * pixel_size_um, cluster.row_px * pixel_size_um
-    return grid_wall_triangles(x_um, y_um, cluster.z_um, max_slope=max_slope, sigma_um=cluster.sigma_um)
+    return real_jumps(*grid_wall_triangles(x_um, y_um, cluster.z_um, max_slope=max_slope, sigma_um=cluster.sigma_um))
 
 
 @dataclass(frozen=True)
@@ -472,7 +476,7 @@ def _normal_field(cluster: ClusterLevel, row_cells, col_cells, pixel_size_um: fl
         slice(row_cells[0] - first_row, row_cells[1] + 1 - first_row),
         slice(col_cells[0] - first_col, col_cells[1] + 1 - first_col),
     )
-    z = cluster.z_um[block].astype(np.float32)
+    z = (cluster.z_um if cluster.shading_z_um is None else cluster.shading_z_um)[block].astype(np.float32)
     if min(z.shape) < 2:
         slope_rows = slope_cols = np.zeros_like(z)
     else:
@@ -483,6 +487,27 @@ def _normal_field(cluster: ClusterLevel, row_cells, col_cells, pixel_size_um: fl
     slope_rows, slope_cols = slope_rows[inner], slope_cols[inner]
     inverse_norm = 1.0 / np.sqrt(1.0 + slope_rows**2 + slope_cols**2)
     return np.stack([-slope_cols * inverse_norm, inverse_norm, -slope_rows * inverse_norm], axis=-1)
+
+
+def _meshed_level(cluster: ClusterLevel, level: int, min_island_px: float, resolution_px: float) -> ClusterLevel:
+    """A level as meshed: above the finest, without islands below `min_island_px` (full-resolution
+    pixels); the heights its normals come from set (`_shading_heights`)."""
+    if level > 0 and min_island_px > 0:
+        cluster = replace(cluster, z_um=drop_islands(cluster.z_um, min_area_cells=min_island_px / 4**level)[0])
+    return replace(cluster, shading_z_um=_shading_heights(cluster, resolution_px))
+
+
+def _shading_heights(cluster: ClusterLevel, resolution_px: float) -> np.ndarray | None:
+    """The level's heights smoothed to the map's horizontal resolution (a Gaussian of a quarter of
+    `resolution_px`, in its cells; unknown cells stay unknown): the pair measures no relief finer
+    than its matching window, so finer shading is noise, which coarser levels average out and the
+    finest would show as speckle beside them. None where the cells are that coarse already."""
+    width_cells = resolution_px / 4.0 / cluster.cell_px
+    if width_cells < 0.5:
+        return None
+    known = np.isfinite(cluster.z_um)
+    smoothed = normalized_mean(cluster.z_um, known, width_cells)
+    return np.where(known, smoothed, np.nan).astype(np.float32)
 
 
 def _grid_normals(cluster: ClusterLevel, row_cells, col_cells, pixel_size_um: float) -> np.ndarray:

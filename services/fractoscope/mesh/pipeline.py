@@ -45,14 +45,18 @@ class MeshingOptions:
     unmeasured: Unmeasured = Unmeasured.ABSENT  # how areas without heights are drawn (mesh.outline)
     min_island_px: float = DEFAULT_MIN_ISLAND_PX  # smaller measured patches are dropped (mesh.outline); 0: none
     margin_cells: int = 0  # outer rows and columns that only shape the normals (one level only)
+    max_sigma_um: float | None = None  # heights whose sigma exceeds it are not meshed; None: all are
+    resolution_px: float = 1.0  # the heights' horizontal resolution: normals are shaded at it (mesh.levels)
 
 
 @dataclass(frozen=True)
 class MeshReport:
-    """What meshing changed in the heights: the filter's counts, and how many islands it dropped."""
+    """What meshing changed in the heights: the filter's counts, how many islands it dropped and how
+    many heights it left out for their sigma."""
 
     filtered: filtering.FilterReport
     islands_dropped: int
+    uncertain_dropped: int = 0
 
 
 def mesh_height_map(
@@ -70,17 +74,11 @@ def mesh_height_map(
     first, tiles without a measured quad left out. `sigma_um` (same shape, optional) is each
     height's local uncertainty, which widens what `options.max_slope` lets pass as surface.
     Islands below `options.min_island_px` are dropped after filtering (those that reach the edge
-    kept when the map has a margin: it is a piece of a larger surface)."""
+    kept when the map has a margin: it is a piece of a larger surface). Heights whose sigma exceeds
+    `options.max_sigma_um` are left out first, and filled from their neighbours where near enough
+    (what the mesh shows there is an interpolation, never the uncertain height)."""
     report = progress or silent
-    filtered = filtering.filter_heights(
-        z_um,
-        outlier_threshold_sigma=options.outlier_threshold_sigma,
-        max_fill_distance_px=options.max_fill_distance_px,
-        smoothing_um=options.smoothing_um,
-    )
-    z_um, islands = filtered.z_um, 0
-    if options.min_island_px > 0:
-        z_um, islands = drop_islands(z_um, min_area_cells=options.min_island_px, keep_edge=options.margin_cells > 0)
+    z_um, cleaning = _cleaned(z_um, sigma_um, options, pixel_size_um)
     report(0.1, "filtered")
 
     total = levels.tile_count(z_um.shape, options.level_count, options.margin_cells)
@@ -95,6 +93,7 @@ def mesh_height_map(
         margin_cells=options.margin_cells,
         min_island_px=options.min_island_px,
         unmeasured=options.unmeasured,
+        resolution_px=options.resolution_px,
     )
     floor = options.unmeasured is Unmeasured.FLAT
     grid = (
@@ -111,7 +110,37 @@ def mesh_height_map(
             pending = builder.submit(next, tiles, None)
             encoded.append(_encoded_tile(tile, pixel_size_um=pixel_size_um, grid=grid, origin_um=origin_um))
             report(0.1 + 0.9 * len(encoded) / total, f"level {tile.level}: {len(encoded)} of at most {total} tiles")
-    return encoded, MeshReport(filtered.report, islands)
+    return encoded, cleaning
+
+
+def _cleaned(z_um: np.ndarray, sigma_um, options: MeshingOptions, pixel_size_um: float):
+    """The heights as meshed and the MeshReport of what that changed: uncertain heights out,
+    filtered (surface.filtering), islands dropped (see mesh_height_map)."""
+    z_um, uncertain = _without_uncertain(z_um, sigma_um, options.max_sigma_um)
+    filtered = filtering.filter_heights(
+        z_um,
+        outlier_threshold_sigma=options.outlier_threshold_sigma,
+        max_fill_distance_px=options.max_fill_distance_px,
+        smoothing_um=options.smoothing_um,
+        sigma_um=sigma_um,
+        max_slope=options.max_slope,
+        pixel_size_um=pixel_size_um,
+    )
+    z_um, islands = filtered.z_um, 0
+    if options.min_island_px > 0:
+        z_um, islands = drop_islands(z_um, min_area_cells=options.min_island_px, keep_edge=options.margin_cells > 0)
+    return z_um, MeshReport(filtered.report, islands, uncertain)
+
+
+def _without_uncertain(z_um: np.ndarray, sigma_um: np.ndarray | None, max_sigma_um: float | None):
+    """The heights with those whose sigma exceeds `max_sigma_um` unknown, and their count."""
+    if sigma_um is None or not max_sigma_um:
+        return z_um, 0
+    with np.errstate(invalid="ignore"):
+        uncertain = np.isfinite(z_um) & (np.asarray(sigma_um) > max_sigma_um)
+    if not uncertain.any():
+        return z_um, 0
+    return np.where(uncertain, np.float32(np.nan), z_um).astype(np.float32), int(uncertain.sum())
 
 
 def _position_grid(

@@ -11,6 +11,7 @@ from fractoscope.errors import InvalidInputError
 from fractoscope.mesh.levels import Simplification
 from fractoscope.mesh.outline import Unmeasured
 from fractoscope.mesh.pipeline import EncodedTile, MeshingOptions, MeshReport
+from fractoscope.mesh.walls import max_meshed_sigma_um
 from fractoscope.rpc import wire
 from fractoscope.stereo.geometry import validate_pixel_size_um
 from fractoscope.v1 import common_pb2, meshing_pb2
@@ -44,6 +45,8 @@ def options_from_request(request: meshing_pb2.BuildMeshRequest) -> MeshingOption
         unmeasured=unmeasured_of(request.unmeasured),
         min_island_px=request.min_island_px if request.HasField("min_island_px") else defaults.min_island_px,
         margin_cells=request.margin_cells,
+        max_sigma_um=_max_sigma_um(request),
+        resolution_px=max(request.resolution_px, 1.0),
     )
     if not options.outlier_threshold_sigma > 0:
         _invalid("filter.outlier_threshold_sigma", "must be > 0")
@@ -57,6 +60,8 @@ def options_from_request(request: meshing_pb2.BuildMeshRequest) -> MeshingOption
         _invalid("max_slope", f"must be 0 (no walls) or positive, got {request.max_slope}")
     if not (np.isfinite(options.min_island_px) and options.min_island_px >= 0):
         _invalid("min_island_px", f"must be 0 (keep every island) or positive, got {options.min_island_px} px")
+    if not (math.isfinite(request.resolution_px) and 0 <= request.resolution_px <= 1000):
+        _invalid("resolution_px", f"must be 0 to 1000 pixels, got {request.resolution_px}")
     if not 0 <= request.margin_cells <= MAX_MARGIN_CELLS:
         _invalid("margin_cells", f"must be 0 to {MAX_MARGIN_CELLS}, got {request.margin_cells}")
     if request.margin_cells and request.level_count != 1:
@@ -73,6 +78,18 @@ def unmeasured_of(code: int) -> Unmeasured:
         known = ", ".join(f"{common_pb2.UnmeasuredAreas.Name(known)} ({known})" for known in UNMEASURED)
         raise InvalidInputError("unmeasured", f"unknown value {code}; known: {known}")
     return UNMEASURED[code]
+
+
+def _max_sigma_um(request: meshing_pb2.BuildMeshRequest) -> float | None:
+    """The request's max_sigma_um (0: none), or by default the height two pixels of disparity make
+    (mesh.walls.max_meshed_sigma_um) where the request gives a max_slope; None: every height."""
+    if request.HasField("max_sigma_um"):
+        if not (math.isfinite(request.max_sigma_um) and request.max_sigma_um >= 0):
+            _invalid("max_sigma_um", f"must be 0 (mesh every height) or positive, got {request.max_sigma_um} µm")
+        return request.max_sigma_um or None
+    if not (request.max_slope > 0 and math.isfinite(request.max_slope) and request.height_map.pixel_size_um > 0):
+        return None
+    return max_meshed_sigma_um(max_slope=request.max_slope, pixel_size_um=request.height_map.pixel_size_um)
 
 
 def _invalid(field: str, message: str):
@@ -149,5 +166,6 @@ def filter_report_response(report: MeshReport) -> meshing_pb2.BuildMeshResponse:
             holes_filled=report.filtered.holes_filled,
             points_smoothed=report.filtered.points_smoothed,
             islands_dropped=report.islands_dropped,
+            uncertain_dropped=report.uncertain_dropped,
         )
     )

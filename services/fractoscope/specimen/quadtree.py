@@ -23,7 +23,14 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from fractoscope.mesh.outline import DEFAULT_MIN_ISLAND_PX, Unmeasured
-from fractoscope.mesh.walls import WALL_SIGMA_FACTOR, grid_wall_triangles, wall_vertices, within_distance
+from fractoscope.mesh.walls import (
+    WALL_SIGMA_FACTOR,
+    grid_wall_triangles,
+    max_meshed_sigma_um,
+    real_jumps,
+    wall_vertices,
+    within_distance,
+)
 from fractoscope.specimen.fusion import FusedSurface, PlacedRoi, overlaps
 from fractoscope.stereo.matching import DEFAULT_WINDOW_PX
 
@@ -39,6 +46,13 @@ MESH_MARGIN_CELLS = DEFAULT_WINDOW_PX + 1
 # A sampled tile's own vertices, without the margin.
 _CORE = (slice(MESH_MARGIN_CELLS, -MESH_MARGIN_CELLS),) * 2
 _REFINE_RATIO = math.sqrt(2)
+# A tile with children stands for them while a cell of its texture is at most half its geometric
+# error: viewers refine to an error of a few pixels on screen (the web viewer's 6 px), where a cell
+# as large as the error shows the SEM image blurred (6 px texels, the demo's top view stopping at
+# its 4 coarsest tiles), and where tiles of neighbouring levels meet, a blurred and a crisp texture
+# side by side make a seam. Half, not less: the pollen overview's first view then still asks for
+# at most 60 tiles (a third asked for 73).
+TEXEL_ERROR_CELLS = 2.0
 # A tile URI's one form: numbers of up to 6 ASCII digits without leading zeros.
 _NUMBER = r"(0|[1-9][0-9]{0,5})"
 TILE_URI = re.compile(rf"tiles/{_NUMBER}/{_NUMBER}/{_NUMBER}\.glb", re.ASCII)
@@ -135,7 +149,10 @@ class TileSamples:
     """What a tile is meshed from: heights (QUADTREE_TILE_CELLS + 1 + 2 MESH_MARGIN_CELLS)² µm
     (NaN unknown) and grey texture on its vertex grid and margin, the cell size µm, the position of
     the tile's vertex (0, 0) (x, y) µm, the wall settings of the ROI that shows most of it (see
-    PlacedRoi), the least island area in cells (mesh.outline) and how unmeasured areas are drawn."""
+    PlacedRoi), the least island area in cells (mesh.outline), how unmeasured areas are drawn, the
+    heights' fused matching noise on the same grid (µm, NaN unknown; None: not known) and the
+    largest a meshed height may have (mesh.walls.max_meshed_sigma_um of that ROI; 0: none), and the
+    heights' horizontal resolution in cells (that ROI's matching window)."""
 
     z_um: np.ndarray
     texture: np.ndarray
@@ -145,6 +162,9 @@ class TileSamples:
     noise_um: float
     min_island_cells: float = 0.0
     unmeasured: Unmeasured = Unmeasured.ABSENT
+    sigma_um: np.ndarray | None = None
+    max_sigma_um: float = 0.0
+    resolution_cells: float = 1.0
 
     @property
     def core_z_um(self) -> np.ndarray:
@@ -172,9 +192,10 @@ def build_tiles(
     """Walks the quadtree depth first, samples each tile's heights and texture from the fused
     surface and hands them to `emit(key, TileSamples)` (the mesher); returns the records. Tiles
     without four neighbouring measured vertices are left out. A tile's geometric error is the
-    larger of its measured height error (`_deviation_um`) and its cell size (the detail of the SEM
-    image it shows), and above its children's; leaves have none. Each tile drops islands smaller
-    than mesh.outline's least area in its dominant ROI's pixels; `unmeasured` is handed on."""
+    larger of its measured height error (`_deviation_um`) and TEXEL_ERROR_CELLS of its cell size
+    (the detail of the SEM image it shows), and above its children's; leaves have none. Each tile drops islands smaller
+    than mesh.outline's least area in its dominant ROI's pixels, and leaves out the heights whose
+    sigma exceeds that ROI's mesh.walls.max_meshed_sigma_um; `unmeasured` is handed on."""
     records: dict[TileKey, TileRecord] = {}
     announce = progress or (lambda message: None)
 
@@ -184,21 +205,9 @@ def build_tiles(
         if not below:
             return False
         cell_um = layout.cell_um(key.level)
-        x_um, y_um = layout.vertex_grid_um(key, MESH_MARGIN_CELLS)
-        samples = surface.sample(x_um, y_um, cell_um=cell_um)
-        if not _has_a_quad(samples.z_um[_CORE]):
+        shown, tile = _tile_samples(surface, layout, key, below, unmeasured)
+        if not _has_a_quad(tile.core_z_um):
             return False
-        shown = surface.rois[_dominant_source(samples.source[_CORE], below, surface)]
-        tile = TileSamples(
-            samples.z_um,
-            np.clip(samples.texture, 0, 255).astype(np.uint8),
-            cell_um,
-            (bounds[0], bounds[1]),
-            shown.max_slope,
-            shown.noise_um,
-            DEFAULT_MIN_ISLAND_PX * min(shown.pixel_size_um / cell_um, 1.0) ** 2,
-            unmeasured,
-        )
         emit(key, tile)
         announce(f"tile {key.uri}")
         record = records[key] = _leaf_record(key, shown, tile)
@@ -215,6 +224,32 @@ def build_tiles(
 
     visit(TileKey(0, 0, 0))
     return records
+
+
+def _tile_samples(
+    surface: FusedSurface, layout: QuadtreeLayout, key: TileKey, below: list[PlacedRoi], unmeasured: Unmeasured
+) -> tuple[PlacedRoi, TileSamples]:
+    """The ROI that shows most of a tile and what the tile is meshed from (see build_tiles)."""
+    cell_um = layout.cell_um(key.level)
+    samples = surface.sample(*layout.vertex_grid_um(key, MESH_MARGIN_CELLS), cell_um=cell_um)
+    shown = surface.rois[_dominant_source(samples.source[_CORE], below, surface)]
+    max_sigma_um = (
+        max_meshed_sigma_um(max_slope=shown.max_slope, pixel_size_um=shown.pixel_size_um) if shown.max_slope else 0.0
+    )
+    x0, y0, _, _ = layout.bounds_um(key)
+    return shown, TileSamples(
+        _certain(samples.z_um, samples.sigma_um, max_sigma_um),
+        np.clip(samples.texture, 0, 255).astype(np.uint8),
+        cell_um,
+        (x0, y0),
+        shown.max_slope,
+        shown.noise_um,
+        DEFAULT_MIN_ISLAND_PX * min(shown.pixel_size_um / cell_um, 1.0) ** 2,
+        unmeasured,
+        samples.sigma_um if np.isfinite(samples.sigma_um).any() else None,
+        max_sigma_um,
+        DEFAULT_WINDOW_PX * shown.pixel_size_um / cell_um,
+    )
 
 
 _ABOVE_CHILDREN = 1.01
@@ -262,9 +297,14 @@ def _refined_error_um(
             ),
             default=0.0,
         )
-    # The image shown loses detail finer than a cell as the surface loses height detail;
-    # and viewers refine a tile whose error is not below its parent's without showing it.
-    return max(error_um, cell_um, _ABOVE_CHILDREN * max(records[child].geometric_error_um for child in record.children))
+    # The image shown loses detail finer than a cell as the surface loses height detail, and is
+    # seen in every view where heights are not (from above): TEXEL_ERROR_CELLS cells; and viewers
+    # refine a tile whose error is not below its parent's without showing it.
+    return max(
+        error_um,
+        TEXEL_ERROR_CELLS * cell_um,
+        _ABOVE_CHILDREN * max(records[child].geometric_error_um for child in record.children),
+    )
 
 
 def _deviation_um(
@@ -292,9 +332,9 @@ def _deviation_um(
     in_upper = u + v <= 1.0
     coarse = np.where(in_upper, a + u * (b - a) + v * (c - a), d + (1 - u) * (c - d) + (1 - v) * (b - d))
     x_um, y_um = layout.vertex_grid_um(key)
-    upper, lower = grid_wall_triangles(x_um, y_um, z, max_slope=tile.max_slope, sigma_um=tile.noise_um)
+    upper, lower = real_jumps(*grid_wall_triangles(x_um, y_um, z, max_slope=tile.max_slope, sigma_um=tile.noise_um))
     fine_walls = wall_vertices(
-        *grid_wall_triangles(fine_x, fine_y, fine_z, max_slope=tile.max_slope, sigma_um=tile.noise_um)
+        *real_jumps(*grid_wall_triangles(fine_x, fine_y, fine_z, max_slope=tile.max_slope, sigma_um=tile.noise_um))
     )
     left_out = np.where(in_upper, upper[rows, cols], lower[rows, cols]) | within_distance(fine_walls, factor)
     deviation = np.abs(coarse - fine_z)[~left_out] - WALL_SIGMA_FACTOR * tile.noise_um
@@ -305,6 +345,15 @@ def _deviation_um(
 def _within(key: TileKey, ancestor: TileKey) -> bool:
     shift = key.level - ancestor.level
     return shift >= 0 and (key.col >> shift, key.row >> shift) == (ancestor.col, ancestor.row)
+
+
+def _certain(z_um: np.ndarray, sigma_um: np.ndarray, max_sigma_um: float) -> np.ndarray:
+    """The heights with those whose matching sigma exceeds `max_sigma_um` (0: none) unknown: they
+    are not meshed, and a tile of nothing else is not made."""
+    if not max_sigma_um:
+        return z_um
+    with np.errstate(invalid="ignore"):
+        return np.where(sigma_um > max_sigma_um, np.float32(np.nan), z_um)
 
 
 def _has_a_quad(z_um: np.ndarray) -> bool:

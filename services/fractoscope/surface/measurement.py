@@ -6,7 +6,8 @@ and datum of one pair are one answer whichever way they are asked for.
 In order: the matching noise is taken out of the pipeline's sigma on the heights as matched
 (`stereo.geometry.matching_sigma_um`: the tilt part about the pipeline's own reference level; on
 heights cleaned or levelled first, the two parts no longer cancel and the noise came out zero on
-75 % of a grain); isolated peaks go and holes of up to 8 px are filled (`surface.filtering`),
+75 % of a grain); isolated peaks and spikes steeper than the pair measures go and holes of up to
+8 px are filled (`surface.filtering`),
 the filled points marked; the heights are levelled on the datum asked for (`surface.datum`; the
 filled points carry no weight). The total sigma is then the matching noise and the tilt part
 ε_z |z - z_ref| in quadrature (`total_sigma_um`), z_ref the datum (a tilt error scales the
@@ -84,7 +85,8 @@ def measurement(
     local = None
     if sigma_um is not None:
         local = geometry.matching_sigma_um(z, sigma_um, relative_height_error=tilt_rel or 0.0)
-    filtered = filtering.filter_heights(z, sigma_um=local)
+    max_slope = geometry.max_measurable_slope(tilt_deg) if len(tilt_deg) >= 2 else None
+    filtered = filtering.filter_heights(z, sigma_um=local, max_slope=max_slope, pixel_size_um=pixel_size_um)
     local = _everywhere(filtered.sigma_um, filtered.z_um) if filtered.sigma_um is not None else None
     levelled, found = filtered.z_um, None
     if level is not None:

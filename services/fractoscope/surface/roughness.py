@@ -181,16 +181,24 @@ _FEATURE_UNKNOWN_SHARE = 0.05
 
 def parameter_caveats(parameters: dict[str, float], coverage: measurement.Coverage | None) -> list[str]:
     """Why some parameters do not describe a surface, one line each: the Sk family where the areal
-    material ratio curve has no straight core (Spk or Svk beyond Sz, or Sk + Spk + Svk beyond it:
-    heights of two levels, a grain on a substrate), Spd and Spc where unknown points leave hills
+    material ratio curve has no straight core (Spk beyond Sp, Svk beyond Sv, or Sk + Spk + Svk
+    beyond Sz: heights of two levels, a grain on a substrate), Spd and Spc where unknown points leave hills
     uncounted (ISO 25178-2 counts only complete hills)."""
     lines = []
-    sz, sk, spk, svk = (parameters.get(name, math.nan) for name in ("Sz", "Sk", "Spk", "Svk"))
-    if sz > 0 and (spk > sz or svk > sz or sk + spk + svk > sz):
+    sz, sp, sv, sk, spk, svk = (parameters.get(name, math.nan) for name in ("Sz", "Sp", "Sv", "Sk", "Spk", "Svk"))
+    beyond = [
+        f"{name} = {value:.3g} µm exceeds {limit_name} = {limit:.3g} µm"
+        for name, value, limit_name, limit in (
+            ("Spk", spk, "Sp", sp),
+            ("Svk", svk, "Sv", sv),
+            ("Sk + Spk + Svk", sk + spk + svk, "Sz", sz),
+        )
+        if value > limit > 0
+    ]
+    if beyond:
         lines.append(
-            f"Sk, Spk, Svk, Smr1, Smr2 do not describe this surface: Sk + Spk + Svk = {sk + spk + svk:.3g} µm exceeds "
-            f"Sz = {sz:.3g} µm, so the material ratio curve has no straight core (heights of two levels, such as a "
-            "grain on a substrate)"
+            f"Sk, Spk, Svk, Smr1, Smr2 do not describe this surface: {'; '.join(beyond)}, so the material ratio "
+            "curve has no straight core (heights of two levels, such as a grain on a substrate)"
         )
     unknown = coverage.unknown + coverage.filled if coverage is not None else 0.0
     if unknown > _FEATURE_UNKNOWN_SHARE:

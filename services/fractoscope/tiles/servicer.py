@@ -466,8 +466,8 @@ class SerializedGetTile(grpc.ServerInterceptor):
 
 
 def _mesh_request(tile: TileSamples) -> meshing_pb2.BuildMeshRequest:
-    """BuildMesh of one tile of a specimen, at one level with its margin, its heights' uncertainty
-    the tile's noise."""
+    """BuildMesh of one tile of a specimen, at one level with its margin, with its heights' fused
+    matching noise and the bound of its ROI (quadtree.TileSamples)."""
     return calls.mesh_request(
         tile.z_um,
         tile.texture,
@@ -475,7 +475,9 @@ def _mesh_request(tile: TileSamples) -> meshing_pb2.BuildMeshRequest:
         origin_um=tile.grid_origin_um,
         level_count=1,
         max_slope=tile.max_slope or 0.0,
-        sigma_um=np.full(tile.z_um.shape, tile.noise_um, np.float32),
+        sigma_um=tile.sigma_um if tile.sigma_um is not None else np.full(tile.z_um.shape, tile.noise_um, np.float32),
+        max_sigma_um=tile.max_sigma_um,
+        resolution_px=tile.resolution_cells,
         margin_cells=MESH_MARGIN_CELLS,
         min_island_px=tile.min_island_cells,
         unmeasured=rpc_meshing.UNMEASURED_CODES[tile.unmeasured],

@@ -123,8 +123,8 @@ def test_the_specimen_keeps_and_reports_the_calibrated_tilts_with_their_sigmas(m
             ["pdftotext", "-layout", str(folder / "series.pdf"), "-"], capture_output=True, text=True, check=True
         ).stdout
         words = " ".join(pdf.split())
-        # Each tilt is written to the digits its sigma allows (fractoscope.numbers).
-        assert "tilt_calibration" in words and f"+{value_text(tilts[2], sigmas[2])}" in words, words
+        # The tilt to its sigma's second significant digit (fractoscope.numbers), with its sign.
+        assert "tilt_calibration" in words and f"+{value_text(tilts[2], sigmas[2])}" in words
         assert "starting from the nominal tilts -4.5, +0, +4.5 °" in words
     roughness = _run("roughness", folder / "calibrated.npz", "--json")
     assert roughness.returncode == 0, roughness.stderr

@@ -230,6 +230,7 @@ def test_mesh_requests_decode_to_their_options_arrays_and_origin():
         level_count=3,
         plain_glb=True,
         max_slope=9.5,
+        max_sigma_um=2 * 9.5 * 0.5,  # the default bound: two pixels of disparity (mesh.walls)
     )
     decoded_z, decoded_texture, pixel_size_um, sigma_um = rpc_meshing.height_map_arrays(request.height_map)
     np.testing.assert_array_equal(decoded_z, z_um)

@@ -19,6 +19,7 @@ from conftest import mesh_component_areas_um2, tile_seams_grey_levels
 
 from fractoscope.client import FractoscopeClient
 from fractoscope.client.manifest import load_manifest
+from fractoscope.numbers import with_uncertainty
 from fractoscope.server.main import create_server
 from fractoscope.specimen.store import SpecimenStore
 from fractoscope.tiles.http import start_http_server
@@ -116,14 +117,13 @@ def test_web_viewer_tools_styles_permalink_and_snapshot(built):
     assert tools["angle"].endswith("°") and 0 < angle < 180
     assert tools["step"].startswith("Step 5:") and "±" in tools["step"] and "area means" in tools["step"]
     assert result["roughnessBusy"] and result["roughness"]["Sa"] > 0 and 0 < result["roughness"]["hurst_exponent"] < 1.5
-    rough = result["roughness"]  # the panel shows each value with its uncertainty, then the chain that made them
+    rough = result["roughness"]  # the panel shows each value with its uncertainty's digits, then the chain
     panel = result["roughnessText"]
-    assert (
-        f"Sa {rough['Sa']:.3f} ± " in panel
-        and f"Sq {rough['Sq']:.3f} ± " in panel
-        and f"Sdr {rough['Sdr']:.2f} ± " in panel
-    ), panel
-    assert f"chain: form {rough['chain']['form']}, no filters, " in panel and panel.count("µm/px") == 1, panel
+    for name in ("Sa", "Sq", "Sdr"):
+        shown = with_uncertainty(rough[name], rough["uncertainty"][name]["u_total"], rough["units"][name])
+        assert f"{name} {shown}" in panel, (name, panel)
+    assert f"chain: form {rough['chain']['form']}, λs none, λc none, " in panel and panel.count("µm/px") == 1, panel
+    assert f"{100 * rough['coverage']['measured_fraction']:.3g} % of the view" in panel, panel
     assert "Hurst " in panel and " µm)" in panel, panel
     assert result["scaleBar"] == {"hidden": True, "hint": True}  # perspective: no bar, but how to get one
     assert result["heightColourSpread"] > 0.3  # heights from the dequantized positions span the ramp
@@ -233,8 +233,11 @@ def _check_workbench(data: Path, specimen_id: str, out: Path) -> dict:
     top = result["topBar"]
     assert not top["hidden"] and not top["hintShown"] and top["label"].endswith(" µm"), top
     bar_um_per_px = _numbers_in(top["label"])[0] / top["lengthPx"]
+    # The surface on screen spans the overview's field less the sides too uncertain to mesh, more
+    # what coarse tiles and fills carry back into them: the bar's length puts it between the two.
     x0, _, x1, _ = overview.region_um
-    assert (x1 - x0) / result["surfaceWidthPx"] == pytest.approx(bar_um_per_px, rel=0.02)
+    shown_um = bar_um_per_px * result["surfaceWidthPx"]
+    assert 0.98 * _widest_meshed_row_um(data, specimen_id) <= shown_um <= 1.02 * (x1 - x0), shown_um
     assert result["pickedHorizontalUm"] == pytest.approx(_numbers_in(top["label"])[0], rel=0.02)
     for hidden in (result["perspectiveBar"], result["topPerspectiveBar"], result["sideBar"]):
         assert hidden["hidden"] and hidden["hintShown"], hidden  # perspective, or not from above
@@ -250,6 +253,25 @@ def _check_workbench(data: Path, specimen_id: str, out: Path) -> dict:
     shown = re.search(r"([\d.]+) µm/px", result["roughness"]["text"])
     assert shown and float(shown[1]) == pytest.approx(overview.pixel_size_um, rel=0.01), result["roughness"]["text"]
     return result
+
+
+def _widest_meshed_row_um(data: Path, specimen_id: str) -> float:
+    """The widest span of meshed heights in any row of a specimen's overview, µm: its field, less
+    the columns at its sides whose heights are too uncertain to mesh (mesh.walls)."""
+    from fractoscope.mesh.walls import max_meshed_sigma_um
+    from fractoscope.stereo.geometry import max_measurable_slope
+
+    specimen = SpecimenStore(data).load(specimen_id)
+    overview, placed = specimen.rois[0], specimen.heights(specimen.rois[0].id)
+    meshed = np.isfinite(placed.z_um)
+    tilts = overview.matching.get("tilt_deg") or []
+    if placed.sigma_um is not None and len(tilts) >= 2:
+        bound = max_meshed_sigma_um(max_slope=max_measurable_slope(tilts), pixel_size_um=overview.pixel_size_um)
+        meshed &= ~(placed.sigma_um > bound)
+    cols = np.arange(meshed.shape[1])
+    first = np.where(meshed, cols, meshed.shape[1]).min(axis=1)
+    last = np.where(meshed, cols, -1).max(axis=1)
+    return float((last - first).max() * overview.pixel_size_um)
 
 
 def test_the_workbench_on_the_demo_specimen(built):

@@ -89,3 +89,24 @@ def test_coarsest_level_is_one_small_tile_and_errors_grow():
     assert errors[0] == 0.0 and all(a < b for a, b in zip(errors, errors[1:]))
     finest = [t for t in tiles if t.level == 0]
     assert sum(t.vertex_count for t in finest) >= np.isfinite(z).sum()  # shared borders count twice
+
+
+def test_heights_the_matcher_did_not_locate_are_not_meshed():
+    """A plane whose speckle (every 7th point, as 10 % of the pollen substrate) carries heights
+    off by up to 9 µm with a sigma of 8 µm, as unlocated matches do: beyond the bound (two pixels
+    of disparity, 2 x 9.6 x 0.1 µm) they are left out and filled from their neighbours, so the
+    mesh is the plane; with the bound at 0 every height is meshed and the speckle shows."""
+    rows, cols = np.mgrid[0:96, 0:96].astype(np.float32)
+    plane = 0.01 * rows + 1.0
+    speckle = (rows * 96 + cols) % 7 == 0
+    z = np.where(speckle, plane + np.random.default_rng(3).uniform(-9, 9, plane.shape), plane).astype(np.float32)
+    sigma = np.where(speckle, 8.0, 0.05).astype(np.float32)
+    bound = pipeline.MeshingOptions(max_slope=9.6, max_sigma_um=2 * 9.6 * PIXEL_SIZE_UM, level_count=1)
+    texture = np.zeros(z.shape, np.uint8)
+    tiles, report = pipeline.mesh_height_map(z, texture, pixel_size_um=PIXEL_SIZE_UM, options=bound, sigma_um=sigma)
+    assert report.uncertain_dropped == speckle.sum()
+    col_px, row_px, z_um = _decode_vertices(tiles[0].glb).T
+    np.testing.assert_allclose(z_um, 0.01 * row_px + 1.0, atol=0.05)  # a fill is its neighbours' Gaussian mean
+    every = pipeline.MeshingOptions(max_slope=9.6, level_count=1)
+    tiles, report = pipeline.mesh_height_map(z, texture, pixel_size_um=PIXEL_SIZE_UM, options=every, sigma_um=sigma)
+    assert report.uncertain_dropped == 0 and np.abs(_decode_vertices(tiles[0].glb)[:, 2] - 1.5).max() > 5

@@ -26,6 +26,7 @@ from fractoscope.cli.common import (
     relief_sign_sentence,
 )
 from fractoscope.client import FractoscopeClient, HeightMap
+from fractoscope.numbers import uncertainty_text, value_text
 
 if TYPE_CHECKING:
     from fractoscope.surface.measurement import Measurement
@@ -244,10 +245,13 @@ def _kept(result: HeightMap, level: str | tuple[float, float, float, float] | No
 
 def _print_summary(summary: dict, shape: tuple[int, ...], *, with_tilts: bool) -> None:
     """The summary of a height map of `shape` written, as text, with the estimated tilts when asked."""
+    sigma = summary["median_sigma_um"]
+    covered = summary["coverage"]
     print(
-        f"wrote {summary['output']}: {shape[1]}x{shape[0]} px, heights {summary['z_min_um']:.3f} to "
-        f"{summary['z_max_um']:.3f} µm, {100 * summary['valid_fraction']:.1f} % valid, median sigma "
-        f"{summary['median_sigma_um']:.3f} µm"
+        f"wrote {summary['output']}: {shape[1]} × {shape[0]} px (width × height), heights "
+        f"{value_text(summary['z_min_um'], sigma)} to {value_text(summary['z_max_um'], sigma)} µm, "
+        f"{100 * summary['valid_fraction']:.1f} % matched, {100 * covered['filled_fraction']:.1f} % filled, "
+        f"median sigma {uncertainty_text(sigma)} µm"
     )
     if len(summary["report"].get("tilt_deg", ())) > 2 and "all_views_fraction" in summary:
         print(f"{100 * summary['all_views_fraction']:.1f} % of the heights rest on all the views")

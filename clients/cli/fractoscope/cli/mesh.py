@@ -91,6 +91,8 @@ def command_mesh(args) -> int:
             sigma_um=heights.local_sigma_um if max_slope else None,
             unmeasured=UNMEASURED[args.unmeasured],
             min_island_px=args.min_island_px,
+            # The matching window: the heights resolve no finer relief, which the normals then shade.
+            resolution_px=(heights.record.get("report", {}).get("parameters") or {}).get("window_px") or 0.0,
         )
     write_tiles(tiles, out)
     summary = {

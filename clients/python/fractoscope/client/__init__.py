@@ -155,6 +155,7 @@ class FractoscopeClient(ChannelOwner):
         sigma_um: np.ndarray | None = None,
         unmeasured: int = 0,
         min_island_px: float | None = None,
+        resolution_px: float = 0.0,
     ) -> tuple[list[meshing_pb2.MeshTile], dict]:
         """GLB levels of detail of a height map ((rows, cols) µm, NaN unknown) textured with a grey
         image of the same shape, pixel (0, 0) placed at `origin_um` (x, y); returns the tiles (finest
@@ -164,7 +165,8 @@ class FractoscopeClient(ChannelOwner):
         lack a meshopt decoder (about five times larger). `max_slope` (the steepest slope the
         heights' measurement supports) with `sigma_um` (each height's local uncertainty, µm)
         marks the triangles across steeper jumps as walls (see BuildMeshRequest). `unmeasured`
-        (UnmeasuredAreas) and `min_island_px` (None: the server's default) as BuildMeshRequest says."""
+        (UnmeasuredAreas), `min_island_px` (None: the server's default) and `resolution_px` (the
+        heights' horizontal resolution, which the normals are shaded at) as BuildMeshRequest says."""
         request = calls.mesh_request(
             z_um,
             texture,
@@ -178,6 +180,7 @@ class FractoscopeClient(ChannelOwner):
             plain_glb=plain_glb,
             max_slope=max_slope,
             unmeasured=unmeasured,
+            resolution_px=resolution_px,
             **({} if min_island_px is None else {"min_island_px": min_island_px}),
         )
         with raised_as_client_errors():

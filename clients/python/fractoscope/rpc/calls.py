@@ -99,7 +99,8 @@ def mesh_request(
     """BuildMesh of a height map ((rows, cols) µm, NaN unknown) and a grey texture of its shape
     (None: flat grey), pixel (0, 0) at `origin_um` (x, y), with each height's local uncertainty
     `sigma_um` (optional, µm); `settings` are the request's other fields (method, level_count,
-    filter, request_id, plain_glb, max_slope, unmeasured, min_island_px)."""
+    filter, request_id, plain_glb, max_slope, unmeasured, min_island_px, margin_cells,
+    max_sigma_um)."""
     request = meshing_pb2.BuildMeshRequest(
         origin_um=common_pb2.PointUm(x_um=origin_um[0], y_um=origin_um[1]), **settings
     )
@@ -112,7 +113,7 @@ def mesh_request(
     return request
 
 
-FILTER_COUNTS = ("outliers_removed", "holes_filled", "points_smoothed", "islands_dropped")
+FILTER_COUNTS = ("outliers_removed", "holes_filled", "points_smoothed", "islands_dropped", "uncertain_dropped")
 
 
 def read_mesh(
