@@ -26,6 +26,9 @@ class Calibration:
         `tilt_source` is "tilt_calibration", the nominal tilt uncertainty otherwise; NaN if unknown.
     pixel_size_um: lateral pixel size of the SEM images, µm.
     pixel_size_source: where the pixel size came from, "metadata" or "argument".
+    acquired_at: when the reference image was taken (ISO 8601 local time, its file's metadata),
+        the date its tilts and pixel size are true of; "" where unknown.
+    instrument: (vendor, model) of the microscope as the file names it; () where unknown.
     """
 
     tilt_deg: tuple[float, ...]
@@ -33,9 +36,11 @@ class Calibration:
     tilt_sigma_deg: tuple[float, ...]
     pixel_size_um: float
     pixel_size_source: str
+    acquired_at: str = ""
+    instrument: tuple[str, ...] = ()
 
     def __post_init__(self):
-        for name in ("tilt_deg", "tilt_source", "tilt_sigma_deg"):
+        for name in ("tilt_deg", "tilt_source", "tilt_sigma_deg", "instrument"):
             object.__setattr__(self, name, tuple(getattr(self, name)))
         views = len(self.tilt_deg)
         if views < 2 or not all(math.isfinite(t) for t in self.tilt_deg):
@@ -66,6 +71,8 @@ class Calibration:
             "tilt_calibrated": self.tilt_calibrated,
             "pixel_size_um": self.pixel_size_um,
             "pixel_size_source": self.pixel_size_source,
+            "acquired_at": self.acquired_at or None,
+            "instrument": list(self.instrument) or None,
         }
 
     def to_report(self) -> dict:
@@ -101,7 +108,17 @@ class Calibration:
             calibrated if source == TILT_CALIBRATION else nominal_sigma
             for source, calibrated in zip(sources, calibrated_sigma)
         ]
-        return cls(tuple(tilts), tuple(sources), tuple(sigma), report["pixel_size_um"], report["pixel_size_source"])
+        instrument = report.get("instrument") or {}
+        named = (instrument.get("vendor", ""), instrument.get("model", "")) if instrument.get("model") else ()
+        return cls(
+            tuple(tilts),
+            tuple(sources),
+            tuple(sigma),
+            report["pixel_size_um"],
+            report["pixel_size_source"],
+            report.get("acquired_at") or "",
+            named,
+        )
 
     @classmethod
     def from_dict(cls, values: dict) -> Calibration:
@@ -112,6 +129,8 @@ class Calibration:
             tilt_sigma_deg=tuple(math.nan if s is None else s for s in values["tilt_sigma_deg"]),
             pixel_size_um=values["pixel_size_um"],
             pixel_size_source=values["pixel_size_source"],
+            acquired_at=values.get("acquired_at") or "",
+            instrument=tuple(values.get("instrument") or ()),
         )
 
 

@@ -96,7 +96,13 @@ def write_x3p(
                 digest.update(flat)
                 member.write(flat)
         main_xml = _main_xml(
-            rows, cols, pixel_size_um * M_PER_UM, (x0_um * M_PER_UM, y0_um * M_PER_UM), digest.hexdigest(), description
+            rows,
+            cols,
+            pixel_size_um * M_PER_UM,
+            (x0_um * M_PER_UM, y0_um * M_PER_UM),
+            digest.hexdigest(),
+            description,
+            calibration,
         )
         archive.writestr("main.xml", main_xml)
         archive.writestr(CHECKSUM_PATH, f"{hashlib.md5(main_xml).hexdigest()} *main.xml\n")
@@ -173,9 +179,19 @@ def _surface(archive: zipfile.ZipFile) -> X3pSurface:
     return X3pSurface(z_um, step_x_um, step_y_um, origin_um, text("Record2/Comment") or "")
 
 
-def _main_xml(rows: int, cols: int, step_m: float, origin_m: tuple[float, float], data_md5: str, comment: str) -> bytes:
+def _main_xml(
+    rows: int,
+    cols: int,
+    step_m: float,
+    origin_m: tuple[float, float],
+    data_md5: str,
+    comment: str,
+    calibration: Calibration | None,
+) -> bytes:
     """main.xml of ISO 25178-72:2017 (Revision "ISO5436 - 2000"): the root element in the openGPS
-    namespace, its children unqualified as the schema has them."""
+    namespace, its children unqualified as the schema has them. Record2 names the microscope and
+    gives as CalibrationDate when the images were taken (their tilts and pixel size are that day's),
+    where the calibration knows them; the export's own time where it does not."""
     root = ElementTree.Element("p:ISO5436_2", {"xmlns:p": NAMESPACE})
 
     def add(parent, tag, text=None):
@@ -203,14 +219,15 @@ def _main_xml(rows: int, cols: int, step_m: float, origin_m: tuple[float, float]
     add(record2, "Date", now)
     add(record2, "Creator", software())
     instrument = add(record2, "Instrument")
+    vendor, model = calibration.instrument if calibration and calibration.instrument else ("unknown", "")
     for tag, value in (
-        ("Manufacturer", "unknown"),
-        ("Model", "scanning electron microscope"),
+        ("Manufacturer", vendor),
+        ("Model", f"{model} scanning electron microscope".strip()),
         ("Serial", "unknown"),
         ("Version", "unknown"),
     ):
         add(instrument, tag, value)
-    add(record2, "CalibrationDate", now)
+    add(record2, "CalibrationDate", (calibration.acquired_at if calibration else "") or now)
     probing = add(record2, "ProbingSystem")
     add(probing, "Type", "NonContacting")
     add(probing, "Identification", f"SEM stereo photogrammetry, {software()}")

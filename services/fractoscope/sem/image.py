@@ -24,8 +24,10 @@ from PIL import Image
 from fractoscope.errors import InvalidInputError
 from fractoscope.sem.metadata import (
     InstrumentKey,
+    fei_acquired_at,
     fei_calibration,
     fei_instrument,
+    zeiss_acquired_at,
     zeiss_calibration,
     zeiss_instrument,
     zeiss_magnification,
@@ -62,6 +64,7 @@ class SemImage:
     data_bar_rows: number of bottom rows that are an instrument data bar, not image.
     notes: what the reading changed or what may bias results (JPEG, colour), each naming the file.
     instrument: the microscope, detector and scan rotation the file names (None where it names none).
+    acquired_at: when the image was taken, ISO 8601 local time, None where the file does not say.
     """
 
     pixels: np.ndarray
@@ -70,6 +73,7 @@ class SemImage:
     data_bar_rows: int
     notes: tuple[str, ...] = ()
     instrument: InstrumentKey | None = None
+    acquired_at: str | None = None
 
     @property
     def image(self) -> np.ndarray:
@@ -89,10 +93,10 @@ def read_sem_image(content: bytes, *, field: str = "image") -> SemImage:
     """Decodes a TIFF, PNG or JPEG file's bytes; `field` names the input in error messages and notes."""
     kind = _file_kind(content, field)
     if kind == "TIFF":
-        pixels, tilt_deg, pixel_size_um, bar_rows, instrument = _read_tiff(content, field)
+        pixels, tilt_deg, pixel_size_um, bar_rows, instrument, acquired_at = _read_tiff(content, field)
     else:
         pixels, tilt_deg, pixel_size_um, bar_rows = _read_with_pillow(content, field, kind), None, None, None
-        instrument = None
+        instrument = acquired_at = None
     notes = [f"{field}: {JPEG_NOTE}"] if kind == "JPEG" else []
     if pixels.ndim == 3 and pixels.shape[-1] in (3, 4):
         pixels, coloured = _luminance(pixels)
@@ -111,7 +115,7 @@ def read_sem_image(content: bytes, *, field: str = "image") -> SemImage:
         )
     if bar_rows is None:
         bar_rows = detect_data_bar_rows(pixels)
-    return SemImage(pixels, tilt_deg, pixel_size_um, bar_rows, tuple(notes), instrument)
+    return SemImage(pixels, tilt_deg, pixel_size_um, bar_rows, tuple(notes), instrument, acquired_at)
 
 
 def image_shape(content: bytes, *, field: str = "image") -> tuple[int, int]:
@@ -198,12 +202,12 @@ def _read_tiff(content: bytes, field: str):
     rows = pixels.shape[0]
     if zeiss:
         tilt_deg, pixel_size_um = zeiss_calibration(zeiss, pixels.shape[:2])
-        return pixels, tilt_deg, pixel_size_um, None, zeiss_instrument(zeiss)
+        return pixels, tilt_deg, pixel_size_um, None, zeiss_instrument(zeiss), zeiss_acquired_at(zeiss)
     if fei:
         tilt_deg, pixel_size_um, image_rows = fei_calibration(fei)
         bar_rows = rows - image_rows if image_rows and 0 < image_rows < rows else None
-        return pixels, tilt_deg, pixel_size_um, bar_rows, fei_instrument(fei)
-    return pixels, None, None, None, None
+        return pixels, tilt_deg, pixel_size_um, bar_rows, fei_instrument(fei), fei_acquired_at(fei)
+    return pixels, None, None, None, None, None
 
 
 # Bytes per value of each TIFF field type (TIFF 6.0 and BigTIFF); unknown types count as 1.

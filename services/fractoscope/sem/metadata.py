@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass
+from datetime import datetime
 
 import numpy as np
 
@@ -121,6 +122,30 @@ def fei_instrument(metadata: dict) -> InstrumentKey | None:
     )
     detector = str(detectors.get("Name") or "").strip()
     return InstrumentKey("FEI/Thermo Fisher", model, detector, round(float(np.degrees(rotation_rad)), 6))
+
+
+def zeiss_acquired_at(metadata: dict) -> str | None:
+    """When a Zeiss image was taken, ISO 8601 local time ("2016-03-08T10:39:14"), from ``Date``
+    and ``Time``; None when absent or unreadable."""
+    return _iso_time(_zeiss_text(metadata.get("ap_date")), _zeiss_text(metadata.get("ap_time")), ("%d %b %Y",))
+
+
+def fei_acquired_at(metadata: dict) -> str | None:
+    """When an FEI / Thermo Fisher image was taken, ISO 8601 local time, from ``[User] Date`` and
+    ``Time`` (month first, as the instruments write it); None when absent or unreadable."""
+    user = metadata.get("User") or {}
+    return _iso_time(str(user.get("Date") or ""), str(user.get("Time") or ""), ("%m/%d/%Y",))
+
+
+def _iso_time(date_text: str, time_text: str, date_formats: tuple[str, ...]) -> str | None:
+    for date_format in date_formats:
+        for time_format in ("%H:%M:%S", "%I:%M:%S %p", ""):
+            try:
+                stamp = datetime.strptime(f"{date_text} {time_text}".strip(), f"{date_format} {time_format}".strip())
+            except ValueError:
+                continue
+            return stamp.isoformat(timespec="seconds")
+    return None
 
 
 def _zeiss_text(entry) -> str:

@@ -151,7 +151,7 @@ def compute_series_height_map(
         calibration=calibration,
         tilt_uncertainty=tilt_uncertainty,
     )
-    report.update(sources, **sign_report, parameters=_parameters_used(options), instrument=_instrument(images))
+    report.update(sources, **sign_report, **_file_facts(images), parameters=_parameters_used(options))
     report.update(method=MatchingMethod(options.method).value, elapsed_s=time.perf_counter() - started)
     report_progress(1.0, "done")
     return HeightMapResult(z_um, sigma_um, confidence, views_used, report)
@@ -476,17 +476,14 @@ def _through_disparity(view: np.ndarray, disparity_px: np.ndarray) -> np.ndarray
     return np.where(known, sampled, np.nan).astype(np.float32)
 
 
-def _instrument(images) -> dict:
-    """The report's instrument: what the first image's file says (empty where it says nothing)."""
-    key = images[0].instrument
+def _file_facts(images) -> dict:
+    """The report's instrument and acquisition time: what the first image's file says (empty
+    where it says nothing)."""
+    key, acquired_at = images[0].instrument, images[0].acquired_at or ""
     if key is None:
-        return {}
-    return {
-        "vendor": key.vendor,
-        "model": key.model,
-        "detector": key.detector,
-        "scan_rotation_deg": key.scan_rotation_deg,
-    }
+        return {"acquired_at": acquired_at}
+    instrument = {"vendor": key.vendor, "model": key.model, "detector": key.detector}
+    return {"instrument": instrument | {"scan_rotation_deg": key.scan_rotation_deg}, "acquired_at": acquired_at}
 
 
 def _check_calibrated(estimate: tilt_series.TiltEstimate, nominal) -> None:

@@ -20,10 +20,13 @@ def fei_tiff(
     model: str = "Quanta 250 FEG",
     detector: str = "ETD",
     scan_rotation_deg: float = 0.0,
+    acquired: tuple[str, str] = ("03/08/2016", "10:39:14 AM"),
 ) -> bytes:
     """The bytes of a TIFF of `image` (rows, cols, uint8 or uint16) whose FEI metadata records
-    the stage tilt, pixel size, instrument model, detector and scan rotation given."""
+    the stage tilt, pixel size, instrument model, detector, scan rotation and the (date, time) of
+    acquisition given, as the instruments write them (month first)."""
     ini = (
+        f"[User]\nDate={acquired[0]}\nTime={acquired[1]}\n"
         f"[System]\nType=SEM\nSystemType={model}\n"
         f"[Beam]\nScanRotation={np.radians(scan_rotation_deg):.9g}\n"
         f"[Stage]\nStageT={np.radians(tilt_deg):.9g}\n"

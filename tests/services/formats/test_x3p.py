@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import math
@@ -113,6 +114,23 @@ def test_uncalibrated_export_says_so(tmp_path):
 
     write_x3p(path, sine_surface(), pixel_size_um=PIXEL_SIZE_UM)
     assert json.loads(read_x3p(path).comment)["calibration"] is None
+
+
+def test_record2_names_the_microscope_and_dates_the_calibration_by_the_images(tmp_path):
+    """Issue 48: CalibrationDate was the export's own time. The images' acquisition is the day their
+    tilts and pixel size are true of; the microscope is the one their metadata names."""
+    import zipfile
+    from xml.etree import ElementTree
+
+    dated = dataclasses.replace(CALIBRATION, acquired_at="2016-03-08T10:39:14", instrument=("Zeiss", "Auriga 60"))
+    path = tmp_path / "dated.x3p"
+    write_x3p(path, sine_surface(), pixel_size_um=PIXEL_SIZE_UM, calibration=dated)
+    record2 = ElementTree.fromstring(zipfile.ZipFile(path).read("main.xml")).find("Record2")
+    assert record2.findtext("CalibrationDate") == "2016-03-08T10:39:14"
+    assert record2.findtext("Instrument/Manufacturer") == "Zeiss"
+    assert record2.findtext("Instrument/Model") == "Auriga 60 scanning electron microscope"
+    assert Surface.load(path).data.shape == (96, 4 * PERIOD_PX)  # still an X3P surfalize reads
+    assert Calibration.from_dict(json.loads(read_x3p(path).comment)["calibration"]) == dated
 
 
 def test_origin_is_the_offset_of_the_x_and_y_axes(tmp_path):

@@ -24,6 +24,7 @@ def test_the_files_name_their_instrument_detector_and_scan_rotation(pollen_serie
     assert fei.instrument == InstrumentKey("FEI/Thermo Fisher", "Quanta 250 FEG", "ETD", 30.0)
     zeiss = read_sem_image((pollen_series / "pot_02.tif").read_bytes())
     assert zeiss.instrument == InstrumentKey("Zeiss", "Auriga 60", "SE2", 0.0)  # 'Scan Rot' off
+    assert zeiss.acquired_at == "2016-03-08T10:39:14" and fei.acquired_at == "2016-03-08T10:39:14"
 
 
 @pytest.mark.parametrize(
