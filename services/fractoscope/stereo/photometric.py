@@ -66,7 +66,7 @@ _SLOPE_SIGMA_PX = 1.4
 # (the stereo alone: 2.95 / 3.03 / 0.94 / 6.07 / 5.94 %). A second pass linearized about the
 # fused slopes measured worse (dimples 1.78 / 1.89 % against 1.67 / 1.69 % in one pass, before
 # the fit was averaged).
-# With the magnification measured densely (`alignment.residual_magnification`) the overview
+# With the magnification measured densely (`alignment.residual_misplacement`) the overview
 # measures 3.60 / 3.42 % at weight 3, 3.43 / 3.23 % at weight 1 (dimples then 1.73 / 1.76 %) and
 # 3.85 / 3.72 % at 6. Matching again, the left image shaded as the fitted model predicts the right
 # view sees it, and fusing anew measured worse (overview 512²: stereo 5.55 % against 5.37 %,
