@@ -25,7 +25,7 @@ from fractoscope.synthetic.surfaces import (
     reference_surface,
     self_affine_surface,
 )
-from fractoscope.synthetic.textures import shifted_texture_pair
+from fractoscope.synthetic.textures import displaced_pair, sem_texture, shifted_texture_pair, speckle_texture
 
 __all__ = [
     "DEFAULT_PHYSICS",
@@ -40,6 +40,7 @@ __all__ = [
     "StereoPair",
     "cleavage_surface",
     "dimple_surface",
+    "displaced_pair",
     "height_errors",
     "hidden_in_second_view",
     "reference_surface",
@@ -49,5 +50,7 @@ __all__ = [
     "render_stereo_pair",
     "render_tilt_series",
     "self_affine_surface",
+    "sem_texture",
     "shifted_texture_pair",
+    "speckle_texture",
 ]
