@@ -104,6 +104,7 @@ test: install $(CHROMIUM) $(PDFTOPPM) $(KUBECONFORM) $(KUSTOMIZE) $(KUBE_SCHEMAS
 ## bench: speed, memory and accuracy figures, written to bench-results/
 bench: install $(WRK) $(GHZ)
 	$(BIN)/python -m benchmarks.matching --out bench-results
+	$(BIN)/python -m benchmarks.profile --out bench-results
 	$(BIN)/python -m benchmarks.star --out bench-results
 	$(BIN)/python -m benchmarks.accuracy --out bench-results
 	$(BIN)/python -m benchmarks.renderers --out bench-results
