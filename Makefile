@@ -108,6 +108,8 @@ test: install $(CHROMIUM) $(PDFTOPPM) $(CURL) $(KUBECONFORM) $(KUSTOMIZE) $(KUBE
 ## bench: speed, memory and accuracy figures, written to bench-results/
 bench: install $(WRK) $(GHZ)
 	$(BIN)/python -m benchmarks.matching --out bench-results
+	$(BIN)/python -m benchmarks.profile --out bench-results
+	$(BIN)/python -m benchmarks.star --out bench-results
 	$(BIN)/python -m benchmarks.accuracy --out bench-results
 	$(BIN)/python -m benchmarks.renderers --out bench-results
 	$(BIN)/python -m benchmarks.sigma_calibration --out bench-results

@@ -189,9 +189,7 @@ def _main_xml(
     calibration: Calibration | None,
 ) -> bytes:
     """main.xml of ISO 25178-72:2017 (Revision "ISO5436 - 2000"): the root element in the openGPS
-    namespace, its children unqualified as the schema has them. Record2 names the microscope and
-    gives as CalibrationDate when the images were taken (their tilts and pixel size are that day's),
-    where the calibration knows them; the export's own time where it does not."""
+    namespace, its children unqualified as the schema has them (Record2: `_record2`)."""
     root = ElementTree.Element("p:ISO5436_2", {"xmlns:p": NAMESPACE})
 
     def add(parent, tag, text=None):
@@ -214,24 +212,7 @@ def _main_xml(
     add(cz, "AxisType", "A")
     add(cz, "DataType", "D")
 
-    now = datetime.now(UTC).isoformat(timespec="seconds")
-    record2 = add(root, "Record2")
-    add(record2, "Date", now)
-    add(record2, "Creator", software())
-    instrument = add(record2, "Instrument")
-    vendor, model = calibration.instrument if calibration and calibration.instrument else ("unknown", "")
-    for tag, value in (
-        ("Manufacturer", vendor),
-        ("Model", f"{model} scanning electron microscope".strip()),
-        ("Serial", "unknown"),
-        ("Version", "unknown"),
-    ):
-        add(instrument, tag, value)
-    add(record2, "CalibrationDate", (calibration.acquired_at if calibration else "") or now)
-    probing = add(record2, "ProbingSystem")
-    add(probing, "Type", "NonContacting")
-    add(probing, "Identification", f"SEM stereo photogrammetry, {software()}")
-    add(record2, "Comment", comment)
+    _record2(add(root, "Record2"), add, comment, calibration)
 
     record3 = add(root, "Record3")
     dimension = add(record3, "MatrixDimension")
@@ -248,6 +229,29 @@ def _main_xml(
         + ElementTree.tostring(root, encoding="utf-8", xml_declaration=False)
         + b"\n"
     )
+
+
+def _record2(record2, add, comment: str, calibration: Calibration | None) -> None:
+    """Record2's children: the microscope the calibration names, and as CalibrationDate when the
+    images were taken (their tilts and pixel size are that day's); the export's own time where the
+    calibration knows neither."""
+    now = datetime.now(UTC).isoformat(timespec="seconds")
+    add(record2, "Date", now)
+    add(record2, "Creator", software())
+    instrument = add(record2, "Instrument")
+    vendor, model = calibration.instrument if calibration and calibration.instrument else ("unknown", "")
+    for tag, value in (
+        ("Manufacturer", vendor),
+        ("Model", f"{model} scanning electron microscope".strip()),
+        ("Serial", "unknown"),
+        ("Version", "unknown"),
+    ):
+        add(instrument, tag, value)
+    add(record2, "CalibrationDate", (calibration.acquired_at if calibration else "") or now)
+    probing = add(record2, "ProbingSystem")
+    add(probing, "Type", "NonContacting")
+    add(probing, "Identification", f"SEM stereo photogrammetry, {software()}")
+    add(record2, "Comment", comment)
 
 
 def _element_text(root: ElementTree.Element):

@@ -2,12 +2,23 @@
 
 Coordinates are pixels, x along columns and y along rows. After `rotation_to_vertical_axis` the tilt
 axis is vertical and parallax runs along x. `estimate_alignment` then measures how the second
-image sits against the first from matched SIFT features: rows must agree (up to a rotation and an
-across shift), while x differences are parallax plus a global shift.
+image sits against the first from matched SIFT features: rows must agree (up to a rotation, a
+magnification and an across shift), while x differences are parallax plus a global shift.
+
+What rows tell of the second image's linear misplacement is two numbers: how the row shift grows
+along x (a rotation θ, or a shear of the rows: they differ only in the columns) and along y (a
+magnification ε). The columns' own linear part is the surface's mean slope plus any shear of the
+columns, which no pair can tell apart: it is left in the heights, as the surface's. A rotation is
+taken to move columns by −θ·y and a magnification by ε·x, so either, misjudged, tilts the heights
+(a 4000 × 501 frame once got 0.037° that was not there: 2.6 px of ramp). Each is therefore
+measured with its one-sigma uncertainty and applied only where it stands out of it by
+`SIGNIFICANT_SIGMAS` (`significant`): first from features (`estimate_alignment`), then what is
+left densely over the matched pixels (`residual_misplacement`), whose sigma is far smaller.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import cv2
@@ -21,8 +32,10 @@ class Alignment:
     A point at (x, y) of the first image (relative to the image centre) lies at
     ``scale * rotate(rotation_deg) @ (x, y) + (shift_parallel_px + parallax, shift_across_px)``
     in the second one. The scale is a magnification difference, measured across the parallax
-    (along the tilt axis, where tilting changes nothing); `scale_sigma` is its one-sigma
-    uncertainty from the feature fit.
+    (along the tilt axis, where tilting changes nothing). `rotation_deg` and `scale` are what is
+    removed: 0 and 1 where the measurement did not stand out of its sigma (`significant`);
+    `rotation_sigma_deg` and `scale_sigma` are the one-sigma uncertainties of what is removed
+    (NaN where nothing tells it), the value left in counted as error where it was not removed.
     """
 
     shift_parallel_px: float
@@ -34,6 +47,7 @@ class Alignment:
     scale: float = 1.0
     parallax_direction_deg: float = float("nan")
     scale_sigma: float = float("nan")
+    rotation_sigma_deg: float = float("nan")
 
 
 _NO_ALIGNMENT = Alignment(0.0, 0.0, 0.0, float("nan"), float("nan"), 0)
@@ -67,15 +81,27 @@ def apply_affine(image: np.ndarray, matrix: np.ndarray, shape: tuple[int, int], 
 _MIN_ROW_SPREAD_PX = 32.0
 # Features the parallax's spread needs (else it is NaN, unknown).
 _MIN_SPREAD_FEATURES = 50
+# Features are located no better than this, px: the scatter of identical images' features (0)
+# tells nothing finer.
+_LOCATION_FLOOR_PX = 0.05
+# A component of the misplacement is removed only where it is this many of its sigmas from none:
+# by chance a pure translation then gets one in about 400 pairs (and the dense fit takes it out).
+SIGNIFICANT_SIGMAS = 3.0
+# Features are found on a copy of about this many pixels, whatever the frame's shape: a copy at
+# most 512 px wide left a 4000 × 501 frame 64 px across, whose features could not tell a
+# rotation (0.037° ± 0.02° that was not there); at 512² px the 4000 × 501 frame keeps 181 px.
+FEATURE_PIXELS = 512 * 512
+_MAX_FEATURES = 1000
 
 
 def estimate_alignment(
-    first: np.ndarray, second: np.ndarray, *, max_features: int = 1000, max_side_px: int = 512
+    first: np.ndarray, second: np.ndarray, *, max_features: int = _MAX_FEATURES, feature_pixels: int = FEATURE_PIXELS
 ) -> Alignment:
     """Global placement of `second` against `first` (both (rows, cols), parallax along x), from
-    SIFT features found on copies at most `max_side_px` wide; returns zeros when fewer than 12
-    features match."""
-    points = _matched_feature_points(first, second, max_features=max_features, max_side_px=max_side_px)
+    SIFT features found on copies of at most `feature_pixels` pixels; returns zeros when fewer
+    than 12 features match. The rotation and the magnification are removed where they stand out
+    of their sigmas (`significant`)."""
+    points = _matched_feature_points(first, second, max_features=max_features, feature_pixels=feature_pixels)
     if points is None:
         return _NO_ALIGNMENT
     points1, points2 = points
@@ -90,8 +116,10 @@ def estimate_alignment(
     if row_fit is None:
         return _NO_ALIGNMENT
     (sin_rotation, scale_change, shift_across), residual, inliers = row_fit
+    sigma = _row_fit_sigma(design, residual, inliers)
+    scale_change, scale_sigma = significant(scale_change, sigma[1] if fit_scale else float("nan"))
     magnification = 1.0 + scale_change
-    rotation = np.arcsin(np.clip(sin_rotation / magnification, -1.0, 1.0))
+    rotation, rotation_sigma = significant(np.arcsin(np.clip(sin_rotation / magnification, -1.0, 1.0)), sigma[0])
     rotated_x = magnification * (np.cos(rotation) * points1[:, 0] - np.sin(rotation) * points1[:, 1])
     shift_parallel_px, spread_px = _parallax_median_and_spread_px((points2[:, 0] - rotated_x)[inliers])
     return Alignment(
@@ -103,19 +131,31 @@ def estimate_alignment(
         parallax_spread_px=spread_px,
         matched_features=int(inliers.sum()),
         scale=float(magnification),
-        scale_sigma=_scale_sigma(design, residual, inliers, fit_scale=fit_scale),
+        scale_sigma=scale_sigma,
+        rotation_sigma_deg=float(np.degrees(rotation_sigma)),
     )
 
 
+def significant(value: float, sigma: float) -> tuple[float, float]:
+    """A measured component of the misplacement as removed, with the one-sigma uncertainty of what
+    is removed: itself where it is more than SIGNIFICANT_SIGMAS of its `sigma` from none, else none
+    (0.0), the value left in then counted as error (hypot(value, sigma)). NaN sigma: unknown,
+    nothing removed."""
+    if not abs(value) > SIGNIFICANT_SIGMAS * sigma:  # also where sigma is NaN
+        return 0.0, float(np.hypot(value, sigma))
+    return float(value), float(sigma)
+
+
 def _matched_feature_points(
-    first: np.ndarray, second: np.ndarray, *, max_features: int, max_side_px: int
+    first: np.ndarray, second: np.ndarray, *, max_features: int, feature_pixels: int
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """Where the SIFT features that match lie in `first` and in `second` ((K, 2) each: col, row,
-    full-resolution px from the first image's centre), found on copies at most `max_side_px`
-    wide; None when either image has fewer than 12 features or fewer than 12 match."""
-    scale = min(1.0, max_side_px / max(first.shape))
+    full-resolution px from the first image's centre), found on copies of at most
+    `feature_pixels` pixels; None when either image has fewer than 12 features or fewer than 12
+    match."""
+    scale = min(1.0, float(np.sqrt(feature_pixels / first.size)))
     first8, second8 = (
-        _to_uint8(cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA))
+        _to_uint8(cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA) if scale < 1 else image)
         for image in (first, second)
     )
     sift = cv2.SIFT_create(nfeatures=max_features)
@@ -150,15 +190,17 @@ def _trimmed_row_fit(design: np.ndarray, across_px: np.ndarray) -> tuple[np.ndar
     return coef, residual, inliers
 
 
-def _scale_sigma(design: np.ndarray, residual_px: np.ndarray, inliers: np.ndarray, *, fit_scale: bool) -> float:
-    """One-sigma uncertainty of the row fit's scale coefficient (`design` column 1) from its
-    residuals over the inliers; NaN when the scale was not fitted."""
-    if not fit_scale:
-        return float("nan")
-    dof = max(int(inliers.sum()) - 3, 1)  # rotation, scale and shift fitted
+def _row_fit_sigma(design: np.ndarray, residual_px: np.ndarray, inliers: np.ndarray) -> np.ndarray:
+    """One-sigma uncertainties (3,) of the row fit's coefficients from its residuals over the
+    inliers (features err independently: measured, their z-scores on pure translations scatter as
+    a unit normal's), at least `_LOCATION_FLOOR_PX` each; NaN for a column of zeros (a coefficient
+    not fitted)."""
+    dof = max(int(inliers.sum()) - 3, 1)
     normal = design[inliers].T @ design[inliers]
-    covariance = np.linalg.pinv(normal) * float(residual_px[inliers] @ residual_px[inliers]) / dof
-    return float(np.sqrt(covariance[1, 1]))
+    variance = max(float(residual_px[inliers] @ residual_px[inliers]) / dof, _LOCATION_FLOOR_PX**2)
+    covariance = np.linalg.pinv(normal) * variance
+    fitted = np.any(design[inliers] != 0.0, axis=0)
+    return np.where(fitted, np.sqrt(np.diag(covariance)), np.nan)
 
 
 def _parallax_median_and_spread_px(parallax_px: np.ndarray) -> tuple[float, float]:
@@ -208,7 +250,7 @@ def _parallax_direction_deg(points1: np.ndarray, points2: np.ndarray) -> float:
     design = along[0] * design_x + along[1] * design_y
     target = displacement @ along
     coef, *_ = np.linalg.lstsq(design, target, rcond=None)
-    if np.median(np.abs(target - design @ coef)) < 3.0 * spreads[best]:
+    if np.median(np.abs(target - design @ coef)) < 3.0 * max(spreads[best], _LOCATION_FLOOR_PX):
         return float("nan")  # no parallax to speak of (a flat surface): no direction either
     return float(np.degrees(angles[best] + rotations[best]))
 
@@ -235,21 +277,34 @@ def _to_uint8(image: np.ndarray) -> np.ndarray:
 INDEPENDENT_BLOCK_PX = 64
 
 
-def residual_magnification(
+@dataclass(frozen=True)
+class Misplacement:
+    """What alignment left of the second image's linear misplacement, measured densely
+    (`residual_misplacement`): a magnification error `epsilon` (the second image 1 + ε times
+    larger about the centre) and a rotation `rotation_rad` (its rows shifted by θ·x), each with
+    its one-sigma uncertainty."""
+
+    epsilon: float
+    epsilon_sigma: float
+    rotation_rad: float
+    rotation_sigma_rad: float
+
+
+def residual_misplacement(
     first: np.ndarray, second_on_first: np.ndarray, disparity_px: np.ndarray, *, block_px: int = INDEPENDENT_BLOCK_PX
-) -> tuple[float, float] | None:
-    """Magnification error ε left after alignment (the second image is (1 + ε) times larger about
-    the centre), from the second image resampled onto the first and moved back by the matched
-    disparity, so only misplacement remains: rows then shift by ε·y + θ·x + c (θ a rotation left),
-    fitted densely by Gauss-Newton (Lucas-Kanade) over every matched pixel, with a gain and an
-    offset between the images, trimmed at three robust sigmas. SIFT on a reduced copy leaves
-    ~1e-4 of it, which tilt calibration cannot tolerate, and a 288² overview's heights (2 px of
-    parallax) took a tilt of 2.4 % of their range from an ε of 6e-4 that strip-wise phase
-    correlation left (it read 1.5e-3 for 1e-3). Returns ε and its one-sigma
-    uncertainty (cluster-robust, `block_px` square blocks taken as independent: with 16 px
-    blocks the real pollen series' ±3° and ±6° tilt steps disagreed by three of their sigmas,
-    its residuals being correlated beyond a matching window), or None when it
-    cannot be measured (under half of the pixels matched, or the image under four blocks a side).
+) -> Misplacement | None:
+    """Magnification error ε and rotation θ left after alignment, from the second image resampled
+    onto the first and moved back by the matched disparity, so only misplacement remains: rows
+    then shift by ε·y + θ·x + c, fitted densely by Gauss-Newton (Lucas-Kanade) over every matched
+    pixel, with a gain and an offset between the images, trimmed at three robust sigmas. SIFT on
+    a reduced copy leaves ~1e-4 of ε, which tilt calibration cannot tolerate, and a 288² overview's
+    heights (2 px of parallax) took a tilt of 2.4 % of their range from an ε of 6e-4 that
+    strip-wise phase correlation left (it read 1.5e-3 for 1e-3); features on a 4000 × 501 frame
+    tell θ to ±0.005°, 0.3 px over its 4000 rows. The sigmas are cluster-robust, `block_px`
+    square blocks taken as independent: with 16 px blocks the real pollen series' ±3° and ±6°
+    tilt steps disagreed by three of their sigmas, its residuals being correlated beyond a
+    matching window. None when it cannot be measured (under half of the pixels matched, or the
+    image under four blocks a side).
 
     B. D. Lucas, T. Kanade, "An iterative image registration technique with an application to
     stereo vision", Proc. IJCAI (1981) 674-679."""
@@ -281,10 +336,44 @@ def residual_magnification(
             weights = used & (np.abs(residual) < 3.0 * scale)
         shift -= coefficients[2:]
     sigma = _cluster_sigma(design, residual, weights, block_px)
-    return float(shift[0]), float(sigma[2])
+    return Misplacement(float(shift[0]), float(sigma[2]), float(shift[1]), float(sigma[3]))
 
 
-# Gauss-Newton steps of `residual_magnification`: the shifts are a small fraction of a pixel, so
+def with_misplacement(
+    placement: Alignment, misplacement: Misplacement | None, shape: tuple[int, int]
+) -> tuple[Alignment, np.ndarray]:
+    """The placement decided with the dense fit: the scale and rotation that the features' (as
+    applied in resampling the second image) and `misplacement` (what the dense fit found left on
+    it) add up to, each removed only where it stands out of the dense fit's sigma (`significant`:
+    the features' own decision only served the matcher's rows), with the parallax the change
+    puts into the matched disparities, (rows, cols) float32 px, ε·x − θ·y about the centre (a
+    rotation moves columns by −θ·y, a magnification by ε·x). With no misplacement measured,
+    `placement` as it is and no parallax."""
+    rows, cols = shape
+    if misplacement is None:
+        return placement, np.zeros(shape, np.float32)
+    scale_change, scale_sigma = significant(
+        placement.scale * (1.0 + misplacement.epsilon) - 1.0, misplacement.epsilon_sigma
+    )
+    rotation, rotation_sigma = significant(
+        np.radians(placement.rotation_deg) + misplacement.rotation_rad, misplacement.rotation_sigma_rad
+    )
+    epsilon = (1.0 + scale_change) / placement.scale - 1.0
+    theta = rotation - np.radians(placement.rotation_deg)
+    x_px = np.arange(cols, dtype=np.float32) - np.float32((cols - 1) / 2)
+    y_px = np.arange(rows, dtype=np.float32)[:, None] - np.float32((rows - 1) / 2)
+    parallax_px = np.float32(epsilon) * x_px[None, :] - np.float32(theta) * y_px
+    placed = dataclasses.replace(
+        placement,
+        scale=1.0 + scale_change,
+        scale_sigma=scale_sigma,
+        rotation_deg=float(np.degrees(rotation)),
+        rotation_sigma_deg=float(np.degrees(rotation_sigma)),
+    )
+    return placed, parallax_px
+
+
+# Gauss-Newton steps of `residual_misplacement`: the shifts are a small fraction of a pixel, so
 # the second step changes ε by ~1e-6 and the third by nothing measurable.
 _MISPLACEMENT_ITERATIONS = 3
 

@@ -347,14 +347,12 @@ def _match_view(reference: np.ndarray, view: np.ndarray, options: MatchingOption
             reference, on_first, matched.disparity_px, matched.sigma_px, noise_grey=noise_grey
         )
         matched = dataclasses.replace(matched, disparity_px=fusion.disparity_px, sigma_px=fusion.sigma_px)
-    # A magnification error ε the alignment left makes disparities err by ε·x: measured on the
-    # matched images, it is taken out here rather than by matching again.
-    columns_px = np.arange(reference.shape[1], dtype=np.float64) - (reference.shape[1] - 1) / 2.0
-    measured = alignment.residual_magnification(reference, on_first, matched.disparity_px)
-    epsilon, epsilon_sigma = measured if measured else (0.0, placement.scale_sigma)
-    disparity = matched.disparity_px + placement.shift_parallel_px - (epsilon * columns_px).astype(np.float32)
-    placement = dataclasses.replace(placement, scale=placement.scale * (1.0 + epsilon))
-    return disparity, matched, placement, epsilon_sigma, strip_count, fusion, on_first
+    # A magnification error ε and a rotation θ the alignment left make disparities err by ε·x − θ·y:
+    # measured on the matched images, they are taken out here rather than by matching again.
+    measured = alignment.residual_misplacement(reference, on_first, matched.disparity_px)
+    placement, parallax_px = alignment.with_misplacement(placement, measured, reference.shape)
+    disparity = matched.disparity_px + placement.shift_parallel_px - parallax_px
+    return disparity, matched, placement, placement.scale_sigma, strip_count, fusion, on_first
 
 
 # Views of which less than the first share is matched with the first view are refused (what
@@ -570,7 +568,9 @@ def _report(
         "shift_parallel_px": first_placement.shift_parallel_px,
         "shift_across_px": first_placement.shift_across_px,
         "rotation_deg": first_placement.rotation_deg,
+        "rotation_sigma_deg": first_placement.rotation_sigma_deg,
         "magnification_ratio": first_placement.scale,
+        "magnification_sigma": first_placement.scale_sigma,
         "residual_vertical_parallax_px": max(p.residual_vertical_parallax_px for p in matched.placements),
         "valid_fraction": float(np.isfinite(z_um).mean()),
         "min_disparity_px": float(np.nanmin(first_disparity)) if measured else float("nan"),

@@ -29,9 +29,15 @@ import numpy as np
 from fractoscope.stereo import correlation, semi_global, tgv_refinement, visibility, window_zncc
 from fractoscope.stereo.disparity import DisparityResult, StripTask
 
-# The refined disparities err less than the window's: their sigma is the window matcher's
-# calibrated peak sigma times this.
-_REFINED_SIGMA_SCALE = 0.8
+# The refined disparities' sigma, per pixel: sqrt((0.6 σ_window)² + (4 D)²), σ_window the window
+# matcher's calibrated peak sigma and D the strip's robust RMS half-disagreement of the two
+# refined directions (`calibrated_sigma_px`). The directions share most of their error (the views'
+# different shading misleads both alike): the true errors are 3-8 times D, and D grows where the
+# shading differs more. Both constants were fitted on the default renderer only (docs/matching-notes.md).
+_WINDOW_SIGMA_SCALE = 0.6
+_DISAGREEMENT_SCALE = 4.0
+# The median of a squared unit normal: turns a median of squares into a variance.
+_MEDIAN_OF_CHI2_1 = 0.455
 # How closely the two refined directions must meet to keep a pixel the window does not trust, px.
 AGREEING_PX = 0.75
 # A small window that locates its match within this many px supports it (`visibility`).
@@ -61,8 +67,22 @@ def match_strip(task: StripTask) -> DisparityResult:
     valid = (window_valid | agreeing) & (difference <= task.max_lr_difference_px)
     valid &= ~visibility.unsupported_beside_occlusions(disparity, valid, _peaked(directions, disparity))
     window = directions.forward
-    sigma_px = _REFINED_SIGMA_SCALE * correlation.peak_sigma_px(window.score, window.curvature, task.window_px)
+    window_sigma_px = correlation.peak_sigma_px(window.score, window.curvature, task.window_px)
+    sigma_px = calibrated_sigma_px(window_sigma_px, forward + backward_at_match, valid)
     return window_zncc.kept_result(task, valid, disparity, window.score, sigma_px)
+
+
+def calibrated_sigma_px(window_sigma_px: np.ndarray, disagreement_px: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """The refined disparities' one-sigma uncertainty, (rows, cols) float32 px: the window
+    matcher's peak sigma (`window_sigma_px`) in quadrature with the disagreement of the two
+    refined directions (`disagreement_px`, forward plus backward at the match: their mean's error
+    is half of it where they err independently) as this strip shows it over its `valid` pixels,
+    robustly (a median), each scaled as measured (`_WINDOW_SIGMA_SCALE`, `_DISAGREEMENT_SCALE`)."""
+    half_squared = 0.25 * np.square(disagreement_px[valid], dtype=np.float64)
+    spread_px = float(np.sqrt(np.median(half_squared) / _MEDIAN_OF_CHI2_1)) if half_squared.size else 0.0
+    return np.sqrt(
+        np.square(np.float32(_WINDOW_SIGMA_SCALE) * window_sigma_px) + np.float32(_DISAGREEMENT_SCALE * spread_px) ** 2
+    ).astype(np.float32)
 
 
 def _peaked(directions: window_zncc.Directions, disparity_px: np.ndarray) -> np.ndarray:

@@ -1,7 +1,8 @@
 """Synthetic fracture surfaces and the SEM images they give: the known truth for tests, benchmarks
 and the demo. `surfaces` makes height fields, `rendering` the SEM views of them, `metrics` scores
 a measured height map against the truth, `examples` writes the demo specimen as a user gives it;
-`physics` says how a surface makes an image (the default renderer and its variants)."""
+`physics` says how a surface makes an image (the default renderer and its variants); `textures`
+gives flat textured specimens seen displaced by a known amount."""
 
 from fractoscope.synthetic.metrics import HeightErrors, height_errors, hidden_in_second_view
 from fractoscope.synthetic.physics import DEFAULT_PHYSICS, PHYSICS_VARIANTS, SemPhysics
@@ -24,6 +25,7 @@ from fractoscope.synthetic.surfaces import (
     reference_surface,
     self_affine_surface,
 )
+from fractoscope.synthetic.textures import displaced_pair, sem_texture, shifted_texture_pair, speckle_texture
 
 __all__ = [
     "DEFAULT_PHYSICS",
@@ -38,6 +40,7 @@ __all__ = [
     "StereoPair",
     "cleavage_surface",
     "dimple_surface",
+    "displaced_pair",
     "height_errors",
     "hidden_in_second_view",
     "reference_surface",
@@ -47,4 +50,7 @@ __all__ = [
     "render_stereo_pair",
     "render_tilt_series",
     "self_affine_surface",
+    "sem_texture",
+    "shifted_texture_pair",
+    "speckle_texture",
 ]

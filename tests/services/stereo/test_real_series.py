@@ -94,7 +94,7 @@ def test_calibrated_tilt_series_agree_on_tilt_steps_and_heights(calibrated):
     # Both series see one stage: the estimated tilt per nominal degree agrees within the
     # uncertainties: the fit's own, its points correlated within 64 px blocks, and the
     # magnification difference the alignment leaves. The default method matches enough of the
-    # substrate to measure that densely on the matched images (`alignment.residual_magnification`):
+    # substrate to measure that densely on the matched images (`alignment.residual_misplacement`):
     # measured 0.944 and 0.942 per degree at ±3° (sigmas 2.0 % and 4.5 %), 0.956 and 0.957 at ±6°
     # (0.7 % and 1.5 %), 0.6 sigmas apart; the strip-wise estimate it replaced gave 0.951 and 0.948
     # at sigmas up to 8 % and 3.3 %. Window correlation falls back on the feature fit.

@@ -8,7 +8,7 @@ import sys
 import numpy as np
 import pytest
 
-from fractoscope.stereo import correlation, matching, tgv_refinement, window_zncc
+from fractoscope.stereo import correlation, matching, tgv_refinement, tgv_zncc, window_zncc
 from fractoscope.stereo.disparity import MatchingMethod, StripTask
 from fractoscope.synthetic import self_affine_surface
 
@@ -127,3 +127,19 @@ def test_the_data_term_trusts_cleaner_images_more():
         _, precision = tgv_refinement.data_term(left, stats, right, shift, tgv_refinement.DATA_WINDOW_PX)
         precisions.append(float(np.median(precision[INNER])))
     assert precisions[0] > 4.0 * precisions[1]
+
+
+def test_the_sigma_grows_with_the_directions_disagreement():
+    """Known answers of `tgv_zncc.calibrated_sigma_px`: the window's sigma scaled where the two
+    refined directions agree, and the strip's robust disagreement added in quadrature."""
+
+    window_sigma = np.full((8, 8), 0.5, np.float32)
+    valid = np.ones((8, 8), bool)
+    agreeing = tgv_zncc.calibrated_sigma_px(window_sigma, np.zeros((8, 8), np.float32), valid)
+    assert np.allclose(agreeing, 0.6 * 0.5)
+    # Half of a 0.2 px disagreement everywhere, as a normal's RMS from its median: 0.1 / sqrt(0.455).
+    disagreeing = tgv_zncc.calibrated_sigma_px(window_sigma, np.full((8, 8), 0.2, np.float32), valid)
+    assert np.allclose(disagreeing, np.hypot(0.3, 4.0 * 0.1 / np.sqrt(0.455)), rtol=1e-5)
+    # Pixels not kept do not count.
+    wild = np.where(np.arange(8)[None, :] < 2, np.float32(50.0), np.float32(0.0)) * np.ones((8, 1), np.float32)
+    assert np.allclose(tgv_zncc.calibrated_sigma_px(window_sigma, wild, wild == 0), 0.3)

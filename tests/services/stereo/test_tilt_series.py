@@ -214,7 +214,7 @@ def test_unknown_magnification_uncertainty_keeps_sigma_and_warns(monkeypatch):
         "estimate_alignment",
         lambda *a, **k: dataclasses.replace(featureless(*a, **k), scale_sigma=float("nan")),
     )
-    monkeypatch.setattr(alignment, "residual_magnification", lambda *a, **k: None)
+    monkeypatch.setattr(alignment, "residual_misplacement", lambda *a, **k: None)
     result = compute_series_height_map(views, tilt_deg=true, options=MatchingOptions(calibrate_tilt=True))
 
     assert np.isnan(result.report["tilt_sigma_deg"][1:]).all()
