@@ -245,6 +245,7 @@ def _place(
             z_um = registration.apply_height_alignment(z_um, alignment, pixel_size_um=heights.pixel_size_um)
             texture = registration.match_texture(parent, unaligned)
             entry.alignment_residual_um = alignment.residual_um
+            entry.matching["warnings"] = [*entry.matching.get("warnings", ()), *_sign_warnings(roi, alignment)]
         placed[roi.id] = PlacedRoi(
             roi.id,
             roi.magnification,
@@ -258,6 +259,22 @@ def _place(
         )
         entries.append(entry)
     return placed, entries
+
+
+# Heights of one area that correlate below this on the overlap run against each other: one of the
+# two ROIs has its relief upside down (its tilts typed reversed, its images swapped).
+_OPPOSED_CORRELATION = -0.5
+
+
+def _sign_warnings(roi: RoiRequest, alignment: registration.HeightAlignment) -> list[str]:
+    """A warning where a child's heights run against its parent's on their overlap."""
+    if not alignment.height_correlation < _OPPOSED_CORRELATION:
+        return []
+    return [
+        f"ROI {roi.id!r}'s heights run against its parent {roi.parent!r}'s on their overlap (correlation "
+        f"{alignment.height_correlation:.2f}): one of the two is upside down; check both's tilts and image order, "
+        "or give relief_sign in their matching"
+    ]
 
 
 def _measurement(heights: MeasuredHeights, level: str | None) -> measurement.Measurement:

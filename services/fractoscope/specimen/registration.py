@@ -66,13 +66,16 @@ def _parabola_peak(values: np.ndarray) -> float:
 @dataclass(frozen=True)
 class HeightAlignment:
     """Plane z = offset + slope_x·x + slope_y·y (µm, x and y in the child's µm frame) that brings a
-    child's heights onto its parent's, and the RMS of what remains on the overlap, µm."""
+    child's heights onto its parent's, the RMS of what remains on the overlap, µm, and how the two
+    heights' relief (each without its own plane) correlates there (-1 to 1; negative: one of them is
+    upside down; NaN: no relief)."""
 
     offset_um: float
     slope_x: float
     slope_y: float
     residual_um: float
     overlap_points: int
+    height_correlation: float = float("nan")
 
 
 def align_heights(parent: PlacedRoi, child: PlacedRoi) -> HeightAlignment:
@@ -112,12 +115,19 @@ def align_heights(parent: PlacedRoi, child: PlacedRoi) -> HeightAlignment:
         spread = 1.4826 * np.nanmedian(np.abs(residual[use] - np.nanmedian(residual[use])))
         use = np.isfinite(residual) & (np.abs(residual) <= 3 * max(spread, 1e-9))
     final = residual[np.isfinite(residual)]
+    both = np.isfinite(difference)
+    # Each side's own plane out first: a tilt is what the alignment mends, the relief's shape is not.
+    sides = [z[both].astype(np.float64) for z in (parent_z.ravel(), child_z.ravel())]
+    pair = [z - design[both] @ np.linalg.lstsq(design[both], z, rcond=None)[0] for z in sides]
+    relief = all(np.std(part) > 1e-4 * max(np.ptp(z), 1e-9) for part, z in zip(pair, sides))  # not a plane's rounding
+    correlation = float(np.corrcoef(pair)[0, 1]) if relief else float("nan")
     return HeightAlignment(
         offset_um=float(coefficients[0]),
         slope_x=float(coefficients[1]),
         slope_y=float(coefficients[2]),
         residual_um=float(np.sqrt(np.mean(final**2))),
         overlap_points=int(final.size),
+        height_correlation=correlation,
     )
 
 

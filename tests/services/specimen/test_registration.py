@@ -69,6 +69,20 @@ def test_the_plane_between_child_and_parent_heights_is_recovered_and_removed():
     np.testing.assert_allclose(aligned, true_um, atol=2e-4)
 
 
+def test_a_child_upside_down_against_its_parent_is_told_by_their_reliefs_correlation():
+    """Issue 46: a specimen whose ROI alone was inverted kept its overview as it was, silently."""
+    rows, cols = np.indices((100, 120))
+    relief = lambda x_um, y_um: (np.sin(x_um / 5.0) * np.cos(y_um / 7.0) + 0.01 * x_um).astype(np.float32)  # noqa: E731
+    parent = PlacedRoi("parent", 100.0, 1.0, (0.0, 0.0), relief(cols, rows), np.zeros((100, 120), np.uint8))
+    rows, cols = np.indices((80, 80))
+    child_z = relief(20.0 + cols * 0.5, 30.0 + rows * 0.5)
+    for sign in (1.0, -1.0):
+        child = PlacedRoi("child", 200.0, 0.5, (20.0, 30.0), sign * child_z, np.zeros((80, 80), np.uint8))
+        assert align_heights(parent, child).height_correlation == pytest.approx(sign, abs=0.05)
+    flat, _, _ = _parent_and_child(0.0, 0.0, 0.0)  # planes only: no relief to tell by
+    assert np.isnan(align_heights(flat, _parent_and_child(0.0, 0.0, 0.0)[1]).height_correlation)
+
+
 def test_a_child_outside_its_parent_cannot_be_aligned():
     parent, child, _ = _parent_and_child(0.0, 0.0, 0.0)
     away = PlacedRoi(child.id, child.magnification, child.pixel_size_um, (500.0, 500.0), child.z_um, child.texture)
