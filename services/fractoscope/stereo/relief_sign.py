@@ -78,10 +78,11 @@ class ReliefSign:
     inverted: the images show the mirrored relief (meaningful where `decided`).
     decided: the evidence is decisive (p_value under DECISIVE_P_VALUE from MIN_BLOCKS or more
         blocks, |strength| at least MIN_STRENGTH).
-    cue: "shading" (the detector's lighting) or "none" where it could not be used (`reason`).
-    strength: the blocks' balance, (agreeing - disagreeing) / all, -1 to 1 (1: every block
+    cue: "shading" (the detector's lighting), "occlusion" (`stereo.occlusion`) or "none" where
+        none could be used (`reason`).
+    strength: the votes' balance, (agreeing - disagreeing) / all, -1 to 1 (1: every vote
         agrees with the tilts as given).
-    blocks: the number of blocks that voted.
+    blocks: the number of votes: image blocks (shading) or walls (occlusion).
     p_value: the chance of so lopsided a vote if the blocks told nothing (two-sided sign test).
     reason: why nothing was decided, in one sentence ("" when decided).
     """
@@ -100,7 +101,7 @@ class ReliefSign:
         return 1.0 - self.p_value
 
 
-def _undetermined(reason: str) -> ReliefSign:
+def undetermined(reason: str) -> ReliefSign:
     """A verdict that decides nothing, for `reason`."""
     return ReliefSign(False, False, "none", 0.0, 0, 1.0, reason)
 
@@ -112,22 +113,35 @@ def relief_sign_from_shading(image: np.ndarray, z_px: np.ndarray, *, detector_az
     displayed; both arrays turned so that the tilt axis runs along the columns)."""
     towards_top = float(np.sin(np.radians(detector_azimuth_deg)))
     if not np.isfinite(towards_top):
-        return _undetermined("the detector's side in the image is not known")
+        return undetermined("the detector's side in the image is not known")
     if abs(towards_top) < _MIN_OFF_TILT_DIRECTION:
-        return _undetermined("the detector lies along the tilt direction, where its lighting and the tilt's look alike")
+        return undetermined("the detector lies along the tilt direction, where its lighting and the tilt's look alike")
     coefficients = _block_row_slope_coefficients(image, z_px)
     # A facet rising towards larger rows leans its normal towards the top of the image: facing
     # a detector at the top, it is the brighter the steeper it rises.
     agreeing = int(np.sum(coefficients * towards_top > 0))
     disagreeing = int(np.sum(coefficients * towards_top < 0))
     votes = agreeing + disagreeing
+    return sign_test(
+        agreeing,
+        disagreeing,
+        cue="shading",
+        too_few=f"too little of the image has heights ({votes} blocks of {MIN_BLOCKS} needed)",
+        ambiguous=f"the shading is ambiguous ({agreeing} of {votes} image blocks agree with the tilts)",
+    )
+
+
+def sign_test(agreeing: int, disagreeing: int, *, cue: str, too_few: str, ambiguous: str) -> ReliefSign:
+    """The verdict of independent votes for (`agreeing`) and against the tilts as given: decided
+    at p < DECISIVE_P_VALUE (two-sided sign test) with MIN_BLOCKS votes or more and |strength|
+    at least MIN_STRENGTH; `too_few` and `ambiguous` are the reasons where it is not."""
+    votes = agreeing + disagreeing
     if votes < MIN_BLOCKS:
-        return _undetermined(f"too little of the image has heights ({votes} blocks of {MIN_BLOCKS} needed)")
+        return undetermined(too_few)
     p_value = float(binomtest(agreeing, votes, 0.5).pvalue)
     strength = (agreeing - disagreeing) / votes
     decided = p_value < DECISIVE_P_VALUE and abs(strength) >= MIN_STRENGTH
-    reason = "" if decided else f"the shading is ambiguous ({agreeing} of {votes} image blocks agree with the tilts)"
-    return ReliefSign(disagreeing > agreeing, decided, "shading", strength, votes, p_value, reason)
+    return ReliefSign(disagreeing > agreeing, decided, cue, strength, votes, p_value, "" if decided else ambiguous)
 
 
 def _block_row_slope_coefficients(image: np.ndarray, z_px: np.ndarray) -> np.ndarray:

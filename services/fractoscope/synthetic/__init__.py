@@ -12,17 +12,21 @@ from fractoscope.synthetic.rendering import (
     render_multiscale_specimen,
     render_sem_view,
     render_stereo_pair,
+    render_surface_pair,
     render_tilt_series,
 )
 from fractoscope.synthetic.surfaces import (
     OVERVIEW_PIXEL_SIZE_UM,
     REFERENCE_PIXEL_SIZE_UM,
     REFERENCE_SURFACES,
+    WALL_MORPHOLOGIES,
     cleavage_surface,
     dimple_surface,
     overview_dimple_surface,
     reference_surface,
     self_affine_surface,
+    surface,
+    wall_surface,
 )
 
 __all__ = [
@@ -45,6 +49,10 @@ __all__ = [
     "overview_dimple_surface",
     "render_sem_view",
     "render_stereo_pair",
+    "render_surface_pair",
     "render_tilt_series",
     "self_affine_surface",
+    "surface",
+    "WALL_MORPHOLOGIES",
+    "wall_surface",
 ]
