@@ -44,6 +44,7 @@ view resampled onto the reference's grid; the tilt axis runs along the columns.
 
 from __future__ import annotations
 
+import dataclasses
 from concurrent.futures import ThreadPoolExecutor
 
 import numba
@@ -93,6 +94,11 @@ _MAX_WALL_ROWS = 16
 _MIN_WALL_EVIDENCE = 25.0
 _MIN_FLANK_SLOPE = 0.03
 _FLANK_PX = (12, 36)
+# A hole with another wall where its flanks are measured is left alone: the disparity changes
+# there by more than this, px/px (`_alone`).
+_MAX_SIDE_SLOPE = 0.4
+# Each view's contours must give at least this many walls for a decision (`verdict`).
+_MIN_VIEW_VOTES = 3
 # Rows of one wall: hole starts at most this far apart between rows looked at, px.
 _WALL_LINK_PX = 6
 
@@ -114,32 +120,50 @@ def relief_sign_from_occlusion(
     return verdict(wall_votes(reference, second_on_first, disparity_px), tilt_step_sign=tilt_step_sign)
 
 
-def verdict(votes: np.ndarray, *, tilt_step_sign: float) -> ReliefSign:
+def verdict(votes: tuple[np.ndarray, np.ndarray], *, tilt_step_sign: float) -> ReliefSign:
     """The sign test over `wall_votes` (+1: heights grow with the disparity) against the tilt
-    step as given (its sign, in the frame the votes were taken in), by relief_sign's rules."""
+    step as given (its sign, in the frame the votes were taken in), by relief_sign's rules; and
+    the contours of each view must agree on their own (at least _MIN_VIEW_VOTES walls each, the
+    majority of each MIN_STRENGTH lopsided the same way): a photometric effect of one view's
+    incidence (its grazing rays darken or brighten what lies near its contours) fools only that
+    view's walls."""
     if not np.isfinite(tilt_step_sign) or tilt_step_sign == 0:
         return relief_sign.undetermined("the tilt step is zero or not known")
-    agreeing = int(np.sum(votes * np.sign(tilt_step_sign) > 0))
-    return relief_sign.sign_test(
-        agreeing,
-        len(votes) - agreeing,
+    agreeing = [int(np.sum(view * np.sign(tilt_step_sign) > 0)) for view in votes]
+    total, agreeing_total = sum(len(view) for view in votes), sum(agreeing)
+    told = relief_sign.sign_test(
+        agreeing_total,
+        total - agreeing_total,
         cue="occlusion",
-        too_few=f"too few walls with a rounded occluding edge ({len(votes)} of {relief_sign.MIN_BLOCKS} needed)",
-        ambiguous=f"the occlusions are ambiguous ({agreeing} of {len(votes)} walls agree with the tilts)",
+        too_few=f"too few walls with a rounded occluding edge ({total} of {relief_sign.MIN_BLOCKS} needed)",
+        ambiguous=f"the occlusions are ambiguous ({agreeing_total} of {total} walls agree with the tilts)",
     )
+    balances = [(2 * agree - len(view)) / max(len(view), 1) for agree, view in zip(agreeing, votes)]
+    consistent = all(len(view) >= _MIN_VIEW_VOTES for view in votes) and (
+        all(balance >= relief_sign.MIN_STRENGTH for balance in balances)
+        or all(balance <= -relief_sign.MIN_STRENGTH for balance in balances)
+    )
+    if told.decided and not consistent:
+        counts = " and ".join(f"{agree} of {len(view)}" for agree, view in zip(agreeing, votes))
+        reason = f"the two views' occluding contours do not agree ({counts} walls agree with the tilts)"
+        return dataclasses.replace(told, decided=False, reason=reason)
+    return told
 
 
-def wall_votes(reference: np.ndarray, second_on_first: np.ndarray, disparity_px: np.ndarray) -> np.ndarray:
+def wall_votes(
+    reference: np.ndarray, second_on_first: np.ndarray, disparity_px: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """One vote per wall with a fold beside its band (int8): +1 where the occluder has the larger
-    disparity (heights grow with it: a positive tilt step in this frame), -1 where the smaller.
-    Both views serve as the reference in turn (the second's disparities are the first's inverted)."""
+    disparity (heights grow with it: a positive tilt step in this frame), -1 where the smaller;
+    the walls at the second view's contours (the reference's hidden bands), then those at the
+    reference's (with the second view as the reference: its disparities are the first's inverted)."""
     first = local_contrast(np.asarray(reference, np.float32)).astype(np.float64)
     second = local_contrast(np.asarray(second_on_first, np.float32)).astype(np.float64)
     disparity = np.asarray(disparity_px, np.float64)
     direct = _side_votes(first, second, disparity)
     # With the second view as the reference the step is the other way round.
     swapped = -_side_votes(second, first, inverted_disparity(disparity))
-    return np.concatenate([direct, swapped]).astype(np.int8)
+    return direct.astype(np.int8), swapped.astype(np.int8)
 
 
 def _side_votes(first: np.ndarray, second: np.ndarray, disparity_px: np.ndarray) -> np.ndarray:
@@ -197,10 +221,23 @@ def fall_candidates(disparity_px: np.ndarray):
             after = disparity_px[row, end : end + _LEVEL_PX]
             if np.isfinite(before).sum() < _LEVEL_PX // 2 or np.isfinite(after).sum() < _LEVEL_PX // 2:
                 continue
-            if np.nanmedian(before) - np.nanmedian(after) > MIN_FALL_PX:
+            if np.nanmedian(before) - np.nanmedian(after) > MIN_FALL_PX and _alone(disparity_px[row], start, end):
                 found.append((row, start, end))
     found = np.asarray(found, np.int64).reshape(-1, 3)
     return found[:, 0], found[:, 1], found[:, 2]
+
+
+def _alone(disparity_px: np.ndarray, start: int, end: int) -> bool:
+    """Whether the row `disparity_px` (cols) has no other wall where the hole start:end's flanks
+    are measured (_FLANK_PX before and after it): nowhere there does it change by more than
+    _MAX_SIDE_SLOPE px/px over 4 px (a neighbouring step or occluder would lend the hole its
+    flank)."""
+    near, far = _FLANK_PX
+    for side in (disparity_px[max(start - far, 0) : max(start - near, 0)], disparity_px[end + near : end + far]):
+        change = np.abs(side[4:] - side[:-4])
+        if np.isfinite(side).sum() < (far - near) // 2 or np.nanmax(change, initial=0.0) > 4 * _MAX_SIDE_SLOPE:
+            return False
+    return True
 
 
 def _fold_evidence(first, second, disparity_px, row, start, end, scale) -> float:
