@@ -48,12 +48,19 @@ def main() -> None:
     for kind in args.kinds.split(","):
         for physics in args.physics.split(","):
             counts = {"right": 0, "wrong": 0, "undecided": 0}
+            right_per_pair = {f"{first:g}/{second:g}": 0 for first, second in TILT_PAIRS_DEG}
             for seed in range(1, args.seeds + 1):
-                for tilt_deg in TILT_PAIRS_DEG:
+                for pair, tilt_deg in zip(list(right_per_pair), TILT_PAIRS_DEG):
                     for outcome in outcomes(kind, PHYSICS[physics], tilt_deg, seed):
                         counts[outcome] += 1
-            results[f"{kind}/{physics}"] = counts
-            print(f"{kind:14s} {physics:28s} " + "  ".join(f"{name} {n:3d}" for name, n in counts.items()), flush=True)
+                        right_per_pair[pair] += outcome == "right"
+            results[f"{kind}/{physics}"] = {**counts, "right_per_tilt_pair": right_per_pair}
+            per_pair = " ".join(f"{pair}: {n}" for pair, n in right_per_pair.items())
+            print(
+                f"{kind:14s} {physics:28s} " + "  ".join(f"{name} {n:3d}" for name, n in counts.items()),
+                f"(right per tilt pair {per_pair})",
+                flush=True,
+            )
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "occlusion.json").write_text(json.dumps(results, indent=1))
 

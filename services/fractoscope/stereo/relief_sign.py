@@ -14,10 +14,9 @@ yield's change with the tilt: under the secant law the yield depends on the inci
   instrument setting (by convention at the top, so that relief reads as lit from above); it is
   an input here (relative to the tilt axis), and the cue is used along the tilt axis only, where the secant law adds no
   brightness that is linear in the slope.
-- Occlusion: the band a wall hides from the second view belongs to the lower facet (see
-  `visibility`). On exact disparities it tells the sign every time; the matchers' holes beside
-  walls do not yet (their rules for the band assume the second view's tilt is the larger), so it
-  is not used (docs/matching-notes.md).
+- Occlusion: a smooth occluder is seen compressed to nothing just before the band the other view
+  cannot see (`stereo.occlusion`, geometry alone, whatever the detector; it decides only where
+  many rounded occluders stand clear of one another).
 
 The image is split into blocks, each block's brightness regressed on the heights' slopes, and a
 sign test over the blocks tells whether the slopes along the detector's direction brighten the

@@ -134,8 +134,8 @@ def wall_surface(
     """Relief with walls steeper than any view of a stereo pair sees, (size_px, size_px) µm on a
     substrate of fine self-affine roughness (0.1 µm RMS):
 
-    - "particles": rounded particles of radius 25-60 px on the substrate, each a vertical wall
-      whose top edge is rounded with a radius of 0.6-1 times the particle's (1: a ball's cap on a
+    - "particles": rounded particles of radius 50-100 px on the substrate, each a vertical wall
+      whose top edge is rounded with a radius of 0.8-1 times the particle's (1: a ball's cap on a
       stem), `wall_um` high in all (0.8-1.2 times);
     - "sharp_steps": terraces between straight steps `wall_um` high (0.8-1.2 times), at up to 30°
       from the columns, rising and falling in turn, with sharp edges;
