@@ -83,15 +83,7 @@ def cleavage_pair(*, tilt_deg=(-5.0, 5.0), size_px=640, seed=1) -> synthetic.Ste
 
 
 def _reference_pair(kind, tilt_deg, size_px, seed, **render) -> synthetic.StereoPair:
-    surface = synthetic.reference_surface(kind, size_px + 64, seed=seed)
-    return synthetic.render_stereo_pair(
-        surface,
-        pixel_size_um=synthetic.REFERENCE_PIXEL_SIZE_UM,
-        tilt_deg=tilt_deg,
-        output_shape=(size_px, size_px),
-        seed=seed,
-        **render,
-    )
+    return synthetic.render_surface_pair(kind, size_px, tilt_deg=tilt_deg, seed=seed, **render)
 
 
 def tiff_bytes(image: np.ndarray) -> bytes:

@@ -26,15 +26,8 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy.stats import binomtest
 
-from fractoscope.stereo.relief_sign import (
-    DECISIVE_P_VALUE,
-    MIN_BLOCKS,
-    MIN_STRENGTH,
-    ReliefSign,
-    undetermined,
-)
+from fractoscope.stereo.relief_sign import MIN_BLOCKS, ReliefSign, sign_test
 
 # Blocks per image side (fewer where a block would be under _MIN_BLOCK_PX).
 _BLOCKS_PER_SIDE = 8
@@ -123,15 +116,13 @@ def relief_sign_from_lighting(lighting: Lighting, *, detector_from_tilt_axis_deg
     voting = np.abs(along) > _MIN_T * noise
     agreeing, disagreeing = int(np.sum(along[voting] > 0)), int(np.sum(along[voting] < 0))
     votes = agreeing + disagreeing
-    if votes < MIN_BLOCKS:
-        return undetermined(
-            f"too little of the image shows the detector's lighting ({votes} blocks of {MIN_BLOCKS} needed)"
-        )
-    p_value = float(binomtest(agreeing, votes, 0.5).pvalue)
-    strength = (agreeing - disagreeing) / votes
-    decided = p_value < DECISIVE_P_VALUE and abs(strength) >= MIN_STRENGTH
-    reason = "" if decided else f"the lighting is ambiguous ({agreeing} of {votes} image blocks agree with the tilts)"
-    return ReliefSign(disagreeing > agreeing, decided, "lighting", strength, votes, p_value, reason)
+    return sign_test(
+        agreeing,
+        disagreeing,
+        cue="lighting",
+        too_few=f"too little of the image shows the detector's lighting ({votes} blocks of {MIN_BLOCKS} needed)",
+        ambiguous=f"the lighting is ambiguous ({agreeing} of {votes} image blocks agree with the tilts)",
+    )
 
 
 def _smoothed_slopes(z_px: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarray], np.ndarray]:

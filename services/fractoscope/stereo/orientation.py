@@ -6,10 +6,11 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from fractoscope.sem.instruments import DetectorPlace
-from fractoscope.stereo import lighting
+from fractoscope.stereo import lighting, occlusion
 from fractoscope.stereo.relief_sign import ReliefSign, ReliefSignMode, combined, undetermined
 
 # Where an azimuth as displayed points, by quadrant centred on 0, 90, 180 and 270°.
@@ -28,24 +29,32 @@ class Orientation:
 
 
 def oriented(
-    views: Sequence[np.ndarray],
+    reference: np.ndarray,
+    matched: Sequence[tuple[np.ndarray, np.ndarray]],
     z_px: np.ndarray,
     tilts_deg: Sequence[float],
     *,
     mode: ReliefSignMode,
     detector: DetectorPlace,
     tilt_axis_deg: float,
-    occlusion: ReliefSign | None = None,
 ) -> Orientation:
-    """The relief's sign for heights `z_px` (rows, cols, px, as the tilts given say) of `views`
-    (each (rows, cols) on the reference grid, rectified, the reference first) at `tilts_deg`:
-    occlusion's verdict where given, the lighting's where the `detector`'s place is known."""
+    """The relief's sign for heights `z_px` (rows, cols, px, as the tilts given say) of the
+    `reference` view (rows, cols, rectified) and the others, each `matched` as (the view resampled
+    onto the reference's grid without parallax, the matcher's disparity to it), at `tilts_deg`:
+    occlusion's verdict (AUTO mode, on the view of the largest tilt step: the views see the same
+    walls), the lighting's where the `detector`'s place is known."""
+    views = [reference, *(_through_disparity(view, disparity) for view, disparity in matched)]
     lit = lighting.block_lighting(views, tilts_deg, z_px)
     if detector.known:
         by_lighting = lighting.relief_sign_from_lighting(lit, detector_from_tilt_axis_deg=detector.from_tilt_axis_deg)
     else:
         by_lighting = undetermined(f"the detector's place is {detector.describe()}, so the lighting cannot tell")
-    verdict = combined(occlusion or undetermined("occlusion was not measured"), by_lighting)
+    by_occlusion = undetermined("occlusion is judged in auto mode only")
+    if mode is ReliefSignMode.AUTO:
+        widest = int(np.argmax([abs(tilt - tilts_deg[0]) for tilt in tilts_deg[1:]]))
+        step_sign = float(np.sign(tilts_deg[widest + 1] - tilts_deg[0]))
+        by_occlusion = occlusion.relief_sign_from_occlusion(reference, *matched[widest], tilt_step_sign=step_sign)
+    verdict = combined(by_occlusion, by_lighting)
     inverted = mode is ReliefSignMode.INVERTED or (mode is ReliefSignMode.AUTO and verdict.decided and verdict.inverted)
     direction = lit.significant_direction()
     if direction is not None and inverted:
@@ -72,6 +81,16 @@ def oriented(
         "lighting_sigma_deg": direction[1] if direction else float("nan"),
     }
     return Orientation(inverted, verdict, fields, warnings + ([detector.note] if detector.note else []))
+
+
+def _through_disparity(view: np.ndarray, disparity_px: np.ndarray) -> np.ndarray:
+    """`view` (rows, cols, on the reference's grid without parallax) sampled where each reference
+    pixel's match lies, (rows, cols) float32, NaN where the disparity is unknown."""
+    rows, cols = np.indices(view.shape, dtype=np.float32)
+    known = np.isfinite(disparity_px)
+    map_cols = cols + np.where(known, disparity_px, 0).astype(np.float32)
+    sampled = cv2.remap(view.astype(np.float32), map_cols, rows, cv2.INTER_LINEAR, borderValue=float("nan"))
+    return np.where(known, sampled, np.nan).astype(np.float32)
 
 
 def verdict_sentence(verdict: ReliefSign, *, inverted: bool, mode: ReliefSignMode, detector: DetectorPlace) -> str:

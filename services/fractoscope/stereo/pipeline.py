@@ -12,7 +12,6 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 
 from fractoscope.errors import InvalidInputError
@@ -242,7 +241,7 @@ class _MatchedViews:
     row zero, and per view but the reference its disparity sigma, confidence, placement and
     photometric fusion's agreement, use, explained share and weight (`photometric.Fusion`); the relative magnification
     uncertainty of every view (0 for the reference); per view but the reference the view resampled onto the
-    reference's grid without parallax (`on_first`) and the matcher's disparity to it."""
+    reference's grid without parallax (`on_first`) and the matcher's disparity to it, before photometric fusion."""
 
     disparities: np.ndarray
     sigmas: list[np.ndarray]
@@ -279,12 +278,12 @@ def _match_views(views, options: MatchingOptions, strip_matcher, report_progress
             report_progress(0.05 + 0.8 * (index - 1 + fraction) / (len(views) - 1), f"view {index}: {message}")
 
         report_progress(0.05 + 0.8 * (index - 1) / (len(views) - 1), f"view {index}: aligning")
-        disparity, matched, placement, epsilon_sigma, strip_count, fusion, resampled = _match_view(
+        disparity, matched, placement, epsilon_sigma, strip_count, fusion, (resampled, unfused_px) = _match_view(
             views[0], views[index], options, strip_matcher, matching_progress
         )
         fusions.append(fusion)
         on_first.append(resampled)
-        matched_disparities.append(matched.disparity_px)
+        matched_disparities.append(unfused_px)
         disparities.append(disparity)
         magnification_sigma.append(epsilon_sigma)
         sigmas.append(matched.sigma_px)
@@ -310,8 +309,9 @@ def _match_view(reference: np.ndarray, view: np.ndarray, options: MatchingOption
     """One view aligned to and matched with the reference: its disparity to the reference (the
     global shift and the magnification error the alignment left taken out), the matcher's result
     (with the default method, the shading's slopes fused in where they agree, `photometric`), the
-    placement, the magnification's uncertainty, the number of strips, the photometric fusion and the
-    view resampled onto the reference's grid without parallax."""
+    placement, the magnification's uncertainty, the number of strips, the photometric fusion, and the
+    view resampled onto the reference's grid without parallax with the matcher's disparity to it
+    before fusion."""
     placement = alignment.estimate_alignment(reference, view)
     on_first = alignment.apply_affine(
         view, alignment.second_to_first_matrix(placement, reference.shape), reference.shape, inverse=True
@@ -340,6 +340,7 @@ def _match_view(reference: np.ndarray, view: np.ndarray, options: MatchingOption
             strip_pixels=options.strip_pixels,
         )
     )
+    unfused_px = matched.disparity_px  # the images' own match, which the relief sign's cues read
     fusion = photometric.Fusion(matched.disparity_px, matched.sigma_px, float("nan"), False)
     if options.method is MatchingMethod.TGV_ZNCC:  # window correlation stays the paper's method, FAST quick
         noise_grey = float(np.hypot(photometric.noise_sigma(reference), photometric.noise_sigma(view)))
@@ -352,7 +353,7 @@ def _match_view(reference: np.ndarray, view: np.ndarray, options: MatchingOption
     measured = alignment.residual_misplacement(reference, on_first, matched.disparity_px)
     placement, parallax_px = alignment.with_misplacement(placement, measured, reference.shape)
     disparity = matched.disparity_px + placement.shift_parallel_px - parallax_px
-    return disparity, matched, placement, placement.scale_sigma, strip_count, fusion, on_first
+    return disparity, matched, placement, placement.scale_sigma, strip_count, fusion, (on_first, unfused_px)
 
 
 # Views of which less than the first share is matched with the first view are refused (what
@@ -452,26 +453,18 @@ def _oriented(images, rectified: _Rectified, matched: _MatchedViews, z_px, tilts
     """The heights (px) and tilts with the relief's sign chosen (`orientation.oriented`; the
     mirror image: both negated), and the report's relief_sign fields; its warnings added."""
     place = detector_place([image.instrument for image in images], options.detector_from_tilt_axis_deg, instruments)
-    views = [
-        rectified.views[0],
-        *(_through_disparity(view, d) for view, d in zip(matched.on_first, matched.matched_disparities)),
-    ]
     chosen = orientation.oriented(
-        views, z_px, tilts, mode=ReliefSignMode(options.relief_sign), detector=place, tilt_axis_deg=axis
+        rectified.views[0],
+        list(zip(matched.on_first, matched.matched_disparities)),
+        z_px,
+        tilts,
+        mode=ReliefSignMode(options.relief_sign),
+        detector=place,
+        tilt_axis_deg=axis,
     )
     warnings += chosen.warnings
     sign = -1.0 if chosen.inverted else 1.0
     return z_px * sign, np.asarray(tilts, np.float64) * sign, chosen.fields
-
-
-def _through_disparity(view: np.ndarray, disparity_px: np.ndarray) -> np.ndarray:
-    """`view` (rows, cols, on the reference's grid without parallax) sampled where each reference
-    pixel's match lies, (rows, cols) float32, NaN where the disparity is unknown."""
-    rows, cols = np.indices(view.shape, dtype=np.float32)
-    known = np.isfinite(disparity_px)
-    map_cols = cols + np.where(known, disparity_px, 0).astype(np.float32)
-    sampled = cv2.remap(view.astype(np.float32), map_cols, rows, cv2.INTER_LINEAR, borderValue=float("nan"))
-    return np.where(known, sampled, np.nan).astype(np.float32)
 
 
 def _file_facts(images) -> dict:

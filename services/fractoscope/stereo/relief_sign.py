@@ -20,6 +20,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from enum import Enum
 
+from scipy.stats import binomtest
+
 # The evidence decides when chance would give so lopsided a vote with less than this probability.
 DECISIVE_P_VALUE = 1e-3
 # Nor does a vote less lopsided than this (|agreeing - disagreeing| / all: 90 % of the votes on
@@ -91,6 +93,19 @@ def combined(occlusion: ReliefSign, lighting: ReliefSign) -> ReliefSign:
             return verdict
     reasons = "; ".join(verdict.reason for verdict in (occlusion, lighting) if verdict.reason)
     return undetermined(reasons or "no cue could be used")
+
+
+def sign_test(agreeing: int, disagreeing: int, *, cue: str, too_few: str, ambiguous: str) -> ReliefSign:
+    """The verdict of independent votes for (`agreeing`) and against the tilts as given: decided
+    at p < DECISIVE_P_VALUE (two-sided sign test) with MIN_BLOCKS votes or more and |strength|
+    at least MIN_STRENGTH; `too_few` and `ambiguous` are the reasons where it is not."""
+    votes = agreeing + disagreeing
+    if votes < MIN_BLOCKS:
+        return undetermined(too_few)
+    p_value = float(binomtest(agreeing, votes, 0.5).pvalue)
+    strength = (agreeing - disagreeing) / votes
+    decided = p_value < DECISIVE_P_VALUE and abs(strength) >= MIN_STRENGTH
+    return ReliefSign(disagreeing > agreeing, decided, cue, strength, votes, p_value, "" if decided else ambiguous)
 
 
 def _way(verdict: ReliefSign) -> str:

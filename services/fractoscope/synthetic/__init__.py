@@ -13,17 +13,21 @@ from fractoscope.synthetic.rendering import (
     render_multiscale_specimen,
     render_sem_view,
     render_stereo_pair,
+    render_surface_pair,
     render_tilt_series,
 )
 from fractoscope.synthetic.surfaces import (
     OVERVIEW_PIXEL_SIZE_UM,
     REFERENCE_PIXEL_SIZE_UM,
     REFERENCE_SURFACES,
+    WALL_MORPHOLOGIES,
     cleavage_surface,
     dimple_surface,
     overview_dimple_surface,
     reference_surface,
     self_affine_surface,
+    surface,
+    wall_surface,
 )
 from fractoscope.synthetic.textures import displaced_pair, sem_texture, shifted_texture_pair, speckle_texture
 
@@ -48,9 +52,13 @@ __all__ = [
     "overview_dimple_surface",
     "render_sem_view",
     "render_stereo_pair",
+    "render_surface_pair",
     "render_tilt_series",
     "self_affine_surface",
     "sem_texture",
     "shifted_texture_pair",
     "speckle_texture",
+    "surface",
+    "WALL_MORPHOLOGIES",
+    "wall_surface",
 ]

@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 
 from fractoscope.synthetic.physics import DEFAULT_PHYSICS, SemPhysics, material_contrast, secondary_electron_yield
-from fractoscope.synthetic.surfaces import self_affine_surface
+from fractoscope.synthetic.surfaces import REFERENCE_PIXEL_SIZE_UM, self_affine_surface, surface
 
 _SUPERSAMPLING = 2
 
@@ -162,6 +162,20 @@ def render_stereo_pair(
     first = np.round(place(views[0].image)).astype(dtype)
     second = np.round(place(views[1].image, misplace)).astype(dtype)
     return StereoPair(first, second, place(views[0].z_seen_um).astype(np.float64))
+
+
+def render_surface_pair(kind: str, size_px: int, *, tilt_deg: tuple[float, float], seed: int, **render) -> StereoPair:
+    """`surfaces.surface(kind)` of seed `seed` (on a canvas 64 px larger) rendered as a pair of
+    (size_px, size_px) at REFERENCE_PIXEL_SIZE_UM and `tilt_deg`, its noise drawn from `seed`;
+    `render`: more of render_stereo_pair's settings."""
+    return render_stereo_pair(
+        surface(kind, size_px + 64, seed=seed),
+        pixel_size_um=REFERENCE_PIXEL_SIZE_UM,
+        tilt_deg=tilt_deg,
+        output_shape=(size_px, size_px),
+        seed=seed,
+        **render,
+    )
 
 
 @dataclass(frozen=True)
