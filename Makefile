@@ -115,6 +115,7 @@ bench: install $(WRK) $(GHZ)
 	$(BIN)/python -m benchmarks.sigma_calibration --out bench-results
 	$(BIN)/python -m benchmarks.views --out bench-results
 	$(BIN)/python -m benchmarks.relief_sign --out bench-results
+	$(BIN)/python -m benchmarks.occlusion --out bench-results --seeds 2
 	$(BIN)/python -m benchmarks.meshing --out bench-results
 	$(BIN)/python -m benchmarks.exports --out bench-results
 	$(BIN)/python -m benchmarks.surface_analysis --out bench-results

@@ -52,7 +52,13 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=Path("bench-results"))
     parser.add_argument("--seeds", type=int, default=8, help="seeded cases per renderer and surface (default 8)")
-    parser.add_argument("--surfaces", nargs="+", default=list(synthetic.REFERENCE_SURFACES))
+    parser.add_argument(
+        "--surfaces",
+        nargs="+",
+        default=list(synthetic.REFERENCE_SURFACES),
+        help="surfaces (synthetic.surface: the reference ones, or particles, sharp_steps, rounded_steps, pits; "
+        "benchmarks.occlusion measures those at 512²)",
+    )
     args = parser.parse_args()
     results = {}
     for name, physics in renderers().items():
@@ -87,7 +93,7 @@ def cases(kind: str, seed: int, physics: SemPhysics) -> dict[str, tuple[str, str
     """(outcome, cue) of seeded case `seed` of surface `kind` under each of CONDITIONS (the
     detector-given one only for a renderer with a side detector)."""
     tilts = TILT_PAIRS_DEG[seed % 4]
-    surface = synthetic.reference_surface(kind, SIZE_PX + MARGIN_PX, seed=1000 + seed)
+    surface = synthetic.surface(kind, SIZE_PX + MARGIN_PX, seed=1000 + seed)
     pair = synthetic.render_stereo_pair(
         surface,
         pixel_size_um=PIXEL_SIZE_UM,
