@@ -116,7 +116,7 @@ def test_height_against_a_running_server(pair_files, tmp_path, server_address):
         env_extra={"FRACTO_SERVER": server_address},
     )
     assert done.returncode == 0, done.stderr
-    assert "valid" in done.stdout and out.is_file()
+    assert "% matched" in done.stdout and out.is_file()
     without_contrast = tmp_path / "without_contrast.npz"
     done = _run(
         "height",
