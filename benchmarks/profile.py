@@ -37,9 +37,9 @@ from fractoscope.sem.image import SemImage
 from fractoscope.stereo import (
     alignment,
     matching,
+    orientation,
     photometric,
     pipeline,
-    relief_sign,
     semi_global,
     tgv_refinement,
     tgv_zncc,
@@ -60,7 +60,7 @@ STAGES = (
     (tgv_zncc, "_peaked"),
     (photometric, "fused_disparity"),
     (alignment, "residual_misplacement"),
-    (relief_sign, "relief_sign_from_shading"),
+    (orientation, "oriented"),
 )
 # Per iteration the dual step reads d, v (2) and p, q (5) and writes p, q; the primal step reads
 # d, v, p, q, the target and the precision and writes d, v and their over-relaxed copies.
