@@ -77,11 +77,11 @@ def window_stats(image: np.ndarray, window_px: int) -> WindowStats:
 
 def zncc_scores_within_one_px(left: np.ndarray, left_stats: WindowStats, warped: np.ndarray, window_px: int):
     """ZNCC of the left windows with the warped windows shifted by -1, 0 and +1 column, (rows,
-    cols) float32 each: `zncc_scores_by_shift` at radius 1, the same values, with the products
-    and the normalization each in one compiled pass instead of a dozen array operations."""
-    products = _products_within_one_px(left, warped)
-    sums = [box_mean(values, window_px) for values in (*products, warped, warped * warped)]
-    return _normalized_within_one_px(*sums, left_stats.mean, left_stats.inverse_std)
+    cols) float32 each: `zncc_scores_by_shift` at radius 1 (within float32 rounding: the window
+    sums run in float64 here), in one compiled pass over the rows that keeps the window's rows in
+    cache, instead of five box filters over whole arrays and their products."""
+    left, warped = np.ascontiguousarray(left, np.float32), np.ascontiguousarray(warped, np.float32)
+    return _scores_within_one_px(left, warped, left_stats.mean, left_stats.inverse_std, window_px // 2)
 
 
 def zncc_scores_by_shift(left: np.ndarray, left_stats: WindowStats, warped: np.ndarray, window_px: int, radius: int):
@@ -103,44 +103,99 @@ def zncc_scores_by_shift(left: np.ndarray, left_stats: WindowStats, warped: np.n
         yield score
 
 
-@numba.njit(nogil=True, cache=True, boundscheck=False, error_model="numpy")
-def _products_within_one_px(left, warped):  # pragma: no cover
-    """left × warped shifted by -1, 0 and +1 column (edges replicated)."""
+_JIT = dict(nogil=True, cache=True, boundscheck=False, error_model="numpy")
+
+
+@numba.njit(**_JIT)
+def _scores_within_one_px(left, warped, left_mean, left_inverse_std, half):  # pragma: no cover
+    """`zncc_scores_within_one_px`: the window sums of left × warped at -1, 0, +1 columns, warped
+    and warped² (edges reflected, as `box_mean`), as column sums over the window's rows that
+    move down one row at a time (a row in, a row out), then sums along the row."""
     rows, cols = left.shape
-    before, centre, after = np.empty_like(left), np.empty_like(left), np.empty_like(left)
+    width = cols + 2 * half
+    column_sums = np.zeros((5, width), np.float64)
+    row_values = np.empty((5, width), np.float32)
+    means = np.empty((5, cols), np.float32)
+    scores = (np.empty_like(left), np.empty_like(left), np.empty_like(left))
+    for k in range(-half, half + 1):
+        _row_values(left, warped, _reflected(k, rows), half, row_values)
+        column_sums += row_values
+    scale = np.float64(1.0 / (2 * half + 1) ** 2)
     for i in range(rows):
-        for j in range(cols):
-            value = left[i, j]
-            before[i, j] = value * warped[i, max(j - 1, 0)]
-            centre[i, j] = value * warped[i, j]
-            after[i, j] = value * warped[i, min(j + 1, cols - 1)]
-    return before, centre, after
-
-
-@numba.njit(nogil=True, cache=True, boundscheck=False, error_model="numpy")
-def _normalized_within_one_px(
-    before, centre, after, warped_mean, warped_square_mean, left_mean, left_inverse_std
-):  # pragma: no cover
-    """The three shifts' ZNCC from their window means, as `window_stats` and
-    `zncc_scores_by_shift` compute it, operation for operation (IEEE float32). Row loops without
-    branches, the edge columns apart, so that LLVM vectorizes them."""
-    rows, cols = centre.shape
-    one, least = np.float32(1.0), np.float32(1e-8)
-    inverse_std = np.empty(cols, np.float32)
-    scores = (np.empty_like(centre), np.empty_like(centre), np.empty_like(centre))
-    for i in range(rows):
-        mean, lm, lis = warped_mean[i], left_mean[i], left_inverse_std[i]
-        for j in range(cols):
-            inverse_std[j] = one / np.sqrt(max(warped_square_mean[i, j] - mean[j] * mean[j], least))
-        for shift, products in zip((-1, 0, 1), (before, centre, after)):
-            score, product = scores[shift + 1][i], products[i]
-            first, stop = max(-shift, 0), cols - max(shift, 0)
-            for j in range(first, stop):
-                score[j] = (product[j] - lm[j] * mean[j + shift]) * lis[j] * inverse_std[j + shift]
-            if shift != 0:  # the edge column: its shifted window is its own (edges replicated)
-                j = 0 if shift < 0 else cols - 1
-                score[j] = (product[j] - lm[j] * mean[j]) * lis[j] * inverse_std[j]
+        if i > 0:
+            _row_values(left, warped, _reflected(i + half, rows), half, row_values)
+            column_sums += row_values
+            _row_values(left, warped, _reflected(i - half - 1, rows), half, row_values)
+            column_sums -= row_values
+        _window_means(column_sums, half, scale, means)
+        _normalized_row(means, left_mean[i], left_inverse_std[i], scores[0][i], scores[1][i], scores[2][i])
     return scores
+
+
+@numba.njit(inline="always", **_JIT)
+def _reflected(index, size):  # pragma: no cover
+    """OpenCV's BORDER_REFLECT (edge pixel repeated): -1 → 0, size → size - 1, and again where
+    a window reaches beyond the far edge."""
+    while index < 0 or index >= size:
+        index = -index - 1 if index < 0 else 2 * size - index - 1
+    return index
+
+
+@numba.njit(**_JIT)
+def _row_values(left, warped, row, half, out):  # pragma: no cover
+    """Row `row`'s left × warped at -1, 0, +1 columns (edges replicated), warped and warped², in
+    columns padded by `half` on either side (reflected), into `out` (5, cols + 2 half)."""
+    cols = left.shape[1]
+    l_row, w_row = left[row], warped[row]
+    for j in range(cols):
+        value, w = l_row[j], w_row[j]
+        out[0, half + j] = value * w_row[max(j - 1, 0)]
+        out[1, half + j] = value * w
+        out[2, half + j] = value * w_row[min(j + 1, cols - 1)]
+        out[3, half + j] = w
+        out[4, half + j] = w * w
+    for m in range(half):
+        before, after = half + _reflected(-1 - m, cols), half + _reflected(cols + m, cols)
+        for q in range(5):
+            out[q, half - 1 - m] = out[q, before]
+            out[q, half + cols + m] = out[q, after]
+
+
+@numba.njit(**_JIT)
+def _window_means(column_sums, half, scale, means):  # pragma: no cover
+    """Means over 2 half + 1 consecutive padded columns of each of the five column sums."""
+    cols = means.shape[1]
+    for q in range(5):
+        sums = column_sums[q]
+        total = np.float64(0.0)
+        for m in range(2 * half + 1):
+            total += sums[m]
+        means[q, 0] = total * scale
+        for j in range(1, cols):
+            total += sums[j + 2 * half] - sums[j - 1]
+            means[q, j] = total * scale
+
+
+@numba.njit(**_JIT)
+def _normalized_row(means, lm, lis, before, centre, after):  # pragma: no cover
+    """The three shifts' ZNCC along one row from their window means (`means`: the products at
+    -1, 0, +1, warped, warped²), as `window_stats` and `zncc_scores_by_shift` compute it. Loops
+    without branches, the edge columns apart, so that LLVM vectorizes them."""
+    cols = centre.shape[0]
+    one, least = np.float32(1.0), np.float32(1e-8)
+    mean, square_mean = means[3], means[4]
+    inverse_std = np.empty(cols, np.float32)
+    for j in range(cols):
+        inverse_std[j] = one / np.sqrt(max(square_mean[j] - mean[j] * mean[j], least))
+    for j in range(cols):
+        centre[j] = (means[1, j] - lm[j] * mean[j]) * lis[j] * inverse_std[j]
+    for j in range(1, cols):
+        before[j] = (means[0, j] - lm[j] * mean[j - 1]) * lis[j] * inverse_std[j - 1]
+    for j in range(cols - 1):
+        after[j] = (means[2, j] - lm[j] * mean[j + 1]) * lis[j] * inverse_std[j + 1]
+    # The edge columns: their shifted window is their own (edges replicated).
+    before[0] = (means[0, 0] - lm[0] * mean[0]) * lis[0] * inverse_std[0]
+    after[cols - 1] = (means[2, cols - 1] - lm[cols - 1] * mean[cols - 1]) * lis[cols - 1] * inverse_std[cols - 1]
 
 
 def peak_sigma_px(score, curvature, window_px):
