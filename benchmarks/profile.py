@@ -4,8 +4,8 @@ The full height-map request (stereo.pipeline.compute_height_map) on benchmarks.m
 pair, its stages timed by wrapping the functions that do them (wall time, and the process's CPU
 time while each ran: the two directions of a strip are refined at once, so their CPU shows in
 both), with the bytes each stage moves: the arrays it takes and gives (each read or written at
-least once), and for the TGV² iterations the arrays their kernels stream per iteration
-(`_TGV_ARRAYS_PER_ITERATION`). The floor is those bytes at the memory bandwidth a STREAM-like add
+least once), and for the TGV² iterations the arrays their kernels stream per sweep
+(`_TGV_ARRAYS_PER_SWEEP`). The floor is those bytes at the memory bandwidth a STREAM-like add
 (c = a + b over float32 arrays far larger than the caches, on as many threads as there are CPUs)
 measures here; the fraction of the floor is the floor's time over the stage's.
 
@@ -62,9 +62,10 @@ STAGES = (
     (alignment, "residual_misplacement"),
     (orientation, "oriented"),
 )
-# Per iteration the dual step reads d, v (2) and p, q (5) and writes p, q; the primal step reads
-# d, v, p, q, the target and the precision and writes d, v and their over-relaxed copies.
-_TGV_ARRAYS_PER_ITERATION = 13 + 16
+# Per sweep of tgv_refinement.WAVEFRONT_ITERATIONS iterations, the 13 arrays (d, v, their
+# over-relaxed copies, p, q, the target and the precision) are read once and all but the target
+# and the precision written once: the rows in between stay in cache.
+_TGV_ARRAYS_PER_SWEEP = 13 + 11
 _STREAM_BYTES = 256 * 2**20
 
 
@@ -124,13 +125,14 @@ class _Profile:
         setattr(module, name, timed)
 
     def wrap_tgv_iterations(self) -> None:
-        """Counts the bytes the TGV² kernels stream (`_TGV_ARRAYS_PER_ITERATION` float32 arrays per
-        iteration) on top of refine_disparity's own arrays."""
+        """Counts the bytes the TGV² kernels stream (`_TGV_ARRAYS_PER_SWEEP` float32 arrays per
+        sweep) on top of refine_disparity's own arrays."""
         original = tgv_refinement._State.iterate
         row = self.rows["tgv_refinement.refine_disparity"]
 
         def iterate(state, target, precision, **kwargs):
-            row[3] += _TGV_ARRAYS_PER_ITERATION * state.disparity.nbytes * kwargs["iterations"]
+            sweeps = -(-kwargs["iterations"] // tgv_refinement.WAVEFRONT_ITERATIONS)
+            row[3] += _TGV_ARRAYS_PER_SWEEP * state.disparity.nbytes * sweeps
             return original(state, target, precision, **kwargs)
 
         tgv_refinement._State.iterate = iterate
