@@ -54,7 +54,7 @@ def match_strip(task: StripTask) -> DisparityResult:
     directions = window_zncc.match_directions(task)
     window_valid, _ = window_zncc.consistent(task, directions, directions.forward.disparity, directions.backward_px)
     # The directions are independent, and OpenCV, numpy and the compiled kernels release the GIL,
-    # so they overlap (semi-global matching and the propagation run on one thread each).
+    # so they overlap (semi-global matching, the propagation and the TGV² sweeps run on one thread each).
     with ThreadPoolExecutor(max_workers=2) as pool:
         forward_job = pool.submit(_refined, directions.left, directions.right, directions.forward.disparity)
         backward = _refined(directions.right, directions.left, directions.backward_px)
