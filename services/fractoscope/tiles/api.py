@@ -26,7 +26,7 @@ from google.protobuf import json_format
 
 from fractoscope import report
 from fractoscope.errors import FractoscopeError, InvalidInputError
-from fractoscope.formats.exports import MEDIA_TYPES
+from fractoscope.formats.exports import EXPORT_FORMATS
 from fractoscope.rpc import wire
 from fractoscope.rpc.limits import MAX_REQUEST_ID_CHARS
 from fractoscope.runtime.auth import READ, WRITE, Grant, TokenTable
@@ -258,7 +258,7 @@ class JsonApi:
 
         def write(directory: Path) -> tuple[Path, str]:
             exported = exports.export_area(specimen, directory, **area, **options)
-            return exported.path, MEDIA_TYPES[exported.file_format]
+            return exported.path, EXPORT_FORMATS[exported.file_format].media_type
 
         cost = await off_loop(
             lambda: admission.area_export_cost(
@@ -301,7 +301,7 @@ class JsonApi:
                 export_pixel_size_um=export_pixel_size_um,
                 **options,
             )
-            return exported.path, MEDIA_TYPES[exported.file_format]
+            return exported.path, EXPORT_FORMATS[exported.file_format].media_type
 
         return await self._file(request, cost, write)
 

@@ -17,7 +17,7 @@ from aiohttp.http_exceptions import HttpProcessingError
 from numpy.lib import format as npy_format
 
 from fractoscope.errors import InvalidInputError
-from fractoscope.formats.exports import MEDIA_TYPES
+from fractoscope.formats.exports import EXPORT_FORMATS
 from fractoscope.rpc import wire
 from fractoscope.sem import image as sem_image
 from fractoscope.specimen import queries
@@ -124,7 +124,7 @@ def area_of(values: dict) -> dict:
 def export_options(values: dict) -> dict:
     pixel_size_um = number(values, "pixel_size_um", default=0.0, minimum=0.0) or None
     return {
-        "file_format": choice(values, "format", tuple(MEDIA_TYPES)),
+        "file_format": choice(values, "format", tuple(EXPORT_FORMATS)),
         "pixel_size_um": pixel_size_um,
         "solid": flag(values, "solid"),
         "units": choice(values, "units", tuple(wire.LENGTH_UNITS), default="um"),

@@ -5,11 +5,12 @@ from __future__ import annotations
 import functools
 from importlib import metadata
 
+from fractoscope.formats.exports import EXPORT_FORMATS
+
 _ID = "^[A-Za-z0-9_-]{1,64}$"
 _NUMBER = r"-?[0-9]+(\.[0-9]+)?([eE][-+]?[0-9]+)?"
 _REGION = f"^{_NUMBER},{_NUMBER},{_NUMBER},{_NUMBER}$"
 _POINT = f"^{_NUMBER},{_NUMBER}$"
-_EXPORT_FORMATS = ["x3p", "tif", "csv", "stl", "ply", "obj"]
 _ERRORS = {
     "400": "A parameter or the body is invalid; `field` names it.",
     "401": "A valid bearer token is required (when the server has tokens).",
@@ -103,9 +104,9 @@ def _file_ok(description: str, media_types: list[str]) -> dict:
     }
 
 
-_EXPORT_MEDIA = ["application/zip", "image/tiff", "text/csv", "model/stl", "application/octet-stream", "model/obj"]
+_EXPORT_MEDIA = list(dict.fromkeys(export_format.media_type for export_format in EXPORT_FORMATS.values()))
 _EXPORT_OPTIONS = [
-    _query("format", "File format.", {"type": "string", "enum": _EXPORT_FORMATS}, required=True),
+    _query("format", "File format.", {"type": "string", "enum": list(EXPORT_FORMATS)}, required=True),
     _query(
         "pixel_size_um",
         "Grid step of the export, µm (default: the source's own; a region's is the finest there).",
@@ -520,7 +521,7 @@ def _form_schemas() -> dict:
                     "contentMediaType": "application/octet-stream",
                     "description": "An .npz with z_um (rows, cols) µm; sigma_um and pixel_size_um optional.",
                 },
-                "format": {"type": "string", "enum": _EXPORT_FORMATS},
+                "format": {"type": "string", "enum": list(EXPORT_FORMATS)},
                 "map_pixel_size_um": {
                     "type": "string",
                     "description": "The map's pixel size, µm, when the npz stores none.",
