@@ -4,6 +4,7 @@ when one drifts: a format, method or mode added in one place and not in another.
 
 from __future__ import annotations
 
+import dataclasses
 import re
 
 import numpy as np
@@ -16,10 +17,12 @@ from fractoscope.errors import InvalidInputError
 from fractoscope.formats import exports
 from fractoscope.matching import messages as matching_messages
 from fractoscope.rpc import wire
+from fractoscope.specimen import queries
 from fractoscope.stereo import matching
 from fractoscope.stereo.inputs import MatchingOptions, validate_options
 from fractoscope.stereo.relief_sign import ReliefSignMode
-from fractoscope.tiles import openapi
+from fractoscope.tiles import http_requests, openapi
+from fractoscope.tiles import messages as tiles_messages
 from fractoscope.v1 import matching_pb2, tiles_pb2
 
 
@@ -97,3 +100,27 @@ def test_relief_sign_modes_are_one_list():
     assert _cli_choices("height", "--relief-sign") == names
     assert _listed(_message_of(matching_messages.relief_sign_from_message, 99), after="known:") == names
     assert _listed(_message_of(_relief_sign_mode, "bad"), after="one of") == names
+
+
+def _route_parameters(path: str) -> list[str]:
+    return [item["name"] for item in openapi.document()["paths"][path]["get"]["parameters"]]
+
+
+def _cli_dests(verb: str) -> list[str]:
+    commands = next(action for action in build_parser()._actions if action.dest == "command")
+    return [action.dest for action in commands.choices[verb]._actions]
+
+
+def test_the_roughness_chain_fields_are_one_list():
+    """SurfaceChain's fields are the chain's settings everywhere: ChainRequest (levelling_region
+    with its unit), the HTTP API's query parameters and the CLI's flags."""
+    fields = list(tiles_pb2.SurfaceChain.DESCRIPTOR.fields_by_name)
+    core = [field.name for field in dataclasses.fields(queries.ChainRequest)]
+    assert [name.removesuffix("_um") if name == "levelling_region_um" else name for name in core] == fields
+    assert list(wire.CHAIN_FIELDS) == fields == list(http_requests.CHAIN_PARAMETERS)
+    roughness = _route_parameters("/api/specimens/{specimen_id}/roughness")
+    assert [name for name in roughness if name in fields] == fields == roughness[-len(fields) :]
+    profile = tuple(name for name in _route_parameters("/api/specimens/{specimen_id}/profile") if name in fields)
+    assert profile == tiles_messages.PROFILE_CHAIN_FIELDS == http_requests.PROFILE_CHAIN_PARAMETERS
+    assert set(fields) <= set(_cli_dests("roughness"))
+    assert {name for name in _cli_dests("profile") if name in fields} == set(profile)

@@ -164,31 +164,30 @@ FORMS = {
 _FORM_NAMES = {value: name for name, value in FORMS.items()} | {tiles_pb2.FORM_UNSPECIFIED: "plane"}
 HURST_METHODS = {"hhc": tiles_pb2.HURST_METHOD_HEIGHT_HEIGHT_CORRELATION, "psd": tiles_pb2.HURST_METHOD_POWER_SPECTRUM}
 _HURST_METHOD_NAMES = {value: name for name, value in HURST_METHODS.items()}
-_CHAIN_NUMBERS = ("s_filter_um", "l_filter_um", "direction_deg", "window_px", "min_windows")
+# The fields of SurfaceChain, the one list of the chain's settings: by these names requests,
+# the HTTP API's query parameters and the CLI's flags give them; the numbers among them.
+CHAIN_FIELDS = tuple(tiles_pb2.SurfaceChain.DESCRIPTOR.fields_by_name)
+_CHAIN_NUMBERS = tuple(
+    field.name for field in tiles_pb2.SurfaceChain.DESCRIPTOR.fields if field.type == field.TYPE_DOUBLE
+)
 
 
 def chain_message(
-    *,
-    form: str | None = None,
-    s_filter_um: float | None = None,
-    l_filter_um: float | None = None,
-    direction_deg: float | None = None,
-    levelling_region_um: Region | None = None,
-    window_px: float | None = None,
-    min_windows: float | None = None,
-    robust_form: bool | None = None,
+    *, form: str | None = None, levelling_region_um: Region | None = None, **settings: float | bool | None
 ) -> tiles_pb2.SurfaceChain:
-    """A SurfaceChain with the given settings (None: left at the default)."""
+    """A SurfaceChain with the given settings, the keywords of queries.ChainRequest: `form` by
+    name, the levelling region (x0, y0, x1, y1) µm, and the other fields of SurfaceChain by their
+    names (s_filter_um, ..., robust_form); None leaves a setting at its default."""
     if form is not None and form not in FORMS:
         raise InvalidInputError("chain.form", f"must be one of {', '.join(FORMS)}, not {form!r}")
     message = tiles_pb2.SurfaceChain(form=FORMS[form] if form else tiles_pb2.FORM_UNSPECIFIED)
-    for name, value in zip(_CHAIN_NUMBERS, (s_filter_um, l_filter_um, direction_deg, window_px, min_windows)):
+    for name, value in settings.items():
+        if name not in CHAIN_FIELDS or name in ("form", "levelling_region"):
+            raise TypeError(f"chain_message() got an unexpected keyword argument {name!r}")
         if value is not None:
             setattr(message, name, value)
     if levelling_region_um is not None:
         message.levelling_region.CopyFrom(region_message(levelling_region_um))
-    if robust_form is not None:
-        message.robust_form = robust_form
     return message
 
 
