@@ -15,13 +15,14 @@ from fractoscope.cli.main import build_parser
 from fractoscope.client import _matching_method, _relief_sign_mode
 from fractoscope.errors import InvalidInputError
 from fractoscope.formats import exports
+from fractoscope.http import inputs as http_inputs
+from fractoscope.http import openapi
 from fractoscope.matching import messages as matching_messages
 from fractoscope.rpc import wire
 from fractoscope.specimen import queries
 from fractoscope.stereo import matching
 from fractoscope.stereo.inputs import MatchingOptions, validate_options
 from fractoscope.stereo.relief_sign import ReliefSignMode
-from fractoscope.tiles import http_requests, openapi
 from fractoscope.tiles import messages as tiles_messages
 from fractoscope.v1 import matching_pb2, tiles_pb2
 
@@ -117,10 +118,10 @@ def test_the_roughness_chain_fields_are_one_list():
     fields = list(tiles_pb2.SurfaceChain.DESCRIPTOR.fields_by_name)
     core = [field.name for field in dataclasses.fields(queries.ChainRequest)]
     assert [name.removesuffix("_um") if name == "levelling_region_um" else name for name in core] == fields
-    assert list(wire.CHAIN_FIELDS) == fields == list(http_requests.CHAIN_PARAMETERS)
+    assert list(wire.CHAIN_FIELDS) == fields == list(http_inputs.CHAIN_PARAMETERS)
     roughness = _route_parameters("/api/specimens/{specimen_id}/roughness")
     assert [name for name in roughness if name in fields] == fields == roughness[-len(fields) :]
     profile = tuple(name for name in _route_parameters("/api/specimens/{specimen_id}/profile") if name in fields)
-    assert profile == tiles_messages.PROFILE_CHAIN_FIELDS == http_requests.PROFILE_CHAIN_PARAMETERS
+    assert profile == tiles_messages.PROFILE_CHAIN_FIELDS == http_inputs.PROFILE_CHAIN_PARAMETERS
     assert set(fields) <= set(_cli_dests("roughness"))
     assert {name for name in _cli_dests("profile") if name in fields} == set(profile)

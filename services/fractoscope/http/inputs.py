@@ -18,11 +18,11 @@ from numpy.lib import format as npy_format
 
 from fractoscope.errors import InvalidInputError
 from fractoscope.formats.exports import EXPORT_FORMATS
+from fractoscope.http.responses import CHUNK_BYTES, ApiError
 from fractoscope.rpc import wire
 from fractoscope.sem import image as sem_image
 from fractoscope.specimen import queries
 from fractoscope.tiles import messages
-from fractoscope.tiles.http_json import CHUNK_BYTES, ApiError
 from fractoscope.v1 import tiles_pb2
 
 
