@@ -17,7 +17,6 @@ from aiohttp.http_exceptions import HttpProcessingError
 from numpy.lib import format as npy_format
 
 from fractoscope.errors import InvalidInputError
-from fractoscope.formats.exports import EXPORT_FORMATS
 from fractoscope.http.responses import CHUNK_BYTES, ApiError
 from fractoscope.rpc import wire
 from fractoscope.sem import image as sem_image
@@ -113,13 +112,16 @@ def area_of(values: dict) -> dict:
 
 
 def export_options(values: dict) -> dict:
-    pixel_size_um = number(values, "pixel_size_um", default=0.0, minimum=0.0) or None
-    return {
-        "file_format": choice(values, "format", tuple(EXPORT_FORMATS)),
-        "pixel_size_um": pixel_size_um,
-        "solid": flag(values, "solid"),
-        "units": choice(values, "units", tuple(wire.LENGTH_UNITS), default="um"),
-    }
+    """The export's settings among the parameters, decoded into the ExportRequest of the gRPC API
+    and read as its settings are (`messages.export_options`)."""
+    pixel_size_um = number(values, "pixel_size_um", default=0.0, minimum=0.0)
+    request = tiles_pb2.ExportRequest(
+        format=wire.EXPORT_FORMATS[choice(values, "format", tuple(wire.EXPORT_FORMATS))],
+        pixel_size_um=pixel_size_um,
+        solid=flag(values, "solid"),
+        units=wire.LENGTH_UNITS[choice(values, "units", tuple(wire.LENGTH_UNITS), default="um")],
+    )
+    return messages.export_options(request)
 
 
 async def json_body(request: web.Request, *, limit_bytes: int) -> dict:

@@ -344,14 +344,21 @@ def area_of(message: tiles_pb2.SpecimenArea, field: str) -> dict:
     return {"roi": message.roi if kind == "roi" else None, "region_um": None}
 
 
-def export(request: tiles_pb2.ExportRequest, directory: Path, store: SpecimenStore) -> ExportedFile:
-    """The file an ExportRequest asks for, written in `directory`."""
-    options = {
+def export_options(request: tiles_pb2.ExportRequest) -> dict:
+    """An ExportRequest's file settings as the exports take them (file_format, solid, units), and
+    its pixel_size_um (None: the source's own), checked."""
+    return {
         "file_format": wire.export_format_name(request.format),
         "solid": request.solid,
         "units": wire.length_unit_name(request.units),
+        "pixel_size_um": request.pixel_size_um or None,
     }
-    pixel_size_um = request.pixel_size_um or None
+
+
+def export(request: tiles_pb2.ExportRequest, directory: Path, store: SpecimenStore) -> ExportedFile:
+    """The file an ExportRequest asks for, written in `directory`."""
+    options = export_options(request)
+    pixel_size_um = options.pop("pixel_size_um")
     if request.WhichOneof("source") == "specimen":
         area = request.specimen
         return exports.export_area(
