@@ -45,24 +45,19 @@ class ExportFormat:
     mesh: bool = False
 
 
-def _write_x3p(path: str | os.PathLike, heights: Heights) -> None:
-    write_x3p(
-        path,
-        heights.z_um,
-        pixel_size_um=heights.pixel_size_um,
-        origin_um=heights.origin_um,
-        calibration=heights.calibration,
-    )
+def _with_calibration(writer: Callable[..., None]) -> Callable[[str | os.PathLike, Heights], None]:
+    """A writer of the heights on their grid, with its origin and the calibration (X3P, TIFF)."""
 
+    def write(path: str | os.PathLike, heights: Heights) -> None:
+        writer(
+            path,
+            heights.z_um,
+            pixel_size_um=heights.pixel_size_um,
+            origin_um=heights.origin_um,
+            calibration=heights.calibration,
+        )
 
-def _write_tiff(path: str | os.PathLike, heights: Heights) -> None:
-    write_height_tiff(
-        path,
-        heights.z_um,
-        pixel_size_um=heights.pixel_size_um,
-        origin_um=heights.origin_um,
-        calibration=heights.calibration,
-    )
+    return write
 
 
 def _write_csv(path: str | os.PathLike, heights: Heights) -> None:
@@ -83,8 +78,8 @@ def _write_mesh(path: str | os.PathLike, heights: Heights) -> None:
 # (tracemalloc: X3P 9, CSV 170, STL 380 with its fixed 50 MB blocks, PLY 186, OBJ 473; solids
 # about twice that).
 EXPORT_FORMATS = {
-    "x3p": ExportFormat(_write_x3p, "application/zip", 8, 16),
-    "tif": ExportFormat(_write_tiff, "image/tiff", 4, 8),
+    "x3p": ExportFormat(_with_calibration(write_x3p), "application/zip", 8, 16),
+    "tif": ExportFormat(_with_calibration(write_height_tiff), "image/tiff", 4, 8),
     "csv": ExportFormat(_write_csv, "text/csv", 40, 200),
     "stl": ExportFormat(_write_mesh, "model/stl", 100, 60, mesh=True),
     "ply": ExportFormat(_write_mesh, "application/octet-stream", 40, 250, mesh=True),
