@@ -26,6 +26,10 @@ class DisparityResult:
     sigma_px: np.ndarray
 
 
+# The matching method by default (a key of matching.METHODS), accuracy first.
+DEFAULT_METHOD = "tgv_zncc"
+
+
 @dataclass(frozen=True)
 class StripTask:
     """One strip of rows of a rectified pair with the matcher's settings: a complete stereo
@@ -41,7 +45,7 @@ class StripTask:
     max_lr_difference_px: float
     keep_rows: tuple[int, int] | None = None
     propagate_at_full_resolution: bool = False
-    method: str = "tgv_zncc"  # a key of matching.METHODS
+    method: str = DEFAULT_METHOD
 
 
 # Matches strips, yielding their results in order: `match_strips` here, or peers over the network.

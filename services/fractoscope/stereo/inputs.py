@@ -11,6 +11,7 @@ import numpy as np
 from fractoscope.errors import InvalidInputError
 from fractoscope.sem.image import SemImage
 from fractoscope.stereo import geometry, matching
+from fractoscope.stereo.disparity import DEFAULT_METHOD
 from fractoscope.stereo.relief_sign import ReliefSignMode
 
 # Where a calibration value came from (the report's tilt_source and pixel_size_source).
@@ -27,7 +28,7 @@ class MatchingOptions:
     max_lr_difference_px: float = matching.DEFAULT_MAX_LR_DIFFERENCE_PX
     normalize_local_contrast: bool = True
     propagate_at_full_resolution: bool = False
-    method: str = "tgv_zncc"  # a key of matching.METHODS
+    method: str = DEFAULT_METHOD  # a key of matching.METHODS
     tilt_uncertainty_deg: float = 0.5
     calibrate_tilt: bool = False
     strip_pixels: int = matching.DEFAULT_STRIP_PIXELS

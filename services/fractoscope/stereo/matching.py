@@ -21,7 +21,7 @@ import numpy as np
 
 from fractoscope.progress import ProgressCallback, silent
 from fractoscope.stereo import optical_flow, tgv_zncc, window_zncc
-from fractoscope.stereo.disparity import DisparityResult, StripMatcher, StripTask
+from fractoscope.stereo.disparity import DEFAULT_METHOD, DisparityResult, StripMatcher, StripTask
 
 DEFAULT_WINDOW_PX = 15
 DEFAULT_MIN_CONFIDENCE = 0.3
@@ -45,7 +45,7 @@ def match_disparity(
     max_lr_difference_px: float = DEFAULT_MAX_LR_DIFFERENCE_PX,
     normalize_local_contrast: bool = True,
     propagate_at_full_resolution: bool = False,
-    method: str = "tgv_zncc",
+    method: str = DEFAULT_METHOD,
     strip_pixels: int = DEFAULT_STRIP_PIXELS,
     strip_matcher: StripMatcher | None = None,
     progress: ProgressCallback | None = None,
