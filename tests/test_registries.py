@@ -83,6 +83,7 @@ def test_export_formats_are_one_list():
     assert [name.removeprefix("export_format_") for name in listed] == api
     bad_write = _message_of(lambda: exports.write_surface("a.bad", "bad", np.zeros((2, 2)), pixel_size_um=1.0))
     assert _listed(bad_write, after="is none of [") == names
+    assert _listed(_message_of(lambda: http_inputs.export_options({"format": "bad"})), after="one of") == names
 
 
 def test_matching_methods_are_one_list():
