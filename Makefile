@@ -14,7 +14,7 @@ STAMP := $(VENV)/.installed
 NODE_STAMP := node_modules/.installed
 WEB := clients/web
 WEB_STAMP := $(WEB)/node_modules/.installed
-# Where an installed server finds the web viewer: sys.prefix/share/fractoscope/web (tiles.http).
+# Where an installed server finds the web viewer: sys.prefix/share/fractoscope/web (http.server).
 WEB_LINK := $(VENV)/share/fractoscope/web
 DATA ?= ./data
 PORT ?= 8080

@@ -33,8 +33,7 @@ import numpy as np
 from benchmarks import peers
 from fractoscope import synthetic
 from fractoscope.sem.image import SemImage
-from fractoscope.stereo import tilt_series
-from fractoscope.stereo.disparity import MatchingMethod
+from fractoscope.stereo import matching, tilt_series
 from fractoscope.stereo.inputs import MatchingOptions
 from fractoscope.stereo.pipeline import compute_height_map, compute_series_height_map
 
@@ -96,13 +95,13 @@ def _surface_rows() -> list[dict]:
         for tilt_deg in TILTS_DEG:
             pair = _render(surface, tilt_deg)
             no_noise, fixed = {"noise_fraction": 0.0}, {"shading_tilt_deg": float(np.mean(tilt_deg))}
-            default = MatchingMethod.TGV_ZNCC
+            default = "tgv_zncc"
             rows.append(
                 {
                     "surface": kind,
                     "tilt_deg": list(tilt_deg),
                     "tgv_zncc": _figures(_ours(pair, tilt_deg, default)),
-                    "window_zncc": _figures(_ours(pair, tilt_deg, MatchingMethod.WINDOW_ZNCC)),
+                    "window_zncc": _figures(_ours(pair, tilt_deg, "window_zncc")),
                     "sgbm_3d_sem": _figures(_peer(pair, tilt_deg, peers.sgbm_3d_sem)),
                     "sgbm_pollen3d": _figures(_peer(pair, tilt_deg, peers.sgbm_pollen3d)),
                     "rms_percent_without_noise": 100
@@ -127,10 +126,8 @@ def _overview_rows() -> list[dict]:
                 "size_px": size_px,
                 "window_floor_rms_percent": 100 * _window_floor_of_range(pair.z_seen_um),
                 **{
-                    method.value: _figures(
-                        _ours(pair, (-5.0, 5.0), method, pixel_size_um=synthetic.OVERVIEW_PIXEL_SIZE_UM)
-                    )
-                    for method in MatchingMethod
+                    method: _figures(_ours(pair, (-5.0, 5.0), method, pixel_size_um=synthetic.OVERVIEW_PIXEL_SIZE_UM))
+                    for method in matching.METHODS
                 },
             }
         )
@@ -146,7 +143,7 @@ def _series_rows() -> list[dict]:
     )
     views = [SemImage(image, None, 0.1, 0) for image in images]
     rows = []
-    for method in MatchingMethod:
+    for method in matching.METHODS:
         result = compute_series_height_map(
             views, tilt_deg=SERIES_NOMINAL_DEG, options=MatchingOptions(calibrate_tilt=True, method=method)
         )
@@ -196,9 +193,8 @@ def _print(rows, overview, series, out) -> None:
             f"overview {row['size_px']}² at {synthetic.OVERVIEW_PIXEL_SIZE_UM} µm/px (floor "
             f"{row['window_floor_rms_percent']:.2f} %): "
             + ", ".join(
-                f"{m.value} {row[m.value]['rms_percent_of_range']:.2f} % RMS, Sa "
-                f"{row[m.value]['sa_error_percent']:+.1f} %"
-                for m in MatchingMethod
+                f"{m} {row[m]['rms_percent_of_range']:.2f} % RMS, Sa {row[m]['sa_error_percent']:+.1f} %"
+                for m in matching.METHODS
             )
         )
     for row in series:

@@ -35,7 +35,6 @@ from benchmarks import peers
 from fractoscope import synthetic
 from fractoscope.runtime.process import keep_freed_memory
 from fractoscope.sem.image import SemImage
-from fractoscope.stereo.disparity import MatchingMethod
 from fractoscope.stereo.matching import match_disparity
 from fractoscope.stereo.pipeline import compute_height_map
 from fractoscope.stereo.semi_global import sgbm_disparity
@@ -68,7 +67,7 @@ def _heights_from_our_matcher(first, second):
     return result.z_um
 
 
-def _heights_from_matcher_only(first, second, *, method=MatchingMethod.TGV_ZNCC, propagate_at_full_resolution=False):
+def _heights_from_matcher_only(first, second, *, method="tgv_zncc", propagate_at_full_resolution=False):
     """A matching method alone on the (already rectified) pair, as StereoSGBM gets it."""
     disparity = match_disparity(
         first,
@@ -155,13 +154,13 @@ def run_one(method: str, pair_path: Path) -> dict:
             "seconds": _per_pixel_template_seconds(first, second, vertical_reach_px=0),
             "extrapolated": True,
         }
-    window = functools.partial(_heights_from_matcher_only, method=MatchingMethod.WINDOW_ZNCC)
+    window = functools.partial(_heights_from_matcher_only, method="window_zncc")
     heights = {
         "fractoscope": _heights_from_our_matcher,
         "tgv_zncc": _heights_from_matcher_only,
         "window_zncc": window,
         "window_zncc_propagating": functools.partial(window, propagate_at_full_resolution=True),
-        "fast": functools.partial(_heights_from_matcher_only, method=MatchingMethod.FAST),
+        "fast": functools.partial(_heights_from_matcher_only, method="fast"),
         "sgbm": _heights_from_sgbm,
         "sgbm_3d_sem": _heights_from_3d_sem,
     }

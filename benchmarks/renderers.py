@@ -27,7 +27,6 @@ import numpy as np
 from fractoscope import synthetic
 from fractoscope.sem.image import SemImage
 from fractoscope.stereo import tilt_series
-from fractoscope.stereo.disparity import MatchingMethod
 from fractoscope.stereo.inputs import MatchingOptions
 from fractoscope.stereo.pipeline import compute_height_map
 from fractoscope.stereo.semi_global import sgbm_disparity
@@ -51,9 +50,7 @@ def _pair(physics: synthetic.SemPhysics, size_px: int) -> synthetic.StereoPair:
 
 
 def _ours(pair, physics, method) -> tuple[np.ndarray, dict]:
-    options = MatchingOptions(
-        method=MatchingMethod(method), detector_from_tilt_axis_deg=physics.detector_from_tilt_axis_deg
-    )
+    options = MatchingOptions(method=method, detector_from_tilt_axis_deg=physics.detector_from_tilt_axis_deg)
     first, second = (SemImage(image, None, None, 0) for image in (pair.first, pair.second))
     result = compute_height_map(first, second, tilt_deg=TILTS_DEG, pixel_size_um=PIXEL_SIZE_UM, options=options)
     return result.z_um, result.report

@@ -29,7 +29,6 @@ from pathlib import Path
 
 import numpy as np
 
-from fractoscope.stereo.disparity import MatchingMethod
 from fractoscope.stereo.matching import match_disparity
 from fractoscope.stereo.semi_global import sgbm_disparity
 from fractoscope.synthetic import textures
@@ -78,7 +77,7 @@ def matched_px(method: str, first: np.ndarray, second: np.ndarray) -> np.ndarray
     """The disparity `method` finds, (rows, cols) float32 px, NaN where it gives none."""
     if method == "sgbm":
         return sgbm_disparity(first, second, min_px=-SEARCH_PX, max_px=SEARCH_PX, block_px=5, uniqueness_percent=5)
-    return match_disparity(first, second, max_disparity_px=SEARCH_PX, method=MatchingMethod(method)).disparity_px
+    return match_disparity(first, second, max_disparity_px=SEARCH_PX, method=method).disparity_px
 
 
 def scores(measured_px: np.ndarray, truth_px: np.ndarray) -> dict:

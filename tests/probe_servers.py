@@ -22,6 +22,7 @@ import requests
 from s3_server import free_ports
 
 from fractoscope import synthetic
+from fractoscope.http.server import start_http_server
 from fractoscope.runtime.auth import TokenTable
 from fractoscope.runtime.budget import Budget
 from fractoscope.server.main import create_server
@@ -34,7 +35,6 @@ from fractoscope.specimen.store import (
     write_roi_arrays,
     write_roi_views,
 )
-from fractoscope.tiles.http import start_http_server
 
 WRITE_TOKEN, READ_TOKEN = "w-9f3c1e2b7a-secret", "r-4d8a6b0c5e-secret"
 TOKENS = f"writer:{WRITE_TOKEN}:write,reader:{READ_TOKEN}:read"

@@ -11,7 +11,7 @@ import pytest
 import requests
 from probe_servers import READ, WRITE
 
-from fractoscope.tiles.uploads import MAX_UPLOAD_PARTS
+from fractoscope.http.uploads import MAX_UPLOAD_PARTS
 
 MANIFEST = {
     "specimen": "probe",

@@ -76,7 +76,7 @@ class Outcome:
     exit_code: int
 
 
-# The one table from failures to what callers see; gRPC (rpc.status), the HTTP API (tiles.api)
+# The one table from failures to what callers see; gRPC (rpc.status), the HTTP API (http.api)
 # and the command line (cli.main) all read it. Codes a server never sends on purpose (INTERNAL,
 # UNKNOWN) and those only the transport gives (DEADLINE_EXCEEDED) have rows too, for the callers
 # that pass a status on. Rows go by their gRPC code, but for TOO_LARGE: RESOURCE_EXHAUSTED that

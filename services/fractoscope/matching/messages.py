@@ -14,20 +14,12 @@ from fractoscope.rpc import wire
 from fractoscope.runtime import budget
 from fractoscope.sem import image as sem_image
 from fractoscope.stereo import alignment
-from fractoscope.stereo.disparity import DisparityResult, MatchingMethod, StripTask
+from fractoscope.stereo.disparity import DisparityResult, StripTask
 from fractoscope.stereo.inputs import MatchingOptions, validate_options, validate_same_size, validate_tilt_axis_deg
 from fractoscope.stereo.matching import DEFAULT_STRIP_PIXELS
 from fractoscope.stereo.pipeline import DEFAULT_TILT_AXIS_DEG, HeightMapResult
 from fractoscope.stereo.relief_sign import ReliefSignMode
 from fractoscope.v1 import matching_pb2
-
-_METHODS = {
-    matching_pb2.MATCHING_METHOD_UNSPECIFIED: MatchingOptions().method,
-    matching_pb2.MATCHING_METHOD_TGV_ZNCC: MatchingMethod.TGV_ZNCC,
-    matching_pb2.MATCHING_METHOD_WINDOW_ZNCC: MatchingMethod.WINDOW_ZNCC,
-    matching_pb2.MATCHING_METHOD_FAST: MatchingMethod.FAST,
-}
-
 
 # MatchingOptions' names that are fields of MatchingParameters, and so of `parameters` in requests.
 _PARAMETER_FIELDS = frozenset(field.name for field in dataclasses.fields(MatchingOptions)) & frozenset(
@@ -47,17 +39,20 @@ def request_fields() -> Iterator[None]:
         raise InvalidInputError(f"parameters.{error.field}", error.message) from None
 
 
-def method_from_message(code: int) -> MatchingMethod:
-    """A MatchingMethod value (UNSPECIFIED = the default); InvalidInputError for unknown ones."""
-    if code not in _METHODS:
-        raise InvalidInputError(
-            "parameters.method", f"unknown matching method {code}; known: TGV_ZNCC, WINDOW_ZNCC, FAST"
-        )
-    return _METHODS[code]
+def method_from_message(code: int) -> str:
+    """A MatchingMethod value's name, a key of stereo.matching.METHODS (UNSPECIFIED: the
+    default); InvalidInputError for unknown ones."""
+    if code == matching_pb2.MATCHING_METHOD_UNSPECIFIED:
+        return MatchingOptions().method
+    try:
+        return wire.method_name(code)
+    except ValueError:
+        known = ", ".join(name.upper() for name in wire.method_names())
+        raise InvalidInputError("parameters.method", f"unknown matching method {code}; known: {known}") from None
 
 
-def method_to_message(method: MatchingMethod) -> int:
-    return wire.method_code(MatchingMethod(method).value)
+def method_to_message(method: str) -> int:
+    return wire.method_code(method)
 
 
 def options_from_message(parameters: matching_pb2.MatchingParameters) -> MatchingOptions:
@@ -91,9 +86,8 @@ def relief_sign_from_message(code: int) -> ReliefSignMode:
     try:
         return ReliefSignMode(wire.relief_sign_name(code))
     except ValueError:
-        raise InvalidInputError(
-            "parameters.relief_sign", f"unknown relief sign mode {code}; known: AUTO, NOMINAL, INVERTED"
-        ) from None
+        known = ", ".join(name.upper() for name in wire.relief_sign_names())
+        raise InvalidInputError("parameters.relief_sign", f"unknown relief sign mode {code}; known: {known}") from None
 
 
 def checked_height_map_request(

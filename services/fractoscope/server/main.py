@@ -21,6 +21,7 @@ import grpc
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
 
+from fractoscope.http.server import start_http_server
 from fractoscope.matching.servicer import MatchingServicer
 from fractoscope.meshing.servicer import MeshingServicer
 from fractoscope.rpc.limits import DEFAULT_MAX_MESSAGE_MB, message_size_options
@@ -46,7 +47,6 @@ from fractoscope.server.config import (
 from fractoscope.specimen.store import SpecimenStore, StoredSpecimens
 from fractoscope.stereo.matching import DEFAULT_STRIP_PIXELS
 from fractoscope.store.specimens import open_specimen_store
-from fractoscope.tiles.http import start_http_server
 from fractoscope.tiles.servicer import SerializedGetTile, TileServicer
 from fractoscope.v1 import matching_pb2, matching_pb2_grpc, meshing_pb2, meshing_pb2_grpc, tiles_pb2, tiles_pb2_grpc
 

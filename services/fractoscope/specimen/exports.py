@@ -130,8 +130,8 @@ def _write(
     *,
     heights_field: str,
 ) -> ExportedFile:
-    if file_format not in exports.FORMATS:
-        raise InvalidInputError("format", f"{file_format!r} is none of {list(exports.FORMATS)}")
+    if file_format not in exports.EXPORT_FORMATS:
+        raise InvalidInputError("format", f"{file_format!r} is none of {list(exports.EXPORT_FORMATS)}")
     path = Path(directory) / f"{name}.{file_format}"
     try:
         exports.write_surface(

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
-from enum import Enum
 
 import numpy as np
 
@@ -27,21 +26,16 @@ class DisparityResult:
     sigma_px: np.ndarray
 
 
-class MatchingMethod(str, Enum):
-    """How a strip is matched: `tgv_zncc` (the default, accuracy first) refines `window_zncc`'s
-    disparities by TGV² over a small-window ZNCC data term; `window_zncc` is the paper's window
-    correlation; `fast` refines DIS optical flow by ZNCC residual searches (`optical_flow`)."""
-
-    TGV_ZNCC = "tgv_zncc"
-    WINDOW_ZNCC = "window_zncc"
-    FAST = "fast"
+# The matching method by default (a key of matching.METHODS), accuracy first.
+DEFAULT_METHOD = "tgv_zncc"
 
 
 @dataclass(frozen=True)
 class StripTask:
     """One strip of rows of a rectified pair with the matcher's settings: a complete stereo
     problem, since parallax runs along rows (see `matching.strip_bounds`). `keep_rows` (first, stop): the
-    rows of the strip whose results are wanted (None: all); the rest only give context."""
+    rows of the strip whose results are wanted (None: all); the rest only give context. `method`: the
+    name of the method that matches it, a key of `matching.METHODS`."""
 
     left: np.ndarray
     right: np.ndarray
@@ -51,7 +45,7 @@ class StripTask:
     max_lr_difference_px: float
     keep_rows: tuple[int, int] | None = None
     propagate_at_full_resolution: bool = False
-    method: MatchingMethod = MatchingMethod.TGV_ZNCC
+    method: str = DEFAULT_METHOD
 
 
 # Matches strips, yielding their results in order: `match_strips` here, or peers over the network.

@@ -11,7 +11,7 @@ import numpy as np
 from fractoscope.errors import InvalidInputError
 from fractoscope.sem.image import SemImage
 from fractoscope.stereo import geometry, matching
-from fractoscope.stereo.disparity import MatchingMethod
+from fractoscope.stereo.disparity import DEFAULT_METHOD
 from fractoscope.stereo.relief_sign import ReliefSignMode
 
 # Where a calibration value came from (the report's tilt_source and pixel_size_source).
@@ -28,7 +28,7 @@ class MatchingOptions:
     max_lr_difference_px: float = matching.DEFAULT_MAX_LR_DIFFERENCE_PX
     normalize_local_contrast: bool = True
     propagate_at_full_resolution: bool = False
-    method: MatchingMethod = MatchingMethod.TGV_ZNCC
+    method: str = DEFAULT_METHOD  # a key of matching.METHODS
     tilt_uncertainty_deg: float = 0.5
     calibrate_tilt: bool = False
     strip_pixels: int = matching.DEFAULT_STRIP_PIXELS
@@ -136,6 +136,8 @@ def validate_tilt_axis_deg(tilt_axis_deg: float) -> None:
 
 def validate_options(options: MatchingOptions, *, image_cols: int) -> None:
     """Raises InvalidInputError naming the first out-of-range setting by its MatchingOptions name."""
+    if options.method not in matching.METHODS:
+        raise InvalidInputError("method", f"must be one of {', '.join(matching.METHODS)}, got {options.method!r}")
     if options.window_px < 5 or options.window_px % 2 == 0 or options.window_px > 101:
         raise InvalidInputError("window_px", f"must be odd, 5 to 101, got {options.window_px}")
     if not 0.0 <= options.min_confidence < 1.0:

@@ -2,7 +2,7 @@
 shading (`local_contrast`), cut into overlapping strips of rows (`strip_bounds`, parallax runs
 along rows, so a strip is a complete stereo problem), the strips are matched here or by peers
 (`StripMatcher`) and stitched (`match_disparity`). The method that matches one strip is the
-task's (`_METHODS`): `tgv_zncc`, `window_zncc` or `optical_flow` (FAST).
+task's, by name in the one registry of methods (`METHODS`).
 
 Cores: a strip's layout depends on the image and `strip_pixels` only, never on the machine, and
 each strip is matched by the same code whatever runs beside it, so the result is the same on any
@@ -13,7 +13,7 @@ OpenCV's and numba's, which release the GIL); each strip also runs its own work 
 from __future__ import annotations
 
 import os
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 
 import cv2
@@ -21,7 +21,7 @@ import numpy as np
 
 from fractoscope.progress import ProgressCallback, silent
 from fractoscope.stereo import optical_flow, tgv_zncc, window_zncc
-from fractoscope.stereo.disparity import DisparityResult, MatchingMethod, StripMatcher, StripTask
+from fractoscope.stereo.disparity import DEFAULT_METHOD, DisparityResult, StripMatcher, StripTask
 
 DEFAULT_WINDOW_PX = 15
 DEFAULT_MIN_CONFIDENCE = 0.3
@@ -45,7 +45,7 @@ def match_disparity(
     max_lr_difference_px: float = DEFAULT_MAX_LR_DIFFERENCE_PX,
     normalize_local_contrast: bool = True,
     propagate_at_full_resolution: bool = False,
-    method: MatchingMethod = MatchingMethod.TGV_ZNCC,
+    method: str = DEFAULT_METHOD,
     strip_pixels: int = DEFAULT_STRIP_PIXELS,
     strip_matcher: StripMatcher | None = None,
     progress: ProgressCallback | None = None,
@@ -56,7 +56,7 @@ def match_disparity(
     `max_lr_difference_px`, whose window lies on a flat (textureless) patch, or that form small
     isolated islands among masked pixels. With `normalize_local_contrast` both images are first
     freed of smooth shading and evened out in contrast (see `local_contrast`). Strips are
-    matched by `method` (`_METHODS`). The window ZNCC method (`window_zncc.match_strip`, where
+    matched by `method` (a key of `METHODS`). The window ZNCC method (`window_zncc.match_strip`, where
     the default starts) lets each pixel try its neighbours' disparities at every pyramid level
     but the finest; `propagate_at_full_resolution` does so at the finest level too, for surfaces
     with steps, at about 1.5 times the matching time.
@@ -142,16 +142,21 @@ def strip_bounds(
     return bounds
 
 
-_METHODS = {
-    MatchingMethod.TGV_ZNCC: tgv_zncc.match_strip,
-    MatchingMethod.WINDOW_ZNCC: window_zncc.match_strip,
-    MatchingMethod.FAST: optical_flow.match_strip,
+# The matching methods by name, each the function that matches one strip: the one registry of
+# them, which the API's MatchingMethod enum names alike (MATCHING_METHOD_<NAME>; the tests hold
+# them equal). `tgv_zncc` (the default, accuracy first) refines `window_zncc`'s disparities by
+# TGV² over a small-window ZNCC data term; `window_zncc` is the paper's window correlation;
+# `fast` refines DIS optical flow by ZNCC residual searches.
+METHODS: dict[str, Callable[[StripTask], DisparityResult]] = {
+    "tgv_zncc": tgv_zncc.match_strip,
+    "window_zncc": window_zncc.match_strip,
+    "fast": optical_flow.match_strip,
 }
 
 
 def match_strip(task: StripTask) -> DisparityResult:
     """One strip matched by its task's method."""
-    return _METHODS[task.method](task)
+    return METHODS[task.method](task)
 
 
 def strip_workers() -> int:

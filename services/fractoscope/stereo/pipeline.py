@@ -19,7 +19,7 @@ from fractoscope.progress import ProgressCallback, silent
 from fractoscope.sem.image import SemImage
 from fractoscope.sem.instruments import InstrumentProfile, detector_place
 from fractoscope.stereo import alignment, geometry, matching, orientation, photometric, tilt_series
-from fractoscope.stereo.disparity import MatchingMethod, StripMatcher
+from fractoscope.stereo.disparity import StripMatcher
 from fractoscope.stereo.inputs import (
     ARGUMENT,
     DEFAULT,
@@ -151,7 +151,7 @@ def compute_series_height_map(
         tilt_uncertainty=tilt_uncertainty,
     )
     report.update(sources, **sign_report, **_file_facts(images), parameters=_parameters_used(options))
-    report.update(method=MatchingMethod(options.method).value, elapsed_s=time.perf_counter() - started)
+    report.update(method=options.method, elapsed_s=time.perf_counter() - started)
     report_progress(1.0, "done")
     return HeightMapResult(z_um, sigma_um, confidence, views_used, report)
 
@@ -342,7 +342,7 @@ def _match_view(reference: np.ndarray, view: np.ndarray, options: MatchingOption
     )
     unfused_px = matched.disparity_px  # the images' own match, which the relief sign's cues read
     fusion = photometric.Fusion(matched.disparity_px, matched.sigma_px, float("nan"), False)
-    if options.method is MatchingMethod.TGV_ZNCC:  # window correlation stays the paper's method, FAST quick
+    if options.method == "tgv_zncc":  # window correlation stays the paper's method, FAST quick
         noise_grey = float(np.hypot(photometric.noise_sigma(reference), photometric.noise_sigma(view)))
         fusion = photometric.fused_disparity(
             reference, on_first, matched.disparity_px, matched.sigma_px, noise_grey=noise_grey

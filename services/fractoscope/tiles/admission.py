@@ -49,7 +49,7 @@ def area_export_cost(
 
 
 def map_export_cost(shape: tuple[int, int], *, file_format: str, solid: bool, source_bytes_per_point: int = 0) -> Cost:
-    """An export of a grid of (rows, cols) `shape` in `file_format` (one of formats.FORMATS, checked
+    """An export of a grid of (rows, cols) `shape` in `file_format` (a key of formats.EXPORT_FORMATS, checked
     by the caller), its source held besides (`source_bytes_per_point`: an uploaded map's arrays)."""
     rows, cols = shape
     points = rows * cols

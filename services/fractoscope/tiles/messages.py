@@ -197,18 +197,6 @@ def region(message: tiles_pb2.RegionUm, field: str) -> tuple[float, float, float
     return checked_region(wire.message_to_region(message), field)
 
 
-CHAIN_FIELDS = (
-    "form",
-    "s_filter_um",
-    "l_filter_um",
-    "direction_deg",
-    "levelling_region",
-    "window_px",
-    "min_windows",
-    "robust_form",
-)
-
-
 @contextlib.contextmanager
 def chain_fields(field: str = "chain"):
     """Errors the queries raise about the chain's settings, named as the request's fields
@@ -216,13 +204,16 @@ def chain_fields(field: str = "chain"):
     try:
         yield
     except InvalidInputError as error:
-        if error.field in CHAIN_FIELDS:
+        if error.field in wire.CHAIN_FIELDS:
             raise InvalidInputError(f"{field}.{error.field}", error.message) from None
         raise
 
 
 # A profile's chain is its form and its two filters; the rest is areal roughness only.
-AREAL_ONLY_CHAIN_FIELDS = ("direction_deg", "levelling_region", "window_px", "min_windows", "robust_form")
+PROFILE_CHAIN_FIELDS = ("form", "s_filter_um", "l_filter_um")
+AREAL_ONLY_CHAIN_FIELDS = tuple(name for name in wire.CHAIN_FIELDS if name not in PROFILE_CHAIN_FIELDS)
+# The chain's settings given as plain values, named alike in SurfaceChain and ChainRequest.
+_CHAIN_VALUES = tuple(name for name in wire.CHAIN_FIELDS if name not in ("form", "levelling_region"))
 
 
 def profile_chain_request(message: tiles_pb2.SurfaceChain, field: str = "chain") -> ChainRequest:
@@ -230,29 +221,29 @@ def profile_chain_request(message: tiles_pb2.SurfaceChain, field: str = "chain")
     HTTP API refuses its query parameter) rather than ignored."""
     for name in AREAL_ONLY_CHAIN_FIELDS:
         if message.HasField(name):
-            raise InvalidInputError(f"{field}.{name}", "profiles take only form, s_filter_um and l_filter_um")
+            raise InvalidInputError(
+                f"{field}.{name}",
+                f"profiles take only {', '.join(PROFILE_CHAIN_FIELDS[:-1])} and {PROFILE_CHAIN_FIELDS[-1]}",
+            )
     return chain_request(message, field)
 
 
 def chain_request(message: tiles_pb2.SurfaceChain, field: str = "chain") -> ChainRequest:
-    """A request's SurfaceChain as the queries take it (absent fields None: the defaults)."""
+    """A request's SurfaceChain as the queries take it (absent fields None: the defaults); errors
+    name `field`'s members (``chain.form``), or the fields alone where `field` is empty (the
+    HTTP API's query parameters)."""
 
-    def number(name: str) -> float | None:
-        return getattr(message, name) if message.HasField(name) else None
+    def named(name: str) -> str:
+        return f"{field}.{name}" if field else name
 
     if message.form not in wire.FORMS.values() and message.form != tiles_pb2.FORM_UNSPECIFIED:
-        raise InvalidInputError(f"{field}.form", f"unknown form {message.form}")
+        raise InvalidInputError(named("form"), f"unknown form {message.form}")
     return ChainRequest(
         form=wire.form_name(message.form) if message.form else None,
-        s_filter_um=number("s_filter_um"),
-        l_filter_um=number("l_filter_um"),
-        direction_deg=number("direction_deg"),
-        levelling_region_um=region(message.levelling_region, f"{field}.levelling_region")
+        levelling_region_um=region(message.levelling_region, named("levelling_region"))
         if message.HasField("levelling_region")
         else None,
-        window_px=number("window_px"),
-        min_windows=number("min_windows"),
-        robust_form=message.robust_form if message.HasField("robust_form") else None,
+        **{name: getattr(message, name) if message.HasField(name) else None for name in _CHAIN_VALUES},
     )
 
 
@@ -353,14 +344,21 @@ def area_of(message: tiles_pb2.SpecimenArea, field: str) -> dict:
     return {"roi": message.roi if kind == "roi" else None, "region_um": None}
 
 
-def export(request: tiles_pb2.ExportRequest, directory: Path, store: SpecimenStore) -> ExportedFile:
-    """The file an ExportRequest asks for, written in `directory`."""
-    options = {
+def export_options(request: tiles_pb2.ExportRequest) -> dict:
+    """An ExportRequest's file settings as the exports take them (file_format, solid, units), and
+    its pixel_size_um (None: the source's own), checked."""
+    return {
         "file_format": wire.export_format_name(request.format),
         "solid": request.solid,
         "units": wire.length_unit_name(request.units),
+        "pixel_size_um": request.pixel_size_um or None,
     }
-    pixel_size_um = request.pixel_size_um or None
+
+
+def export(request: tiles_pb2.ExportRequest, directory: Path, store: SpecimenStore) -> ExportedFile:
+    """The file an ExportRequest asks for, written in `directory`."""
+    options = export_options(request)
+    pixel_size_um = options.pop("pixel_size_um")
     if request.WhichOneof("source") == "specimen":
         area = request.specimen
         return exports.export_area(

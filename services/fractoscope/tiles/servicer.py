@@ -18,7 +18,7 @@ from fractoscope.errors import (
     InvalidInputError,
     error_of_code,
 )
-from fractoscope.formats.exports import MEDIA_TYPES
+from fractoscope.formats.exports import EXPORT_FORMATS
 from fractoscope.mesh.pipeline import EncodedTile, MeshReport
 from fractoscope.meshing import messages as rpc_meshing
 from fractoscope.progress import ProgressCallback, silent
@@ -420,7 +420,7 @@ class TileServicer(tiles_pb2_grpc.TileServiceServicer):
             with self._admitted(cost, context):
                 exported = rpc_tiles.export(request, directory, self.store)
             first = tiles_pb2.ExportResponse(grid=rpc_tiles.export_grid(exported))
-            media_type = MEDIA_TYPES[exported.file_format]
+            media_type = EXPORT_FORMATS[exported.file_format].media_type
             yield from rpc_tiles.streamed_file(
                 first, exported.path, file_name=exported.path.name, media_type=media_type
             )

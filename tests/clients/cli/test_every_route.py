@@ -19,10 +19,10 @@ from conftest import ReportNumbers
 from test_cli import _run
 
 from fractoscope import synthetic
+from fractoscope.http.server import start_http_server
 from fractoscope.server.main import create_server
 from fractoscope.specimen.store import SpecimenStore
 from fractoscope.synthetic.particles import particle_scene
-from fractoscope.tiles.http import start_http_server
 
 PIXEL_SIZE_UM = 0.2
 

@@ -19,10 +19,10 @@ from conftest import mesh_component_areas_um2, tile_seams_grey_levels
 
 from fractoscope.client import FractoscopeClient
 from fractoscope.client.manifest import load_manifest
+from fractoscope.http.server import start_http_server
 from fractoscope.numbers import with_uncertainty
 from fractoscope.server.main import create_server
 from fractoscope.specimen.store import SpecimenStore
-from fractoscope.tiles.http import start_http_server
 
 pytestmark = pytest.mark.slow
 ROOT = Path(__file__).resolve().parents[3]

@@ -11,7 +11,7 @@ from grpc_reflection.v1alpha import reflection_pb2, reflection_pb2_grpc
 
 from fractoscope.client import ClientError
 from fractoscope.matching.peers import StripPeers
-from fractoscope.stereo.disparity import MatchingMethod, StripTask
+from fractoscope.stereo.disparity import StripTask
 from fractoscope.v1 import matching_pb2
 
 
@@ -164,8 +164,6 @@ def test_a_height_map_by_the_fast_method_names_it(client):
 
 def test_a_strip_peer_matches_by_the_fast_method(peers):
     pair = fracture_pair(size_px=128)
-    task = StripTask(
-        pair.first.astype(np.float32), pair.second.astype(np.float32), 15, 16, 0.3, 1.0, method=MatchingMethod.FAST
-    )
+    task = StripTask(pair.first.astype(np.float32), pair.second.astype(np.float32), 15, 16, 0.3, 1.0, method="fast")
     result, _ = peers.match_strip(task, timeout_s=120)
     assert np.isfinite(result.disparity_px).mean() > 0.8

@@ -14,9 +14,9 @@ import pytest
 from conftest import ReportNumbers
 from PIL import Image
 
+from fractoscope.http.server import start_http_server
 from fractoscope.report import build_document, report_content, write_report
 from fractoscope.specimen.store import SpecimenStore
-from fractoscope.tiles.http import start_http_server
 
 NOT_CALIBRATED = "The tilt was not calibrated"
 

@@ -18,11 +18,11 @@ from conftest import fracture_pair, tiff_bytes
 from test_budget import _serve, _status_kb
 
 from fractoscope.client import ClientError, FractoscopeClient
+from fractoscope.http.server import start_http_server
 from fractoscope.runtime.auth import TokenTable
 from fractoscope.server.main import create_server
 from fractoscope.specimen.store import SpecimenStore
 from fractoscope.stereo.disparity import StripTask
-from fractoscope.tiles.http import start_http_server
 from fractoscope.v1 import matching_pb2, matching_pb2_grpc, tiles_pb2
 
 TOKENS = TokenTable.from_text("lims:write-secret:write,viewer:read-secret:read")

@@ -11,7 +11,6 @@ import pytest
 from fractoscope import synthetic
 from fractoscope.sem.image import SemImage
 from fractoscope.stereo import alignment
-from fractoscope.stereo.disparity import MatchingMethod
 from fractoscope.stereo.inputs import MatchingOptions
 from fractoscope.stereo.pipeline import compute_height_map
 
@@ -81,7 +80,7 @@ def _ramp_px(error_px: np.ndarray) -> float:
     return abs(slope_cols) * error_px.shape[1] + abs(slope_rows) * error_px.shape[0]
 
 
-def _heights(pair, method=MatchingMethod.FAST):
+def _heights(pair, method="fast"):
     first, second = (SemImage(image, None, None, 0) for image in (pair.first, pair.second))
     return compute_height_map(
         first, second, tilt_deg=TILTS_DEG, pixel_size_um=PIXEL_SIZE_UM, options=MatchingOptions(method=method)

@@ -8,7 +8,6 @@ import pytest
 
 from fractoscope import synthetic
 from fractoscope.stereo import matching, occlusion
-from fractoscope.stereo.disparity import MatchingMethod
 from fractoscope.synthetic.physics import material_contrast
 
 PIXEL_SIZE_UM = 0.1
@@ -18,7 +17,7 @@ TEXTURE_ONLY = synthetic.PHYSICS_VARIANTS["texture_only"]
 def _votes(kind: str, tilt_deg, size_px: int, seed: int) -> np.ndarray:
     pair = synthetic.render_surface_pair(kind, size_px, tilt_deg=tilt_deg, seed=seed, physics=TEXTURE_ONLY)
     first, second = pair.first.astype(np.float32), pair.second.astype(np.float32)
-    matched = matching.match_disparity(first, second, max_disparity_px=size_px // 4, method=MatchingMethod.WINDOW_ZNCC)
+    matched = matching.match_disparity(first, second, max_disparity_px=size_px // 4, method="window_zncc")
     return occlusion.wall_votes(first, second, matched.disparity_px)
 
 
@@ -76,7 +75,7 @@ def test_the_votes_turn_round_with_the_pair_seen_from_behind():
     sign, and nothing else does (the procedure has no preferred direction)."""
     pair = synthetic.render_surface_pair("particles", 256, tilt_deg=(-5.0, 5.0), seed=4, physics=TEXTURE_ONLY)
     first, second = pair.first.astype(np.float32), pair.second.astype(np.float32)
-    disparity = matching.match_disparity(first, second, max_disparity_px=64, method=MatchingMethod.WINDOW_ZNCC)
+    disparity = matching.match_disparity(first, second, max_disparity_px=64, method="window_zncc")
     votes = occlusion.wall_votes(first, second, disparity.disparity_px)
     flipped = occlusion.wall_votes(first[:, ::-1], second[:, ::-1], -disparity.disparity_px[:, ::-1])
     assert sum(len(view) for view in votes) > 0 and all(np.all(view > 0) for view in votes)

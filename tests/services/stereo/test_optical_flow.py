@@ -6,12 +6,11 @@ import pytest
 from conftest import cleavage_pair, dimple_pair, fracture_pair, inner_mask
 
 from fractoscope.stereo import correlation, optical_flow
-from fractoscope.stereo.disparity import MatchingMethod
 from fractoscope.stereo.matching import match_disparity
 from fractoscope.stereo.semi_global import sgbm_disparity
 from fractoscope.synthetic import self_affine_surface
 
-FAST = MatchingMethod.FAST
+FAST = "fast"
 PAIRS = {"self_affine": fracture_pair, "dimples": dimple_pair, "cleavage": cleavage_pair}
 
 

@@ -8,7 +8,6 @@ from fractoscope import synthetic
 from fractoscope.rpc import wire
 from fractoscope.sem.image import SemImage
 from fractoscope.stereo import photometric
-from fractoscope.stereo.disparity import MatchingMethod
 from fractoscope.stereo.inputs import MatchingOptions
 from fractoscope.stereo.pipeline import compute_height_map
 
@@ -118,7 +117,7 @@ def _variant_pair(name, size_px=320):
     return dimple_pair(size_px=size_px, physics=synthetic.PHYSICS_VARIANTS[name])
 
 
-def _errors(pair, name, method=MatchingMethod.TGV_ZNCC):
+def _errors(pair, name, method="tgv_zncc"):
     """The full height-map request on `pair`, told where the variant's detector is, as a user would."""
     physics = synthetic.PHYSICS_VARIANTS[name]
     options = MatchingOptions(method=method, detector_from_tilt_axis_deg=physics.detector_from_tilt_axis_deg)
@@ -135,7 +134,7 @@ def test_on_renderers_it_was_not_tuned_on_the_default_beats_window_correlation(n
     4.3 %; window correlation 4.6 % and 7.5 %; a wrongly fused slope costs several points)."""
     pair = _variant_pair(name)
     default, report = _errors(pair, name)
-    window, _ = _errors(pair, name, MatchingMethod.WINDOW_ZNCC)
+    window, _ = _errors(pair, name, "window_zncc")
     assert report["photometric_slopes_used"] == [True]
     assert default < window and default < 0.05
 

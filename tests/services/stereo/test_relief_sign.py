@@ -12,7 +12,6 @@ from fractoscope import synthetic
 from fractoscope.sem.image import SemImage
 from fractoscope.sem.metadata import InstrumentKey
 from fractoscope.stereo import lighting
-from fractoscope.stereo.disparity import MatchingMethod
 from fractoscope.stereo.inputs import MatchingOptions
 from fractoscope.stereo.pipeline import compute_series_height_map
 from fractoscope.stereo.relief_sign import ReliefSignMode
@@ -173,11 +172,7 @@ def test_an_in_lens_detector_named_by_the_metadata_is_reported_without_a_side():
 def test_typed_tilts_that_run_against_the_files_stage_tilts_get_a_warning():
     pair = _pair("self_affine", (-5.0, 5.0), seed=7)
     views = [SemImage(image, tilt, PIXEL_SIZE_UM, 0) for image, tilt in zip((pair.first, pair.second), (-5.0, 5.0))]
-    result = compute_series_height_map(
-        views, tilt_deg=(5.0, -5.0), options=MatchingOptions(method=MatchingMethod.WINDOW_ZNCC)
-    )
+    result = compute_series_height_map(views, tilt_deg=(5.0, -5.0), options=MatchingOptions(method="window_zncc"))
     assert any("run the other way from the stage tilts their files record" in w for w in result.report["warnings"])
-    agreeing = compute_series_height_map(
-        views, tilt_deg=(-4.0, 4.0), options=MatchingOptions(method=MatchingMethod.WINDOW_ZNCC)
-    )
+    agreeing = compute_series_height_map(views, tilt_deg=(-4.0, 4.0), options=MatchingOptions(method="window_zncc"))
     assert not any("run the other way" in warning for warning in agreeing.report["warnings"])

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from fractoscope.stereo import correlation, matching, tgv_refinement, tgv_zncc, window_zncc
-from fractoscope.stereo.disparity import MatchingMethod, StripTask
+from fractoscope.stereo.disparity import StripTask
 from fractoscope.synthetic import self_affine_surface
 
 SHAPE = (160, 256)
@@ -70,10 +70,8 @@ def test_a_step_stays_sharp():
 def test_strips_give_the_same_answer_as_one_piece():
     left, right = _pair(np.float32(-4.0) + COLUMNS * np.float32(8.0 / SHAPE[1]), seed=3)
     left, right = np.vstack([left] * 4), np.vstack([right] * 4)  # 640 rows
-    whole = matching.match_disparity(left, right, max_disparity_px=12, method=MatchingMethod.TGV_ZNCC)
-    strips = matching.match_disparity(
-        left, right, max_disparity_px=12, strip_pixels=SHAPE[1] * 200, method=MatchingMethod.TGV_ZNCC
-    )
+    whole = matching.match_disparity(left, right, max_disparity_px=12, method="tgv_zncc")
+    strips = matching.match_disparity(left, right, max_disparity_px=12, strip_pixels=SHAPE[1] * 200, method="tgv_zncc")
     inner = (slice(None), slice(40, -40))
     both = np.isfinite(whole.disparity_px[inner]) & np.isfinite(strips.disparity_px[inner])
     assert both.mean() > 0.95
@@ -84,7 +82,7 @@ def test_strips_give_the_same_answer_as_one_piece():
 def test_constant_shift_is_recovered_to_a_twentieth_of_a_pixel(shift_px):
     """Also where the data windows claim most (noise-free images, half-pixel shifts)."""
     left, right = _pair(np.full(SHAPE, shift_px, np.float32), noise=0.0)
-    result = matching.match_disparity(left, right, max_disparity_px=8, method=MatchingMethod.TGV_ZNCC)
+    result = matching.match_disparity(left, right, max_disparity_px=8, method="tgv_zncc")
     assert np.isfinite(result.disparity_px[INNER]).mean() > 0.98
     assert np.nanmedian(np.abs(result.disparity_px - shift_px)[INNER]) < 0.05
 

@@ -33,7 +33,7 @@ def test_search_range_as_wide_as_a_small_image_is_searched():
     assert np.nanmedian(np.abs(result.disparity_px[20:-20, 20:-20] - 3.0)) < 0.05
 
 
-@pytest.mark.parametrize("method", list(matching.MatchingMethod))
+@pytest.mark.parametrize("method", list(matching.METHODS))
 def test_no_match_beyond_the_search_range_is_kept(method):
     """A 6.5 px shift searched within ±4 px: window correlation's peak sits at the search's edge
     and the refinement is not bound by it; neither may pass for a measurement."""

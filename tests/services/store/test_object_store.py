@@ -17,11 +17,11 @@ from conftest import write_small_specimen
 from s3_server import BUCKET, SeaweedFs, environment
 
 from fractoscope.errors import ResourceExhaustedError
+from fractoscope.http.server import start_http_server
 from fractoscope.specimen.quadtree import TileKey
 from fractoscope.store.leases import Lease, LeaseLost, held
 from fractoscope.store.objects import ObjectMissing, PreconditionFailed, S3Objects
 from fractoscope.store.specimens import ObjectSpecimenStore
-from fractoscope.tiles.http import start_http_server
 
 ROOT_TILE = TileKey(0, 0, 0)
 
@@ -150,7 +150,7 @@ def test_a_job_whose_replica_stopped_is_reported_failed(s3_objects):
     """Another replica's unfinished job whose record went unwritten for the set time is listed and
     answered as failed (UNAVAILABLE); a fresh one and a finished one stay as written. A replica
     rewrites its own unfinished jobs' records six times as often, so they stay fresh."""
-    from fractoscope.tiles.build_jobs import BuildJobs, HttpBuildJob
+    from fractoscope.http.build_jobs import BuildJobs, HttpBuildJob
 
     records = {}
     for name, state, age_s in (("fresh", "running", 0), ("silent", "running", 120), ("done", "succeeded", 120)):

@@ -18,9 +18,9 @@ import pytest
 import requests
 from s3_server import BUCKET, free_ports
 
+from fractoscope.http.build_jobs import JOB_LOST_AFTER_S
 from fractoscope.specimen.tileset import content_uris
 from fractoscope.synthetic.examples import write_multiscale_specimen
-from fractoscope.tiles.build_jobs import JOB_LOST_AFTER_S
 from fractoscope.v1 import tiles_pb2, tiles_pb2_grpc
 
 READS = 10_000

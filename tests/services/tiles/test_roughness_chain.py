@@ -14,11 +14,11 @@ import pytest
 
 from fractoscope import synthetic
 from fractoscope.client import ClientError, FractoscopeClient
+from fractoscope.http.server import start_http_server
 from fractoscope.server.main import create_server
 from fractoscope.specimen.fusion import PlacedRoi
 from fractoscope.specimen.quadtree import OPTICAL, QuadtreeLayout, TileKey, TileRecord
 from fractoscope.specimen.store import RoiEntry, SpecimenStore, write_description, write_roi_arrays
-from fractoscope.tiles.http import start_http_server
 from fractoscope.v1 import tiles_pb2
 
 PIXEL_UM = 0.25

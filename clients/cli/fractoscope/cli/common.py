@@ -19,6 +19,7 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from fractoscope import strict_json
 from fractoscope.client import FractoscopeClient
 from fractoscope.errors import InvalidInputError
+from fractoscope.rpc import wire
 from fractoscope.rpc.manifest import image_entry, image_names, manifest_field
 from fractoscope.v1 import common_pb2
 
@@ -183,10 +184,7 @@ _FIELD_FLAGS = [
 ]
 # Request fields whose flag is their name with dashes (s_filter_um: --s-filter-um), the chain's
 # also as members of `chain`.
-_DASHED_FIELD = re.compile(
-    r"^(chain\.)?(form|s_filter_um|l_filter_um|direction_deg|levelling_region|window_px|min_windows|robust_form)$"
-    r"|^(spacing_um|magnification|request_id)$"
-)
+_DASHED_FIELD = re.compile(rf"^(chain\.)?({'|'.join(wire.CHAIN_FIELDS)})$|^(spacing_um|magnification|request_id)$")
 _IMAGE_FIELD = re.compile(r"^images\[(\d+)\](\.image)?$")
 # Request fields about the analysed data: the region, or the file or specimen analysed.
 _AREA_FIELD = re.compile(r"^((area|specimen)\.)?region$")

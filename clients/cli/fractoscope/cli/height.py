@@ -27,6 +27,7 @@ from fractoscope.cli.common import (
 )
 from fractoscope.client import FractoscopeClient, HeightMap
 from fractoscope.numbers import uncertainty_text, value_text
+from fractoscope.rpc import wire
 
 if TYPE_CHECKING:
     from fractoscope.surface.measurement import Measurement
@@ -56,7 +57,7 @@ def add_parsers(commands) -> None:
     )
     height.add_argument(
         "--method",
-        choices=("tgv-zncc", "window-zncc", "fast"),
+        choices=[name.replace("_", "-") for name in wire.method_names()],
         default="tgv-zncc",
         help="matching method: tgv-zncc (default: the window correlation refined by TGV², most accurate), "
         "window-zncc (the paper's window correlation, about ten times faster) or "
@@ -64,7 +65,7 @@ def add_parsers(commands) -> None:
     )
     height.add_argument(
         "--relief-sign",
-        choices=("auto", "nominal", "inverted"),
+        choices=wire.relief_sign_names(),
         default="auto",
         help="which way up the heights are: auto (default: as the images show it where occlusion, or the lighting "
         "of a detector whose place is known, tells it; else as the tilts say, with a warning), nominal (as the "

@@ -255,16 +255,9 @@ def plot_profile(result, path: Path, *, title: str) -> None:
 
 
 def command_roughness(args) -> int:
-    chain = {
-        "form": args.form,
-        "s_filter_um": args.s_filter_um,
-        "l_filter_um": args.l_filter_um,
-        "direction_deg": args.direction_deg,
-        "levelling_region_um": args.levelling_region,
-        "window_px": args.window_px,
-        "min_windows": args.min_windows,
-        "robust_form": args.robust_form,
-    }
+    # The chain's flags are SurfaceChain's fields (tests/test_registries.py), as ChainRequest names them.
+    chain = {name: getattr(args, name) for name in wire.CHAIN_FIELDS if name != "levelling_region"}
+    chain["levelling_region_um"] = args.levelling_region
     pixel_size_um = given_pixel_size_um(args.pixel_size_um)
     if Path(args.source).suffix.lower() in (".npz", ".x3p"):
         if args.roi or args.region:

@@ -106,9 +106,9 @@ class FractoscopeClient(ChannelOwner):
         with `tilt_deg_nominal`, `tilt_sigma_deg` and `tilt_residual_px`. `normalize_local_contrast`
         (None: the server's default, on) and `propagate_at_full_resolution`: see
         MatchingParameters (against shading that changes with the tilt, and for surfaces with
-        steps). `method`: "tgv_zncc", "window_zncc" or "fast" (None: the server's default,
-        tgv_zncc; see MatchingMethod). `relief_sign`: "auto", "nominal" or "inverted" (None: the
-        server's default, auto; see ReliefSignMode), with where the detector lies,
+        steps). `method`: one of wire.method_names() (None: the server's default; see the API's
+        MatchingMethod). `relief_sign`: one of wire.relief_sign_names() (None: the server's
+        default, auto; see ReliefSignMode), with where the detector lies,
         `detector_from_tilt_axis_deg` (° from the tilt axis; None: not known, see MatchingParameters).
         The report's relief_sign fields give the verdict."""
         files = [
@@ -402,7 +402,7 @@ def _as_dict(message) -> dict:
 
 
 def _matching_method(name: str) -> int:
-    """A matching method's name ("tgv_zncc", "window_zncc" or "fast") as a MatchingMethod value;
+    """A matching method's name (one of wire.method_names()) as a MatchingMethod value;
     ValueError naming `method` otherwise."""
     try:
         return wire.method_code(name)
@@ -412,9 +412,10 @@ def _matching_method(name: str) -> int:
 
 
 def _relief_sign_mode(name: str) -> int:
-    """A relief sign mode's name ("auto", "nominal" or "inverted") as a ReliefSignMode value;
+    """A relief sign mode's name (one of wire.relief_sign_names()) as a ReliefSignMode value;
     ValueError naming `relief_sign` otherwise."""
     try:
         return wire.relief_sign_code(name)
     except ValueError:
-        raise ValueError(f"relief_sign must be one of 'auto', 'nominal', 'inverted', got {name!r}") from None
+        known = ", ".join(repr(known) for known in wire.relief_sign_names())
+        raise ValueError(f"relief_sign must be one of {known}, got {name!r}") from None

@@ -70,12 +70,17 @@ def report_to_message(report: dict) -> matching_pb2.MatchingReport:
     return matching_pb2.MatchingReport(**fields)
 
 
+def _enum_names(enum, prefix: str) -> tuple[str, ...]:
+    """The names of an API enum's values (UNSPECIFIED aside), in its order, without `prefix`, in
+    lower case: how the core, the CLI and the HTTP API name them."""
+    return tuple(name.removeprefix(prefix).lower() for name, code in enum.items() if code)
+
+
 _RELIEF_SIGN_PREFIX = "RELIEF_SIGN_MODE_"
 
 
 def relief_sign_code(mode: str) -> int:
-    """The ReliefSignMode value of a mode's name ("auto", "nominal" or "inverted"); ValueError for
-    another."""
+    """The ReliefSignMode value of a mode's name (one of relief_sign_names()); ValueError for another."""
     return matching_pb2.ReliefSignMode.Value(f"{_RELIEF_SIGN_PREFIX}{mode.upper()}")
 
 
@@ -83,6 +88,11 @@ def relief_sign_name(code: int) -> str:
     """A ReliefSignMode value's name ("auto" for UNSPECIFIED); ValueError for an unknown value."""
     name = matching_pb2.ReliefSignMode.Name(code or matching_pb2.RELIEF_SIGN_MODE_AUTO)
     return name.removeprefix(_RELIEF_SIGN_PREFIX).lower()
+
+
+def relief_sign_names() -> tuple[str, ...]:
+    """The relief sign modes' names the API knows, in the enum's order: ("auto", "nominal", "inverted")."""
+    return _enum_names(matching_pb2.ReliefSignMode, _RELIEF_SIGN_PREFIX)
 
 
 _METHOD_PREFIX = "MATCHING_METHOD_"
@@ -94,13 +104,17 @@ def method_code(method: str) -> int:
     return matching_pb2.MatchingMethod.Value(f"{_METHOD_PREFIX}{method.upper()}")
 
 
+def method_name(code: int) -> str:
+    """A MatchingMethod value's name ("fast" for MATCHING_METHOD_FAST); ValueError for UNSPECIFIED
+    or an unknown value."""
+    if code == matching_pb2.MATCHING_METHOD_UNSPECIFIED:
+        raise ValueError("MATCHING_METHOD_UNSPECIFIED names no method")
+    return matching_pb2.MatchingMethod.Name(code).removeprefix(_METHOD_PREFIX).lower()
+
+
 def method_names() -> tuple[str, ...]:
     """The matching methods' names the API knows, in the enum's order: ("tgv_zncc", "window_zncc", "fast")."""
-    return tuple(
-        name.removeprefix(_METHOD_PREFIX).lower()
-        for name in matching_pb2.MatchingMethod.keys()
-        if name != f"{_METHOD_PREFIX}UNSPECIFIED"
-    )
+    return _enum_names(matching_pb2.MatchingMethod, _METHOD_PREFIX)
 
 
 def message_to_report(message: matching_pb2.MatchingReport) -> dict:
@@ -150,31 +164,30 @@ FORMS = {
 _FORM_NAMES = {value: name for name, value in FORMS.items()} | {tiles_pb2.FORM_UNSPECIFIED: "plane"}
 HURST_METHODS = {"hhc": tiles_pb2.HURST_METHOD_HEIGHT_HEIGHT_CORRELATION, "psd": tiles_pb2.HURST_METHOD_POWER_SPECTRUM}
 _HURST_METHOD_NAMES = {value: name for name, value in HURST_METHODS.items()}
-_CHAIN_NUMBERS = ("s_filter_um", "l_filter_um", "direction_deg", "window_px", "min_windows")
+# The fields of SurfaceChain, the one list of the chain's settings: by these names requests,
+# the HTTP API's query parameters and the CLI's flags give them; the numbers among them.
+CHAIN_FIELDS = tuple(tiles_pb2.SurfaceChain.DESCRIPTOR.fields_by_name)
+_CHAIN_NUMBERS = tuple(
+    field.name for field in tiles_pb2.SurfaceChain.DESCRIPTOR.fields if field.type == field.TYPE_DOUBLE
+)
 
 
 def chain_message(
-    *,
-    form: str | None = None,
-    s_filter_um: float | None = None,
-    l_filter_um: float | None = None,
-    direction_deg: float | None = None,
-    levelling_region_um: Region | None = None,
-    window_px: float | None = None,
-    min_windows: float | None = None,
-    robust_form: bool | None = None,
+    *, form: str | None = None, levelling_region_um: Region | None = None, **settings: float | bool | None
 ) -> tiles_pb2.SurfaceChain:
-    """A SurfaceChain with the given settings (None: left at the default)."""
+    """A SurfaceChain with the given settings, the keywords of queries.ChainRequest: `form` by
+    name, the levelling region (x0, y0, x1, y1) µm, and the other fields of SurfaceChain by their
+    names (s_filter_um, ..., robust_form); None leaves a setting at its default."""
     if form is not None and form not in FORMS:
         raise InvalidInputError("chain.form", f"must be one of {', '.join(FORMS)}, not {form!r}")
     message = tiles_pb2.SurfaceChain(form=FORMS[form] if form else tiles_pb2.FORM_UNSPECIFIED)
-    for name, value in zip(_CHAIN_NUMBERS, (s_filter_um, l_filter_um, direction_deg, window_px, min_windows)):
+    for name, value in settings.items():
+        if name not in CHAIN_FIELDS or name in ("form", "levelling_region"):
+            raise TypeError(f"chain_message() got an unexpected keyword argument {name!r}")
         if value is not None:
             setattr(message, name, value)
     if levelling_region_um is not None:
         message.levelling_region.CopyFrom(region_message(levelling_region_um))
-    if robust_form is not None:
-        message.robust_form = robust_form
     return message
 
 
@@ -296,14 +309,12 @@ def response_to_roughness(response: tiles_pb2.GetRoughnessResponse) -> dict:
     return values
 
 
-# Export formats by name (as formats.exports names them and file extensions say) and mesh units.
+_EXPORT_PREFIX = "EXPORT_FORMAT_"
+_EXPORT_KEYS = [name.removeprefix(_EXPORT_PREFIX) for name, code in tiles_pb2.ExportFormat.items() if code]
+# Export formats by name, as formats.exports names them and file extensions say: the API's
+# ExportFormat names in lower case, where the usual extension is not that (TIFF's), the extension.
 EXPORT_FORMATS = {
-    "x3p": tiles_pb2.EXPORT_FORMAT_X3P,
-    "tif": tiles_pb2.EXPORT_FORMAT_TIFF,
-    "csv": tiles_pb2.EXPORT_FORMAT_CSV,
-    "stl": tiles_pb2.EXPORT_FORMAT_STL,
-    "ply": tiles_pb2.EXPORT_FORMAT_PLY,
-    "obj": tiles_pb2.EXPORT_FORMAT_OBJ,
+    {"TIFF": "tif"}.get(key, key.lower()): tiles_pb2.ExportFormat.Value(_EXPORT_PREFIX + key) for key in _EXPORT_KEYS
 }
 _EXPORT_NAMES = {code: name for name, code in EXPORT_FORMATS.items()}
 LENGTH_UNITS = {"um": tiles_pb2.LENGTH_UNIT_MICROMETRE, "mm": tiles_pb2.LENGTH_UNIT_MILLIMETRE}
@@ -327,7 +338,7 @@ def export_format_of(path: str) -> str:
 
 def export_format_name(code: int) -> str:
     if code not in _EXPORT_NAMES:
-        raise InvalidInputError("format", "must be one of EXPORT_FORMAT_X3P, _TIFF, _CSV, _STL, _PLY, _OBJ")
+        raise InvalidInputError("format", f"must be one of {_EXPORT_PREFIX}{', _'.join(_EXPORT_KEYS)}")
     return _EXPORT_NAMES[code]
 
 

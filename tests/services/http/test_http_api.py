@@ -33,12 +33,12 @@ from schemathesis.specs.openapi.checks import (
 from surfalize import Surface
 
 from fractoscope.formats.x3p import read_x3p
+from fractoscope.http import openapi
+from fractoscope.http.server import start_http_server
 from fractoscope.runtime.auth import TokenTable
 from fractoscope.runtime.budget import Budget
 from fractoscope.server.main import create_server
 from fractoscope.specimen.store import SpecimenStore
-from fractoscope.tiles import openapi
-from fractoscope.tiles.http import start_http_server
 
 # Per operation and generation mode; FRACTO_FUZZ_EXAMPLES asks for a deeper run.
 FUZZ_EXAMPLES = int(os.environ.get("FRACTO_FUZZ_EXAMPLES", "8"))
@@ -376,9 +376,10 @@ def operations(api):
 
 
 def test_the_fuzzer_sees_every_documented_operation(operations):
+    """All but the document's own, which schemathesis, having loaded the schema from it, leaves out."""
     assert {operation.label for operation in operations} == {
         f"{method.upper()} {path}" for path, item in openapi.document()["paths"].items() for method in item
-    }
+    } - {"GET /api/openapi.json"}
 
 
 @pytest.mark.parametrize("mode", list(GenerationMode))

@@ -20,11 +20,11 @@ import pytest
 import requests
 from conftest import write_small_specimen
 
+from fractoscope.http import api, openapi, uploads
+from fractoscope.http.server import start_http_server
 from fractoscope.runtime.auth import TokenTable
 from fractoscope.sem import image as sem_image
 from fractoscope.specimen.store import SpecimenStore
-from fractoscope.tiles import api, openapi, uploads
-from fractoscope.tiles.http import start_http_server
 
 TOKENS = TokenTable.from_text("lims:write-secret:write,viewer:read-secret:read")
 READ, WRITE = {"Authorization": "Bearer read-secret"}, {"Authorization": "Bearer write-secret"}

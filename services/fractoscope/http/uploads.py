@@ -21,6 +21,9 @@ from typing import NamedTuple
 from aiohttp import web
 
 from fractoscope.errors import InvalidInputError, NotFoundError
+from fractoscope.http.build_jobs import Analyses
+from fractoscope.http.inputs import form_parts, multipart_reader, read_chunk
+from fractoscope.http.responses import ApiError, off_loop
 from fractoscope.matching import messages as rpc_matching
 from fractoscope.rpc.limits import MAX_REQUEST_ID_CHARS, MAX_ROIS
 from fractoscope.rpc.manifest import manifest_field, parse_manifest
@@ -30,9 +33,6 @@ from fractoscope.sem.image import read_sem_image
 from fractoscope.specimen.store import validate_id
 from fractoscope.stereo.inputs import resolve_calibration
 from fractoscope.store.objects import S3Objects
-from fractoscope.tiles.build_jobs import Analyses
-from fractoscope.tiles.http_json import ApiError, off_loop
-from fractoscope.tiles.http_requests import form_parts, multipart_reader, read_chunk
 from fractoscope.tiles.messages import check_child_centres, checked_rois, in_roi
 from fractoscope.v1 import tiles_pb2
 

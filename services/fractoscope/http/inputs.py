@@ -17,11 +17,12 @@ from aiohttp.http_exceptions import HttpProcessingError
 from numpy.lib import format as npy_format
 
 from fractoscope.errors import InvalidInputError
-from fractoscope.formats.exports import MEDIA_TYPES
+from fractoscope.http.responses import CHUNK_BYTES, ApiError
 from fractoscope.rpc import wire
 from fractoscope.sem import image as sem_image
 from fractoscope.specimen import queries
-from fractoscope.tiles.http_json import CHUNK_BYTES, ApiError
+from fractoscope.tiles import messages
+from fractoscope.v1 import tiles_pb2
 
 
 def query_parameters(request: web.Request, known: set[str]) -> dict[str, str]:
@@ -80,37 +81,26 @@ def flag(values: dict, name: str) -> bool:
     return choice(values, name, ("true", "false"), default="false") == "true"
 
 
-# The surface texture chain's query parameters (see queries.ChainRequest); profiles take the first three.
-PROFILE_CHAIN_PARAMETERS = ("form", "s_filter_um", "l_filter_um")
-
-
-CHAIN_PARAMETERS = (
-    *PROFILE_CHAIN_PARAMETERS,
-    "direction_deg",
-    "levelling_region",
-    "window_px",
-    "min_windows",
-    "robust_form",
-)
+# The surface texture chain's query parameters, SurfaceChain's fields; profiles take the first three.
+PROFILE_CHAIN_PARAMETERS = messages.PROFILE_CHAIN_FIELDS
+CHAIN_PARAMETERS = wire.CHAIN_FIELDS
 
 
 def chain_request(values: dict) -> queries.ChainRequest:
-    """The chain's settings among the query's parameters; absent ones stay at their defaults."""
-
-    def number(name: str) -> float | None:
-        return numbers(values, name, 1)[0] if name in values else None
-
-    form = choice(values, "form", tuple(wire.FORMS)) if "form" in values else None
-    return queries.ChainRequest(
-        form=form,
-        s_filter_um=number("s_filter_um"),
-        l_filter_um=number("l_filter_um"),
-        direction_deg=number("direction_deg"),
-        levelling_region_um=tuple(numbers(values, "levelling_region", 4)) if "levelling_region" in values else None,
-        window_px=number("window_px"),
-        min_windows=number("min_windows"),
-        robust_form=flag(values, "robust_form") if "robust_form" in values else None,
-    )
+    """The chain's settings among the query's parameters, decoded into the SurfaceChain of the
+    gRPC requests and checked as those are (absent ones stay at their defaults)."""
+    chain = tiles_pb2.SurfaceChain()
+    for name in (name for name in CHAIN_PARAMETERS if name in values):
+        field = chain.DESCRIPTOR.fields_by_name[name]
+        if name == "form":
+            chain.form = wire.FORMS[choice(values, "form", tuple(wire.FORMS))]
+        elif name == "levelling_region":
+            chain.levelling_region.CopyFrom(wire.region_message(numbers(values, name, 4)))
+        elif field.type == field.TYPE_BOOL:
+            setattr(chain, name, flag(values, name))
+        else:
+            setattr(chain, name, numbers(values, name, 1)[0])
+    return messages.chain_request(chain, field="")
 
 
 def area_of(values: dict) -> dict:
@@ -122,13 +112,16 @@ def area_of(values: dict) -> dict:
 
 
 def export_options(values: dict) -> dict:
-    pixel_size_um = number(values, "pixel_size_um", default=0.0, minimum=0.0) or None
-    return {
-        "file_format": choice(values, "format", tuple(MEDIA_TYPES)),
-        "pixel_size_um": pixel_size_um,
-        "solid": flag(values, "solid"),
-        "units": choice(values, "units", tuple(wire.LENGTH_UNITS), default="um"),
-    }
+    """The export's settings among the parameters, decoded into the ExportRequest of the gRPC API
+    and read as its settings are (`messages.export_options`)."""
+    pixel_size_um = number(values, "pixel_size_um", default=0.0, minimum=0.0)
+    request = tiles_pb2.ExportRequest(
+        format=wire.EXPORT_FORMATS[choice(values, "format", tuple(wire.EXPORT_FORMATS))],
+        pixel_size_um=pixel_size_um,
+        solid=flag(values, "solid"),
+        units=wire.LENGTH_UNITS[choice(values, "units", tuple(wire.LENGTH_UNITS), default="um")],
+    )
+    return messages.export_options(request)
 
 
 async def json_body(request: web.Request, *, limit_bytes: int) -> dict:

@@ -9,7 +9,7 @@
   is out of reach (a liveness probe asks the first: restarting cannot mend the store).
 - `/viewer/` the web viewer (the installed clients/web package, see WEB_ROOT) and `/vendor/` the
   three.js and 3DTilesRendererJS modules it imports (that package's node_modules).
-- `/api/` the HTTP/JSON API (tiles.api, described at `/api/openapi.json`), which the
+- `/api/` the HTTP/JSON API (http.api, described at `/api/openapi.json`), which the
   viewer uses too.
 """
 
@@ -37,15 +37,15 @@ from aiohttp.http_exceptions import HttpProcessingError
 from aiohttp.log import server_logger
 
 from fractoscope.errors import FractoscopeError, NotFoundError, outcome_of
+from fractoscope.http.api import JsonApi
+from fractoscope.http.responses import json_error
+from fractoscope.http.uploads import DEFAULT_MAX_UPLOAD_BYTES
 from fractoscope.runtime.auth import TokenTable
 from fractoscope.runtime.budget import Budget
 from fractoscope.runtime.caches import BoundedCache
 from fractoscope.runtime.process import CredentialFilter
 from fractoscope.specimen.quadtree import TILE_URI
 from fractoscope.specimen.store import SpecimenStore
-from fractoscope.tiles.api import JsonApi
-from fractoscope.tiles.http_json import json_error
-from fractoscope.tiles.uploads import DEFAULT_MAX_UPLOAD_BYTES
 
 _ROUTE = re.compile(
     rf"/specimens/(?P<specimen>[A-Za-z0-9_-]{{1,64}})/(?P<path>tileset\.json|{TILE_URI.pattern})", re.ASCII

@@ -26,29 +26,10 @@ from google.protobuf import json_format
 
 from fractoscope import report
 from fractoscope.errors import FractoscopeError, InvalidInputError
-from fractoscope.formats.exports import MEDIA_TYPES
-from fractoscope.rpc import wire
-from fractoscope.rpc.limits import MAX_REQUEST_ID_CHARS
-from fractoscope.runtime.auth import READ, WRITE, Grant, TokenTable
-from fractoscope.runtime.budget import Budget, Cost
-from fractoscope.specimen import exports, quadtree, queries
-from fractoscope.specimen.store import SpecimenStore, validate_id
-from fractoscope.stereo.geometry import validate_pixel_size_um
-from fractoscope.tiles import admission, openapi
-from fractoscope.tiles.build_jobs import Analyses, BuildJobs, FolderRecords
-from fractoscope.tiles.http_json import (
-    CORS_HEADERS,
-    JSON_TYPE,
-    ApiError,
-    failure_response,
-    file_response,
-    json_error,
-    json_response,
-    no_content,
-    off_loop,
-    unexpected_response,
-)
-from fractoscope.tiles.http_requests import (
+from fractoscope.formats.exports import EXPORT_FORMATS
+from fractoscope.http import openapi
+from fractoscope.http.build_jobs import Analyses, BuildJobs, FolderRecords
+from fractoscope.http.inputs import (
     CHAIN_PARAMETERS,
     NPZ_BYTES_PER_POINT,
     PROFILE_CHAIN_PARAMETERS,
@@ -64,6 +45,27 @@ from fractoscope.tiles.http_requests import (
     query_parameters,
     small_form,
 )
+from fractoscope.http.responses import (
+    CORS_HEADERS,
+    JSON_TYPE,
+    ApiError,
+    failure_response,
+    file_response,
+    json_error,
+    json_response,
+    no_content,
+    off_loop,
+    unexpected_response,
+)
+from fractoscope.http.uploads import DEFAULT_MAX_UPLOAD_BYTES, Uploads
+from fractoscope.rpc import wire
+from fractoscope.rpc.limits import MAX_REQUEST_ID_CHARS
+from fractoscope.runtime.auth import READ, WRITE, Grant, TokenTable
+from fractoscope.runtime.budget import Budget, Cost
+from fractoscope.specimen import exports, quadtree, queries
+from fractoscope.specimen.store import SpecimenStore, validate_id
+from fractoscope.stereo.geometry import validate_pixel_size_um
+from fractoscope.tiles import admission
 from fractoscope.tiles.messages import (
     profile_response,
     request_digest,
@@ -71,7 +73,6 @@ from fractoscope.tiles.messages import (
     specimen_message,
     tile_message,
 )
-from fractoscope.tiles.uploads import DEFAULT_MAX_UPLOAD_BYTES, Uploads
 from fractoscope.v1 import tiles_pb2
 
 _log = logging.getLogger(__name__)
@@ -258,7 +259,7 @@ class JsonApi:
 
         def write(directory: Path) -> tuple[Path, str]:
             exported = exports.export_area(specimen, directory, **area, **options)
-            return exported.path, MEDIA_TYPES[exported.file_format]
+            return exported.path, EXPORT_FORMATS[exported.file_format].media_type
 
         cost = await off_loop(
             lambda: admission.area_export_cost(
@@ -301,7 +302,7 @@ class JsonApi:
                 export_pixel_size_um=export_pixel_size_um,
                 **options,
             )
-            return exported.path, MEDIA_TYPES[exported.file_format]
+            return exported.path, EXPORT_FORMATS[exported.file_format].media_type
 
         return await self._file(request, cost, write)
 

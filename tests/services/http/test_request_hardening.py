@@ -29,14 +29,14 @@ from fractoscope import report
 from fractoscope.client import ClientError
 from fractoscope.errors import InvalidInputError, NotFoundError
 from fractoscope.formats import exports as export_formats
+from fractoscope.http.responses import file_response, off_loop
+from fractoscope.http.server import start_http_server
 from fractoscope.server.main import create_server
 from fractoscope.specimen.exports import export_height_map
 from fractoscope.specimen.quadtree import TileKey
 from fractoscope.specimen.store import SpecimenStore, scratch_folder
 from fractoscope.tiles import messages as tile_messages
 from fractoscope.tiles import servicer as tile_servicer
-from fractoscope.tiles.http import start_http_server
-from fractoscope.tiles.http_json import file_response, off_loop
 from fractoscope.v1 import common_pb2, tiles_pb2
 
 ROOT_TILE = TileKey(0, 0, 0)

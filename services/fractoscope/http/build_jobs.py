@@ -31,12 +31,12 @@ from aiohttp import web
 from google.protobuf import json_format
 
 from fractoscope.errors import FractoscopeError, InvalidInputError, NotFoundError
+from fractoscope.http.responses import ApiError
 from fractoscope.rpc.channel import open_channel
 from fractoscope.rpc.status import ClientError, raised_as_client_errors
 from fractoscope.runtime.budget import Budget, Cost
 from fractoscope.specimen.store import process_identity
 from fractoscope.store.objects import Listed, ObjectMissing, S3Objects, Stored
-from fractoscope.tiles.http_json import ApiError
 from fractoscope.v1 import tiles_pb2, tiles_pb2_grpc
 
 # How often a running job's progress is written to object storage at most, s.

@@ -15,12 +15,12 @@ import requests
 
 from fractoscope.client import ClientError, FractoscopeClient
 from fractoscope.errors import InvalidInputError, NotFoundError
+from fractoscope.http.server import start_http_server
+from fractoscope.http.uploads import DEFAULT_MAX_UPLOAD_BYTES, Uploads
 from fractoscope.rpc.limits import MAX_REQUEST_ID_CHARS, MAX_ROIS
 from fractoscope.server.main import create_server
 from fractoscope.specimen.store import SpecimenStore
 from fractoscope.synthetic.examples import write_multiscale_specimen
-from fractoscope.tiles.http import start_http_server
-from fractoscope.tiles.uploads import DEFAULT_MAX_UPLOAD_BYTES, Uploads
 from fractoscope.v1 import common_pb2, matching_pb2, tiles_pb2
 
 HUGE = "1" + "0" * 400  # a JSON integer beyond any double
