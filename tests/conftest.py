@@ -25,8 +25,9 @@ from fractoscope.client import FractoscopeClient
 from fractoscope.client.manifest import load_manifest
 from fractoscope.server.main import create_server
 from fractoscope.specimen.fusion import PlacedRoi
+from fractoscope.specimen.model import RoiEntry, write_description, write_roi_arrays
 from fractoscope.specimen.quadtree import OPTICAL, QuadtreeLayout, TileKey, TileRecord
-from fractoscope.specimen.store import RoiEntry, SpecimenStore, write_description, write_roi_arrays
+from fractoscope.store.folder import SpecimenStore
 from fractoscope.synthetic.examples import write_multiscale_specimen
 
 # No instrument profile of the machine's user reaches a test (sem.instruments): each test that

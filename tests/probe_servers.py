@@ -26,14 +26,9 @@ from fractoscope.runtime.auth import TokenTable
 from fractoscope.runtime.budget import Budget
 from fractoscope.server.main import create_server
 from fractoscope.specimen.fusion import PlacedRoi
+from fractoscope.specimen.model import RoiEntry, write_description, write_roi_arrays, write_roi_views
 from fractoscope.specimen.quadtree import OPTICAL, QuadtreeLayout, TileKey, TileRecord
-from fractoscope.specimen.store import (
-    RoiEntry,
-    SpecimenStore,
-    write_description,
-    write_roi_arrays,
-    write_roi_views,
-)
+from fractoscope.store.folder import SpecimenStore
 from fractoscope.tiles.http import start_http_server
 
 WRITE_TOKEN, READ_TOKEN = "w-9f3c1e2b7a-secret", "r-4d8a6b0c5e-secret"

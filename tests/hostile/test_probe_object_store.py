@@ -19,7 +19,7 @@ from probe_servers import READ, READ_METADATA, WRITE, ServerProcess, write_map_s
 from s3_server import BUCKET, SeaweedFs, environment
 
 from fractoscope.store.objects import S3Objects
-from fractoscope.store.specimens import ObjectSpecimenStore
+from fractoscope.store.s3 import ObjectSpecimenStore
 from fractoscope.v1 import tiles_pb2, tiles_pb2_grpc
 
 # A hang bound, not the target (10 s; `make load` measures it): far above the bounded waits.

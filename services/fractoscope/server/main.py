@@ -43,9 +43,10 @@ from fractoscope.server.config import (
     build_parser,
     default_build_workers,
 )
-from fractoscope.specimen.store import SpecimenStore, StoredSpecimens
 from fractoscope.stereo.matching import DEFAULT_STRIP_PIXELS
-from fractoscope.store.specimens import open_specimen_store
+from fractoscope.store.base import StoredSpecimens
+from fractoscope.store.folder import SpecimenStore
+from fractoscope.store.s3 import open_specimen_store
 from fractoscope.tiles.http import start_http_server
 from fractoscope.tiles.servicer import SerializedGetTile, TileServicer
 from fractoscope.v1 import matching_pb2, matching_pb2_grpc, meshing_pb2, meshing_pb2_grpc, tiles_pb2, tiles_pb2_grpc
@@ -274,7 +275,7 @@ def embedded_server(
     *,
     host: str = "127.0.0.1",
     port: int = 0,
-    store: SpecimenStore | None = None,
+    store: StoredSpecimens | None = None,
     services: tuple[str, ...] = SERVICE_NAMES,
 ) -> Iterator[str]:
     """Runs `services` (default: all) in this process on `host:port` (port 0: a free one) for the

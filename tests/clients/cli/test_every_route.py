@@ -20,7 +20,7 @@ from test_cli import _run
 
 from fractoscope import synthetic
 from fractoscope.server.main import create_server
-from fractoscope.specimen.store import SpecimenStore
+from fractoscope.store.folder import SpecimenStore
 from fractoscope.synthetic.particles import particle_scene
 from fractoscope.tiles.http import start_http_server
 

@@ -14,8 +14,8 @@ from test_cli import _run
 from fractoscope import synthetic
 from fractoscope.formats.calibration import Calibration
 from fractoscope.formats.height_npz import write_height_npz
-from fractoscope.specimen.build import store_height_map
-from fractoscope.specimen.store import SpecimenStore
+from fractoscope.reconstruction.build import store_height_map
+from fractoscope.store.folder import SpecimenStore
 
 UNITS = ("µm", "%", "1", "deg", "°", "1/µm", "1/µm²", "µm³/µm²", "µm²", "µm/px", "px")
 _NUMBER = r"[-+]?\d+(?:\.\d+)?"

@@ -21,7 +21,7 @@ from fractoscope.client import FractoscopeClient
 from fractoscope.client.manifest import load_manifest
 from fractoscope.numbers import with_uncertainty
 from fractoscope.server.main import create_server
-from fractoscope.specimen.store import SpecimenStore
+from fractoscope.store.folder import SpecimenStore
 from fractoscope.tiles.http import start_http_server
 
 pytestmark = pytest.mark.slow

@@ -15,7 +15,7 @@ from conftest import ReportNumbers
 from PIL import Image
 
 from fractoscope.report import build_document, report_content, write_report
-from fractoscope.specimen.store import SpecimenStore
+from fractoscope.store.folder import SpecimenStore
 from fractoscope.tiles.http import start_http_server
 
 NOT_CALIBRATED = "The tilt was not calibrated"
@@ -193,7 +193,7 @@ def test_lists_in_the_parameters_table_are_shown_as_their_items_are():
 
 def test_the_report_of_a_white_noise_surface_marks_its_hurst_exponent_not_determinable(tmp_path):
     """A report once printed a profile PSD's H = -0.102 ± 0.842 and elsewhere 1.23 without a word."""
-    from fractoscope.specimen.build import store_height_map
+    from fractoscope.reconstruction.build import store_height_map
 
     noise = np.random.default_rng(7).normal(scale=0.2, size=(640, 640))  # the 15 px window: a field of 600 px
     noise[:, :40] = np.nan  # the profiles start where nothing is measured
@@ -222,8 +222,8 @@ def test_the_report_of_a_white_noise_surface_marks_its_hurst_exponent_not_determ
 
 def test_no_legend_entry_names_a_series_without_data(tmp_path):
     """A profile's legend once read "primary, ROI no data" for the stretch nothing was measured on."""
+    from fractoscope.reconstruction.build import store_height_map
     from fractoscope.report import figures
-    from fractoscope.specimen.build import store_height_map
 
     heights = np.random.default_rng(8).normal(scale=0.2, size=(96, 96))
     heights[:, :30] = np.nan

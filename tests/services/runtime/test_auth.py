@@ -20,8 +20,8 @@ from test_budget import _serve, _status_kb
 from fractoscope.client import ClientError, FractoscopeClient
 from fractoscope.runtime.auth import TokenTable
 from fractoscope.server.main import create_server
-from fractoscope.specimen.store import SpecimenStore
 from fractoscope.stereo.disparity import StripTask
+from fractoscope.store.folder import SpecimenStore
 from fractoscope.tiles.http import start_http_server
 from fractoscope.v1 import matching_pb2, matching_pb2_grpc, tiles_pb2
 

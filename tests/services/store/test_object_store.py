@@ -20,7 +20,7 @@ from fractoscope.errors import ResourceExhaustedError
 from fractoscope.specimen.quadtree import TileKey
 from fractoscope.store.leases import Lease, LeaseLost, held
 from fractoscope.store.objects import ObjectMissing, PreconditionFailed, S3Objects
-from fractoscope.store.specimens import ObjectSpecimenStore
+from fractoscope.store.s3 import ObjectSpecimenStore
 from fractoscope.tiles.http import start_http_server
 
 ROOT_TILE = TileKey(0, 0, 0)
@@ -78,7 +78,7 @@ import os, signal, sys
 sys.path.insert(0, sys.argv[1])
 from conftest import write_small_specimen
 from fractoscope.store.objects import S3Objects
-from fractoscope.store.specimens import ObjectSpecimenStore
+from fractoscope.store.s3 import ObjectSpecimenStore
 
 bucket, prefix, scratch = sys.argv[2:5]
 store = lambda: ObjectSpecimenStore(S3Objects(bucket, prefix), scratch, pointer_ttl_s=0.0)

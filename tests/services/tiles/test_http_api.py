@@ -36,7 +36,7 @@ from fractoscope.formats.x3p import read_x3p
 from fractoscope.runtime.auth import TokenTable
 from fractoscope.runtime.budget import Budget
 from fractoscope.server.main import create_server
-from fractoscope.specimen.store import SpecimenStore
+from fractoscope.store.folder import SpecimenStore
 from fractoscope.tiles import openapi
 from fractoscope.tiles.http import start_http_server
 

@@ -22,7 +22,7 @@ from conftest import write_small_specimen
 
 from fractoscope.runtime.auth import TokenTable
 from fractoscope.sem import image as sem_image
-from fractoscope.specimen.store import SpecimenStore
+from fractoscope.store.folder import SpecimenStore
 from fractoscope.tiles import api, openapi, uploads
 from fractoscope.tiles.http import start_http_server
 

@@ -32,7 +32,8 @@ from fractoscope.formats import exports as export_formats
 from fractoscope.server.main import create_server
 from fractoscope.specimen.exports import export_height_map
 from fractoscope.specimen.quadtree import TileKey
-from fractoscope.specimen.store import SpecimenStore, scratch_folder
+from fractoscope.store.folder import SpecimenStore
+from fractoscope.store.scratch import scratch_folder
 from fractoscope.tiles import messages as tile_messages
 from fractoscope.tiles import servicer as tile_servicer
 from fractoscope.tiles.http import start_http_server
@@ -223,7 +224,7 @@ def test_http_files_are_written_under_the_given_scratch_root_and_removed_once_se
 _KILLED_EXPORT = """
 import os, signal, sys
 from pathlib import Path
-from fractoscope.specimen.store import scratch_folder
+from fractoscope.store.scratch import scratch_folder
 
 with scratch_folder(Path(sys.argv[1]), "export") as directory:
     (directory / "part.stl").write_bytes(bytes(1000))
@@ -233,7 +234,7 @@ with scratch_folder(Path(sys.argv[1]), "export") as directory:
 _RUNNING_EXPORT = """
 import sys
 from pathlib import Path
-from fractoscope.specimen.store import scratch_folder
+from fractoscope.store.scratch import scratch_folder
 
 with scratch_folder(Path(sys.argv[1]), "export") as directory:
     print(directory.name, flush=True)

@@ -16,8 +16,9 @@ from fractoscope import synthetic
 from fractoscope.client import ClientError, FractoscopeClient
 from fractoscope.server.main import create_server
 from fractoscope.specimen.fusion import PlacedRoi
+from fractoscope.specimen.model import RoiEntry, write_description, write_roi_arrays
 from fractoscope.specimen.quadtree import OPTICAL, QuadtreeLayout, TileKey, TileRecord
-from fractoscope.specimen.store import RoiEntry, SpecimenStore, write_description, write_roi_arrays
+from fractoscope.store.folder import SpecimenStore
 from fractoscope.tiles.http import start_http_server
 from fractoscope.v1 import tiles_pb2
 

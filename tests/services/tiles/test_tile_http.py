@@ -9,7 +9,7 @@ import urllib.parse
 import pytest
 from conftest import write_small_specimen
 
-from fractoscope.specimen.store import SpecimenStore
+from fractoscope.store.folder import SpecimenStore
 from fractoscope.tiles.http import MAX_TARGET_BYTES, _Body, accepts_gzip, body_cache, not_modified, start_http_server
 
 

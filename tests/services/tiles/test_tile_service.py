@@ -20,8 +20,8 @@ from fractoscope.client import ClientError, FractoscopeClient
 from fractoscope.client.manifest import load_manifest
 from fractoscope.rpc import wire
 from fractoscope.server.main import create_server
-from fractoscope.specimen.store import SpecimenStore
 from fractoscope.specimen.tileset import content_uris
+from fractoscope.store.folder import SpecimenStore
 from fractoscope.synthetic.examples import MULTISCALE_MAGNIFICATIONS
 from fractoscope.tiles.http import start_http_server
 from fractoscope.v1 import common_pb2, tiles_pb2

@@ -17,7 +17,7 @@ from fractoscope.client import ClientError, FractoscopeClient
 from fractoscope.errors import InvalidInputError, NotFoundError
 from fractoscope.rpc.limits import MAX_REQUEST_ID_CHARS, MAX_ROIS
 from fractoscope.server.main import create_server
-from fractoscope.specimen.store import SpecimenStore
+from fractoscope.store.folder import SpecimenStore
 from fractoscope.synthetic.examples import write_multiscale_specimen
 from fractoscope.tiles.http import start_http_server
 from fractoscope.tiles.uploads import DEFAULT_MAX_UPLOAD_BYTES, Uploads

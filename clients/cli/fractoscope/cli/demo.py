@@ -43,7 +43,7 @@ def add_parsers(commands) -> None:
 def command_demo(args) -> int:
     from fractoscope.runtime.process import keep_freed_memory
     from fractoscope.server.main import embedded_server
-    from fractoscope.specimen.store import SpecimenStore
+    from fractoscope.store.folder import SpecimenStore
     from fractoscope.tiles.http import start_http_server
 
     console = Console()

@@ -381,9 +381,9 @@ def report_of_file(path: Path, outputs: list[Path], *, pixel_size_um: float | No
     import tempfile
 
     from fractoscope.formats.height_npz import read_height_npz
+    from fractoscope.reconstruction.build import store_height_map
     from fractoscope.report import write_report
-    from fractoscope.specimen.build import store_height_map
-    from fractoscope.specimen.store import SpecimenStore
+    from fractoscope.store.folder import SpecimenStore
 
     stored = read_height_npz(path)
     sigma_um, tilt_rel = _matching_noise(stored)

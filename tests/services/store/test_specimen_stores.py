@@ -15,8 +15,8 @@ from conftest import write_small_specimen
 
 from fractoscope.errors import InvalidInputError, NotFoundError
 from fractoscope.specimen.quadtree import OPTICAL, QuadtreeLayout, TileKey
-from fractoscope.specimen.store import SpecimenStore
-from fractoscope.store.specimens import ObjectSpecimenStore
+from fractoscope.store.folder import SpecimenStore
+from fractoscope.store.s3 import ObjectSpecimenStore
 
 ROOT_TILE = TileKey(0, 0, 0)
 
@@ -125,7 +125,7 @@ _KILLING_WRITER = """
 import os, shutil, signal, sys
 sys.path.insert(0, sys.argv[1])
 from conftest import write_small_specimen
-from fractoscope.specimen.store import SpecimenStore
+from fractoscope.store.folder import SpecimenStore
 
 def counted(original, state):
     def step(*args, **kwargs):
