@@ -39,8 +39,27 @@ def pytest_addoption(parser):
     parser.addoption("--load", action="store_true", help="also run the probe suite's long cases (make load)")
 
 
+# Fixtures that start a server (gRPC, HTTP, S3 or a server process): a test that uses one, itself
+# or through another fixture, is marked `server`, which `make check` leaves out.
+SERVER_FIXTURES = {
+    "server_address",
+    "built",
+    "live",
+    "server_process",
+    "s3_endpoint",
+    "guarded",
+    "served",
+    "endpoint",
+    "server",
+}
+
+
 def pytest_collection_modifyitems(config, items):
-    """Tests marked `load` (minutes of hostile load) run with --load only."""
+    """Tests that use a server's fixture are marked `server`; tests marked `load` (minutes of
+    hostile load) run with --load only."""
+    for item in items:
+        if SERVER_FIXTURES.intersection(getattr(item, "fixturenames", ())):
+            item.add_marker(pytest.mark.server)
     if config.getoption("--load"):
         return
     skip = pytest.mark.skip(reason="a long probe: make load runs it (pytest --load)")

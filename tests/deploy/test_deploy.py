@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 import yaml
 from conftest import fracture_pair, tiff_bytes
+from tools import required_tool
 
 from fractoscope.client import ClientError, FractoscopeClient
 from fractoscope.client.manifest import load_manifest
@@ -29,7 +30,7 @@ from fractoscope.synthetic.examples import write_multiscale_specimen
 
 ROOT = Path(__file__).resolve().parents[2]
 DEPLOY = ROOT / "deploy"
-TOOLS = ROOT / ".tools"  # installed by `make test`
+TOOLS = ROOT / ".tools"  # installed by `make test` (tests/tools.py)
 
 
 def _k8s_documents() -> list[dict]:
@@ -88,10 +89,11 @@ def test_tile_replicas_share_object_storage_and_roll_over_one_at_a_time():
 
 
 def _kubeconform(manifests: str) -> subprocess.CompletedProcess:
+    kubeconform = required_tool(".tools/bin/kubeconform", ".tools/bin/kubeconform")
+    required_tool(".tools/kubernetes-schemas/.written", ".tools/kubernetes-schemas/.written")
     schemas = TOOLS / "kubernetes-schemas"
-    assert (TOOLS / "bin" / "kubeconform").exists() and schemas.exists(), "run `make test`: it builds the validators"
     command = [
-        str(TOOLS / "bin" / "kubeconform"),
+        kubeconform,
         "-strict",
         "-summary",
         "-schema-location",
@@ -103,7 +105,10 @@ def _kubeconform(manifests: str) -> subprocess.CompletedProcess:
 
 def _kustomize_build() -> str:
     built = subprocess.run(
-        [str(TOOLS / "bin" / "kustomize"), "build", str(DEPLOY / "k8s")], capture_output=True, text=True, timeout=60
+        [required_tool(".tools/bin/kustomize", ".tools/bin/kustomize"), "build", str(DEPLOY / "k8s")],
+        capture_output=True,
+        text=True,
+        timeout=60,
     )
     assert built.returncode == 0, built.stderr
     return built.stdout
@@ -116,7 +121,8 @@ def test_kubernetes_manifests_are_valid_against_the_api_schemas():
     result = _kubeconform(manifests)
     assert result.returncode == 0, result.stdout + result.stderr
     assert "Valid: 9, Invalid: 0, Errors: 0, Skipped: 0" in result.stdout
-    assert manifests.count("namespace: fractoscope") >= 7 and "image: fractoscope:0.1.0" in manifests
+    version = (ROOT / "VERSION").read_text().strip()
+    assert manifests.count("namespace: fractoscope") >= 7 and f"image: fractoscope:{version}" in manifests
 
 
 def test_kubeconform_refuses_a_misspelt_field_and_a_wrong_type():

@@ -22,8 +22,9 @@ class StoredSpecimens(abc.ABC):
     scratch_root: Path
 
     @abc.abstractmethod
-    def load(self, specimen_id: str) -> Specimen:
-        """The stored specimen; NotFoundError naming `specimen_id` when there is none."""
+    def load(self, specimen_id: str, *, fresh: bool = False) -> Specimen:
+        """The stored specimen, with `fresh` as published now rather than as a shared store last
+        saw it; NotFoundError naming `specimen_id` when there is none."""
 
     @abc.abstractmethod
     def ids(self) -> list[str]:

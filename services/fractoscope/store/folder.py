@@ -74,7 +74,8 @@ class SpecimenStore(StoredSpecimens):
             if p.is_dir() and ID_PATTERN.fullmatch(p.name) and (p / "specimen.json").is_file()
         )
 
-    def load(self, specimen_id: str) -> Specimen:
+    def load(self, specimen_id: str, *, fresh: bool = False) -> Specimen:
+        """The stored specimen, always as it is on disk now (`fresh` or not: one stat tells)."""
         validate_id(specimen_id, field="specimen_id")
         description_path = self.root / specimen_id / "specimen.json"
         try:

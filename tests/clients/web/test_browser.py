@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 import requests
 from conftest import mesh_component_areas_um2, tile_seams_grey_levels
+from tools import required_tool
 
 from fractoscope.client import FractoscopeClient
 from fractoscope.client.manifest import load_manifest
@@ -36,6 +37,7 @@ STUCK_AFTER_S = 300.0
 def _in_chromium(script: str, data: Path, *arguments: str, timeout_s: float = 900) -> dict:
     """Runs SCRIPT (beside this file) with the base URL of an HTTP endpoint serving `data` and `arguments`
     ("{base}" in them is replaced by that URL); its JSON result."""
+    required_tool(os.environ.get("CHROMIUM", "/usr/bin/chromium"), "/usr/bin/chromium")
     http = start_http_server(SpecimenStore(data))
     base = f"http://127.0.0.1:{http.server_port}"
     runner = Path(__file__).resolve().parent / script

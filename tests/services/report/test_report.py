@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 from conftest import ReportNumbers
 from PIL import Image
+from tools import required_tool
 
 from fractoscope.report import build_document, report_content, write_report
 from fractoscope.store.folder import SpecimenStore
@@ -123,12 +124,16 @@ def test_the_pdf_opens_in_poppler_and_says_the_tilt_was_not_calibrated(built, tm
         next(
             line.split()[-1]
             for line in subprocess.run(
-                ["pdfinfo", str(pdf)], capture_output=True, text=True, check=True
+                [required_tool("pdfinfo", "/usr/bin/pdftoppm"), str(pdf)], capture_output=True, text=True, check=True
             ).stdout.splitlines()
             if line.startswith("Pages:")
         )
     )
-    subprocess.run(["pdftoppm", "-r", "40", "-png", str(pdf), str(tmp_path / "page")], check=True, timeout=120)
+    subprocess.run(
+        [required_tool("pdftoppm", "/usr/bin/pdftoppm"), "-r", "40", "-png", str(pdf), str(tmp_path / "page")],
+        check=True,
+        timeout=120,
+    )
     images = sorted(tmp_path.glob("page-*.png"))
     assert pages >= 4 and len(images) == pages
     for path in images:

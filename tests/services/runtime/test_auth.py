@@ -81,6 +81,7 @@ def test_calls_need_a_token_and_read_tokens_cannot_write(guarded):
     )  # probes stay open
 
 
+@pytest.mark.server
 def test_http_endpoint_honours_the_same_tokens(tmp_path):
     http = start_http_server(SpecimenStore(tmp_path / "data"), tokens=TOKENS)
     base = f"http://127.0.0.1:{http.server_port}"
@@ -120,6 +121,7 @@ def test_tokens_of_any_characters_are_compared_safely():
         assert table.grant(offered) is None
 
 
+@pytest.mark.server
 @pytest.mark.timeout(300)
 def test_refused_calls_are_answered_before_their_message_is_read(tmp_path):
     """A 200 MiB ComputeHeightMap without a token, and one with a read token: each refused, and
@@ -152,6 +154,7 @@ def test_refused_calls_are_answered_before_their_message_is_read(tmp_path):
     assert grown_mb < 50
 
 
+@pytest.mark.server
 @pytest.mark.timeout(300)
 def test_a_server_that_cannot_authenticate_to_its_peers_warns_at_start_and_fails_builds_clearly(
     tmp_path, monkeypatch, caplog
@@ -192,6 +195,7 @@ def test_a_server_that_cannot_authenticate_to_its_peers_warns_at_start_and_fails
         peers.stop(grace=None)
 
 
+@pytest.mark.server
 @pytest.mark.skipif(shutil.which("openssl") is None, reason="openssl is needed to make a test certificate")
 def test_tls(tmp_path):
     key, cert = tmp_path / "key.pem", tmp_path / "cert.pem"

@@ -193,6 +193,7 @@ class _HealthProbe:
         self._channel.close()
 
 
+@pytest.mark.server
 @pytest.mark.timeout(600)
 def test_sixteen_concurrent_builds_complete_or_are_refused_while_health_answers_every_check(tmp_path):
     """The server once deadlocked itself here: builds held every RPC thread while they called
@@ -237,6 +238,7 @@ def test_sixteen_concurrent_builds_complete_or_are_refused_while_health_answers_
     )
 
 
+@pytest.mark.server
 @pytest.mark.timeout(300)
 def test_a_cancelled_build_frees_its_worker_and_stores_nothing(tmp_path):
     """One build worker: a build whose client cancels it after its first progress report stops
@@ -259,6 +261,7 @@ def test_a_cancelled_build_frees_its_worker_and_stores_nothing(tmp_path):
         server.stop(grace=None)
 
 
+@pytest.mark.server
 @pytest.mark.timeout(300)
 def test_concurrent_repeats_of_a_request_id_join_one_build(tmp_path):
     """Six calls at once with one request id on a server that queues one build at most: were
@@ -311,6 +314,7 @@ class _StalledMatching(matching_pb2_grpc.MatchingServiceServicer):
         yield from ()
 
 
+@pytest.mark.server
 @pytest.mark.timeout(120)
 def test_a_remote_matching_call_gets_the_callers_deadline_and_is_cancelled_with_the_build(tmp_path):
     """The tile service on its own, its matching remote: the call it makes for a build carries

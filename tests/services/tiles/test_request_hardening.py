@@ -141,6 +141,7 @@ def _finished_job(base: str, upload_id: str, request_id: str) -> dict:
     return job
 
 
+@pytest.mark.server
 @pytest.mark.timeout(300)
 def test_the_http_job_api_refuses_a_reused_request_id_with_other_content(tmp_path):
     store = SpecimenStore(tmp_path / "data")
@@ -198,6 +199,7 @@ def test_grpc_exports_and_reports_write_under_the_data_directory_and_leave_nothi
     assert (tmp_path / "map.x3p").stat().st_size > 0 and list((data / "tmp").iterdir()) == []
 
 
+@pytest.mark.server
 def test_http_files_are_written_under_the_given_scratch_root_and_removed_once_sent(tmp_path):
     directories = []
 

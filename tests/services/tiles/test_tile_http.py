@@ -13,6 +13,7 @@ from fractoscope.store.folder import SpecimenStore
 from fractoscope.tiles.http import MAX_TARGET_BYTES, _Body, accepts_gzip, body_cache, not_modified, start_http_server
 
 
+@pytest.mark.server
 def test_http_endpoint_answers_head_options_and_refuses_other_methods(tmp_path):
     endpoint = start_http_server(SpecimenStore(tmp_path / "data"))
     try:

@@ -222,6 +222,7 @@ def test_an_upload_can_be_deleted(server):
     assert error.value.field == "upload_id"
 
 
+@pytest.mark.server
 def test_a_reconstruction_over_grpc_with_more_than_max_rois_is_refused_naming_rois(tmp_path):
     image = matching_pb2.TiltImage(image=common_pb2.ImageFile(content=b"not an image"))
     rois = [tiles_pb2.RoiSpec(id="r0", images=[image, image])] + [
@@ -276,6 +277,7 @@ def test_a_tilt_series_is_uploaded_and_what_its_calibration_cannot_take_is_refus
     _refused(base, _series_parts(only_pair, asked), uploads, "manifest.rois[0].matching.calibrate_tilt")
 
 
+@pytest.mark.server
 def test_a_reconstruction_over_grpc_of_one_image_or_a_calibrated_pair_is_refused_naming_the_roi(tmp_path):
     image = matching_pb2.TiltImage(image=common_pb2.ImageFile(content=b"not an image"))
     server, port = create_server("127.0.0.1:0", data_dir=tmp_path / "data")
