@@ -29,7 +29,6 @@ from fractoscope.specimen.model import (
 from fractoscope.specimen.quadtree import QuadtreeLayout, TileKey, TileRecord, TileSamples, build_tiles
 from fractoscope.specimen.tileset import tileset_json
 from fractoscope.stereo import geometry
-from fractoscope.stereo.inputs import MatchingOptions
 from fractoscope.store.base import StoredSpecimens
 from fractoscope.surface import measurement
 
@@ -287,7 +286,7 @@ def _measurement(heights: MeasuredHeights, level: str | None) -> measurement.Mea
         heights.sigma_um,
         pixel_size_um=heights.pixel_size_um,
         tilt_deg=report.get("tilt_deg") or [],
-        tilt_uncertainty_deg=report.get("tilt_uncertainty_deg", MatchingOptions().tilt_uncertainty_deg),
+        tilt_uncertainty_deg=report.get("tilt_uncertainty_deg"),
         level=level,
     )
 
