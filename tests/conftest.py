@@ -23,6 +23,7 @@ from s3_server import s3_endpoint, s3_objects  # noqa: F401 - fixtures: a real S
 from fractoscope import synthetic
 from fractoscope.client import FractoscopeClient
 from fractoscope.client.manifest import load_manifest
+from fractoscope.server.config import ServerConfig
 from fractoscope.server.main import create_server
 from fractoscope.specimen.fusion import PlacedRoi
 from fractoscope.specimen.model import RoiEntry, write_description, write_roi_arrays
@@ -162,7 +163,7 @@ def pollen_series() -> Path:
 
 @pytest.fixture()
 def server_address(tmp_path):
-    server, port = create_server("127.0.0.1:0", data_dir=tmp_path / "data")
+    server, port = create_server(ServerConfig(address="127.0.0.1:0", data_dir=tmp_path / "data"))
     server.start()
     yield f"127.0.0.1:{port}"
     server.stop(grace=None)
@@ -180,7 +181,7 @@ def built(tmp_path_factory):
     reconstructed by a loopback server, for the tile service's and the browser's tests."""
     root = tmp_path_factory.mktemp("specimen")
     truth = write_multiscale_specimen(root / "input")
-    server, port = create_server("127.0.0.1:0", data_dir=root / "data")
+    server, port = create_server(ServerConfig(address="127.0.0.1:0", data_dir=root / "data"))
     server.start()
     with FractoscopeClient(f"127.0.0.1:{port}", timeout_s=300) as client:
         specimen_id, rois = load_manifest(root / "input" / "manifest.json")

@@ -21,7 +21,7 @@ from tools import required_tool
 from fractoscope.client import ClientError, FractoscopeClient
 from fractoscope.client.manifest import load_manifest
 from fractoscope.sem.image import read_sem_image
-from fractoscope.server.config import SERVICE_NAMES, build_parser
+from fractoscope.server.config import SERVICE_NAMES, ServerConfig, build_parser
 from fractoscope.server.main import create_server
 from fractoscope.specimen.tileset import content_uris
 from fractoscope.stereo.inputs import MatchingOptions
@@ -396,12 +396,14 @@ def test_a_replica_that_is_its_own_strip_peer_never_deadlocks():
     files = [tiff_bytes(image) for image in (pair.first, pair.second)]
     port = _free_port()
     server, _ = create_server(
-        f"127.0.0.1:{port}",
-        services=("matching",),
-        workers=2,
-        build_workers=2,
-        strip_peers=f"127.0.0.1:{port}",
-        strip_pixels=50_000,
+        ServerConfig(
+            address=f"127.0.0.1:{port}",
+            services=("matching",),
+            workers=2,
+            build_workers=2,
+            strip_peers=f"127.0.0.1:{port}",
+            strip_pixels=50_000,
+        )
     )
     server.start()
     try:
@@ -431,7 +433,9 @@ def test_a_strip_peer_that_refuses_strips_fails_the_map_with_a_clear_status():
     peer_port = peer.add_insecure_port("127.0.0.1:0")
     peer.start()
     server, port = create_server(
-        "127.0.0.1:0", services=("matching",), strip_peers=f"127.0.0.1:{peer_port}", strip_pixels=50_000
+        ServerConfig(
+            address="127.0.0.1:0", services=("matching",), strip_peers=f"127.0.0.1:{peer_port}", strip_pixels=50_000
+        )
     )
     server.start()
     pair = fracture_pair(size_px=256, seed=7)

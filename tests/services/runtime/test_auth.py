@@ -19,6 +19,7 @@ from test_budget import _serve, _status_kb
 
 from fractoscope.client import ClientError, FractoscopeClient
 from fractoscope.runtime.auth import TokenTable
+from fractoscope.server.config import ServerConfig
 from fractoscope.server.main import create_server
 from fractoscope.stereo.disparity import StripTask
 from fractoscope.store.folder import SpecimenStore
@@ -30,7 +31,7 @@ TOKENS = TokenTable.from_text("lims:write-secret:write,viewer:read-secret:read")
 
 @pytest.fixture()
 def guarded(tmp_path):
-    server, port = create_server("127.0.0.1:0", data_dir=tmp_path / "data", tokens=TOKENS)
+    server, port = create_server(ServerConfig(address="127.0.0.1:0", data_dir=tmp_path / "data"), tokens=TOKENS)
     server.start()
     yield f"127.0.0.1:{port}"
     server.stop(grace=None)
@@ -161,7 +162,9 @@ def test_a_server_that_cannot_authenticate_to_its_peers_warns_at_start_and_fails
 ):
     """The tile service on its own, calling matching and meshing on a guarded server: without
     FRACTO_TOKEN a warning at start and UNAUTHENTICATED builds that say why; with it, builds."""
-    peers, peer_port = create_server("127.0.0.1:0", services=("matching", "meshing"), tokens=TOKENS)
+    peers, peer_port = create_server(
+        ServerConfig(address="127.0.0.1:0", services=("matching", "meshing")), tokens=TOKENS
+    )
     peers.start()
     peer = f"127.0.0.1:{peer_port}"
     pair = fracture_pair(size_px=128, seed=9)
@@ -172,12 +175,14 @@ def test_a_server_that_cannot_authenticate_to_its_peers_warns_at_start_and_fails
     try:
         with caplog.at_level(logging.WARNING, logger="fractoscope.server"):
             tiles, port = create_server(
-                "127.0.0.1:0",
-                services=("tiles",),
-                data_dir=tmp_path / "data",
+                ServerConfig(
+                    address="127.0.0.1:0",
+                    services=("tiles",),
+                    data_dir=tmp_path / "data",
+                    matching_address=peer,
+                    meshing_address=peer,
+                ),
                 tokens=TOKENS,
-                matching_address=peer,
-                meshing_address=peer,
             )
         assert "FRACTO_TOKEN is not" in caplog.text and peer in caplog.text
         tiles.start()
@@ -222,7 +227,7 @@ def test_tls(tmp_path):
         capture_output=True,
     )
     server, port = create_server(
-        "localhost:0", data_dir=tmp_path / "data", tls_cert_path=str(cert), tls_key_path=str(key)
+        ServerConfig(address="localhost:0", data_dir=tmp_path / "data", tls_cert_path=str(cert), tls_key_path=str(key))
     )
     server.start()
     try:

@@ -35,6 +35,7 @@ from surfalize import Surface
 from fractoscope.formats.x3p import read_x3p
 from fractoscope.runtime.auth import TokenTable
 from fractoscope.runtime.budget import Budget
+from fractoscope.server.config import ServerConfig
 from fractoscope.server.main import create_server
 from fractoscope.store.folder import SpecimenStore
 from fractoscope.tiles import openapi
@@ -47,7 +48,7 @@ TOKENS = TokenTable.from_text("lims:write-secret:write,viewer:read-secret:read")
 
 def _serve(data: Path, tokens: TokenTable | None = None):
     store = SpecimenStore(data)
-    server, port = create_server("127.0.0.1:0", store=store, tokens=tokens)
+    server, port = create_server(ServerConfig(address="127.0.0.1:0"), store=store, tokens=tokens)
     server.start()
     endpoint = start_http_server(store, tokens=tokens, grpc_address=f"127.0.0.1:{port}")
     return server, endpoint, f"http://127.0.0.1:{endpoint.server_port}"

@@ -29,6 +29,7 @@ from fractoscope import report
 from fractoscope.client import ClientError
 from fractoscope.errors import InvalidInputError, NotFoundError
 from fractoscope.formats import exports as export_formats
+from fractoscope.server.config import ServerConfig
 from fractoscope.server.main import create_server
 from fractoscope.specimen.exports import export_height_map
 from fractoscope.specimen.quadtree import TileKey
@@ -145,7 +146,7 @@ def _finished_job(base: str, upload_id: str, request_id: str) -> dict:
 @pytest.mark.timeout(300)
 def test_the_http_job_api_refuses_a_reused_request_id_with_other_content(tmp_path):
     store = SpecimenStore(tmp_path / "data")
-    server, port = create_server("127.0.0.1:0", store=store)
+    server, port = create_server(ServerConfig(address="127.0.0.1:0"), store=store)
     server.start()
     endpoint = start_http_server(store, grpc_address=f"127.0.0.1:{port}")
     base = f"http://127.0.0.1:{endpoint.server_port}"

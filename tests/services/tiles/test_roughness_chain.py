@@ -14,6 +14,7 @@ import pytest
 
 from fractoscope import synthetic
 from fractoscope.client import ClientError, FractoscopeClient
+from fractoscope.server.config import ServerConfig
 from fractoscope.server.main import create_server
 from fractoscope.specimen.fusion import PlacedRoi
 from fractoscope.specimen.model import RoiEntry, write_description, write_roi_arrays
@@ -72,7 +73,7 @@ def served(tmp_path_factory):
             layout=QuadtreeLayout((0.0, 0.0), SIZE_PX * PIXEL_UM),
             tiles={root: TileRecord(root, roi.id, 100.0, OPTICAL, 0.0, 0.0, 1.0)},
         )
-    server, port = create_server("127.0.0.1:0", data_dir=data)
+    server, port = create_server(ServerConfig(address="127.0.0.1:0", data_dir=data))
     server.start()
     http = start_http_server(SpecimenStore(data))
     with FractoscopeClient(f"127.0.0.1:{port}", timeout_s=300) as client:
