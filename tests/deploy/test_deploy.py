@@ -387,6 +387,7 @@ def test_matching_replicas_share_the_strips_of_a_pair_and_the_stitched_map_is_ex
             process.wait(timeout=60)
 
 
+@pytest.mark.server
 def test_a_replica_that_is_its_own_strip_peer_never_deadlocks():
     """Two height maps at once on a replica whose strip peer is itself: both farm their strips out
     to it, whose strips run on workers of their own that wait on nothing, and both finish."""

@@ -90,6 +90,7 @@ def _answers(replica: ServerProcess, tile: str) -> dict[str, int]:
 options = {"metadata": READ_METADATA, "timeout": HANG_S}
 
 
+@pytest.mark.server
 def test_a_frozen_object_store_gets_503_not_a_hang_and_health_says_degraded(seaweed, replica):
     tileset = requests.get(f"{replica.http}/specimens/frozen/tileset.json", headers=READ, timeout=HANG_S)
     tile = json.loads(tileset.content)["root"]["content"]["uri"]

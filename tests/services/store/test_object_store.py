@@ -186,6 +186,7 @@ def test_a_job_whose_replica_stopped_is_reported_failed(s3_objects):
         own.close()
 
 
+@pytest.mark.server
 def test_an_object_store_restart_is_answered_503_then_served_again_with_nothing_lost(tmp_path):
     """A replica whose object store stops answers what it has not cached with 503 and a retry
     hint (a timeout at most, never a hang or a 500), serves what it cached, and once the store is

@@ -21,7 +21,7 @@ from fractoscope.store.s3 import ObjectSpecimenStore
 ROOT_TILE = TileKey(0, 0, 0)
 
 
-@pytest.fixture(params=["folder", "s3"])
+@pytest.fixture(params=["folder", pytest.param("s3", marks=pytest.mark.server)])
 def store(request, tmp_path):
     """Each backend, empty; the object store looks at its pointers on every load."""
     if request.param == "folder":
@@ -151,6 +151,7 @@ for kill_at in range(1, 100):
 """
 
 
+@pytest.mark.slow
 def test_a_writer_killed_at_any_step_leaves_the_old_or_the_new_build_intact(tmp_path):
     done = subprocess.run(
         [sys.executable, "-c", _KILLING_WRITER, str(Path(__file__).parents[2]), str(tmp_path)],

@@ -24,6 +24,7 @@ def _errors(z: np.ndarray, hurst: float, window_px: float, method: str) -> list[
     return [(fit.hurst - hurst, fit.hurst_stderr) for fit in fits]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("hurst", HURSTS)
 def test_hurst_exponent_of_clean_self_affine_surfaces(hurst):
     """2048² maps, a 4 px window: lags 1.6-20 µm (16-205 px). Over twelve maps both methods are
@@ -75,6 +76,7 @@ def test_reported_fit_range_is_four_windows_to_a_tenth_of_the_field():
         scaling.trustworthy_range_um((256, 256), pixel_size_um=PIXEL_UM, window_px=10)
 
 
+@pytest.mark.slow
 def test_exponents_along_and_across_a_direction():
     """A fractional Brownian sheet: self-affine with H = 0.8 along x and 0.5 along y. All its profiles
     share the sheet's few longest waves, so one map scatters by up to 0.1 (more than the jackknife,
