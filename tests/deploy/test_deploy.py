@@ -455,7 +455,7 @@ def test_a_strip_peer_that_refuses_strips_fails_the_map_with_a_clear_status():
 
 def test_a_serving_process_freezes_its_start_up_objects_and_collects_garbage_less_often():
     """settle_garbage_collector, which fracto-server and `make run` call before serving (why: its
-    docstring and the load figures in the README), run in a fresh interpreter."""
+    docstring and the load figures in docs/performance.md), run in a fresh interpreter."""
     probe = (
         "import gc, json, fractoscope.server.main; from fractoscope.runtime.process import "
         "settle_garbage_collector;before = gc.get_threshold(); settle_garbage_collector();print(json.dumps([before, "

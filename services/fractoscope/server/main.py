@@ -285,9 +285,8 @@ def main(argv: list[str] | None = None) -> None:
     tokens = TokenTable.from_environment()
     services = config.services
     store = open_specimen_store(config.store_url, Path(config.data_dir)) if "tiles" in services else None
-    budget = process_budget(
-        config.max_request_mb, build_workers=config.build_workers, store=store, data_dir=config.data_dir
-    )
+    build_workers = config.build_workers or default_build_workers()
+    budget = process_budget(config.max_request_mb, build_workers=build_workers, store=store, data_dir=config.data_dir)
     instruments = load_profiles(Path(config.instruments_path)) if config.instruments_path else ()
     server, port = create_server(config, store=store, tokens=tokens, instruments=instruments, budget=budget)
     settle_garbage_collector()
