@@ -105,10 +105,10 @@ test: install $(CHROMIUM) $(PDFTOPPM) $(CURL) $(KUBECONFORM) $(KUSTOMIZE) $(KUBE
 	$(MAKE) --no-print-directory lint
 	$(BIN)/python -m pytest -q
 
-## check: the quick loop, before each commit: lint, the contracts, the type check and the tests that start no server or browser (neither slow nor server); tests whose tools are missing skip
+## check: the quick loop, before each commit: lint, the contracts, the type check and, on two workers, the tests that start no server or browser (neither slow nor server); tests whose tools are missing skip
 check: install
 	$(MAKE) --no-print-directory lint
-	$(BIN)/python -m pytest -q -m "not slow and not server"
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile -m "not slow and not server"
 
 ## bench: speed, memory and accuracy figures, written to bench-results/
 bench: install $(WRK) $(GHZ)
