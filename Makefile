@@ -35,7 +35,7 @@ KUBE_SCHEMAS := $(TOOLS)/kubernetes-schemas/.written
 WEED := $(TOOLS)/bin/weed
 SEAWEEDFS := github.com/seaweedfs/seaweedfs@v0.0.0-20261109003541-7506e5f91cd6
 
-.PHONY: install proto run test bench load lint clean
+.PHONY: install proto run test check bench load lint clean
 
 ## install: create .venv with the three distributions and the development tools, the stubs, the JS packages
 install: $(STAMP) $(NODE_STAMP) $(WEB_STAMP) $(WEB_LINK)
@@ -105,6 +105,11 @@ test: install $(CHROMIUM) $(PDFTOPPM) $(CURL) $(KUBECONFORM) $(KUSTOMIZE) $(KUBE
 	$(MAKE) --no-print-directory lint
 	$(BIN)/python -m pytest -q
 
+## check: the quick loop, before each commit: lint, the contracts, the type check and, on two workers, the tests that start no server or browser (neither slow nor server); tests whose tools are missing skip
+check: install
+	$(MAKE) --no-print-directory lint
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile -m "not slow and not server"
+
 ## bench: speed, memory and accuracy figures, written to bench-results/
 bench: install $(WRK) $(GHZ)
 	$(BIN)/python -m benchmarks.matching --out bench-results
@@ -131,12 +136,13 @@ load: install $(WRK) $(GHZ) $(CURL) $(WEED)
 	$(BIN)/python -m pytest -q --load -m load tests/hostile
 	$(BIN)/python -m benchmarks.hostile --out bench-results
 
-## lint: formatting, lint rules and the import layering
+## lint: formatting, lint rules, the import layering and the type check (mypy, no error outside mypy-baseline.txt)
 lint: install
 	$(BIN)/ruff format --check
 	$(BIN)/ruff check
 	$(BIN)/lint-imports
+	found=$$($(BIN)/mypy) || [ $$? -eq 1 ]; $(BIN)/mypy-baseline filter <<< "$$found"
 
 clean:
-	rm -rf $(VENV) clients/python/fractoscope/v1 build node_modules $(WEB)/node_modules $(TOOLS)
+	rm -rf $(VENV) clients/python/fractoscope/v1 build node_modules $(WEB)/node_modules $(TOOLS) .mypy_cache
 	find . -name '*.egg-info' -prune -exec rm -rf {} +

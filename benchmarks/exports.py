@@ -29,8 +29,9 @@ from fractoscope.formats.mesh_export import height_map_mesh, write_mesh
 from fractoscope.formats.x3p import write_x3p
 from fractoscope.server.main import embedded_server
 from fractoscope.specimen.fusion import PlacedRoi
+from fractoscope.specimen.model import RoiEntry, write_description, write_roi_arrays
 from fractoscope.specimen.quadtree import QuadtreeLayout
-from fractoscope.specimen.store import RoiEntry, SpecimenStore, write_description, write_roi_arrays
+from fractoscope.store.folder import SpecimenStore
 
 PIXEL_SIZE_UM = 0.1
 TIMING_REPEATS = 2

@@ -48,9 +48,9 @@ from s3_server import BUCKET, SeaweedFs, environment  # noqa: E402
 from test_probe_budget import zlib_float_tiff  # noqa: E402
 from test_probe_multipart import multipart_body  # noqa: E402
 
-from fractoscope.specimen.store import SpecimenStore  # noqa: E402
+from fractoscope.specimen.model import SpecimenStore  # noqa: E402
 from fractoscope.store.objects import S3Objects  # noqa: E402
-from fractoscope.store.specimens import ObjectSpecimenStore  # noqa: E402
+from fractoscope.store.s3 import ObjectSpecimenStore  # noqa: E402
 from fractoscope.synthetic.examples import write_multiscale_specimen  # noqa: E402
 from fractoscope.v1 import tiles_pb2, tiles_pb2_grpc  # noqa: E402
 

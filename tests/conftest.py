@@ -23,10 +23,12 @@ from s3_server import s3_endpoint, s3_objects  # noqa: F401 - fixtures: a real S
 from fractoscope import synthetic
 from fractoscope.client import FractoscopeClient
 from fractoscope.client.manifest import load_manifest
+from fractoscope.server.config import ServerConfig
 from fractoscope.server.main import create_server
 from fractoscope.specimen.fusion import PlacedRoi
+from fractoscope.specimen.model import RoiEntry, write_description, write_roi_arrays
 from fractoscope.specimen.quadtree import OPTICAL, QuadtreeLayout, TileKey, TileRecord
-from fractoscope.specimen.store import RoiEntry, SpecimenStore, write_description, write_roi_arrays
+from fractoscope.store.folder import SpecimenStore
 from fractoscope.synthetic.examples import write_multiscale_specimen
 
 # No instrument profile of the machine's user reaches a test (sem.instruments): each test that
@@ -38,8 +40,27 @@ def pytest_addoption(parser):
     parser.addoption("--load", action="store_true", help="also run the probe suite's long cases (make load)")
 
 
+# Fixtures that start a server (gRPC, HTTP, S3 or a server process): a test that uses one, itself
+# or through another fixture, is marked `server`, which `make check` leaves out.
+SERVER_FIXTURES = {
+    "server_address",
+    "built",
+    "live",
+    "server_process",
+    "s3_endpoint",
+    "guarded",
+    "served",
+    "endpoint",
+    "server",
+}
+
+
 def pytest_collection_modifyitems(config, items):
-    """Tests marked `load` (minutes of hostile load) run with --load only."""
+    """Tests that use a server's fixture are marked `server`; tests marked `load` (minutes of
+    hostile load) run with --load only."""
+    for item in items:
+        if SERVER_FIXTURES.intersection(getattr(item, "fixturenames", ())):
+            item.add_marker(pytest.mark.server)
     if config.getoption("--load"):
         return
     skip = pytest.mark.skip(reason="a long probe: make load runs it (pytest --load)")
@@ -142,7 +163,7 @@ def pollen_series() -> Path:
 
 @pytest.fixture()
 def server_address(tmp_path):
-    server, port = create_server("127.0.0.1:0", data_dir=tmp_path / "data")
+    server, port = create_server(ServerConfig(address="127.0.0.1:0", data_dir=tmp_path / "data"))
     server.start()
     yield f"127.0.0.1:{port}"
     server.stop(grace=None)
@@ -160,7 +181,7 @@ def built(tmp_path_factory):
     reconstructed by a loopback server, for the tile service's and the browser's tests."""
     root = tmp_path_factory.mktemp("specimen")
     truth = write_multiscale_specimen(root / "input")
-    server, port = create_server("127.0.0.1:0", data_dir=root / "data")
+    server, port = create_server(ServerConfig(address="127.0.0.1:0", data_dir=root / "data"))
     server.start()
     with FractoscopeClient(f"127.0.0.1:{port}", timeout_s=300) as client:
         specimen_id, rois = load_manifest(root / "input" / "manifest.json")

@@ -25,16 +25,12 @@ from fractoscope import synthetic
 from fractoscope.http.server import start_http_server
 from fractoscope.runtime.auth import TokenTable
 from fractoscope.runtime.budget import Budget
+from fractoscope.server.config import ServerConfig
 from fractoscope.server.main import create_server
 from fractoscope.specimen.fusion import PlacedRoi
+from fractoscope.specimen.model import RoiEntry, write_description, write_roi_arrays, write_roi_views
 from fractoscope.specimen.quadtree import OPTICAL, QuadtreeLayout, TileKey, TileRecord
-from fractoscope.specimen.store import (
-    RoiEntry,
-    SpecimenStore,
-    write_description,
-    write_roi_arrays,
-    write_roi_views,
-)
+from fractoscope.store.folder import SpecimenStore
 
 WRITE_TOKEN, READ_TOKEN = "w-9f3c1e2b7a-secret", "r-4d8a6b0c5e-secret"
 TOKENS = f"writer:{WRITE_TOKEN}:write,reader:{READ_TOKEN}:read"
@@ -60,7 +56,7 @@ def live(tmp_path_factory):
     store = SpecimenStore(data)
     tokens = TokenTable.from_text(TOKENS)
     budget = Budget.for_server(None, concurrent_requests=1, scratch_root=store.scratch_root)  # one for both
-    server, port = create_server("127.0.0.1:0", store=store, tokens=tokens, budget=budget)
+    server, port = create_server(ServerConfig(address="127.0.0.1:0"), store=store, tokens=tokens, budget=budget)
     server.start()
     endpoint = start_http_server(store, tokens=tokens, grpc_address=f"127.0.0.1:{port}", budget=budget)
     yield Live(f"127.0.0.1:{port}", f"http://127.0.0.1:{endpoint.server_port}", store, data)

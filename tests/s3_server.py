@@ -13,6 +13,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from tools import required_tool
 
 from fractoscope.store.objects import S3Objects
 
@@ -38,19 +39,9 @@ _PORTS = (
 )
 
 
-def _weed() -> Path:
-    """The weed binary, built when missing; the test is skipped only when it cannot be built."""
-    if not WEED.is_file():
-        built = subprocess.run(
-            ["make", "--no-print-directory", str(WEED.relative_to(REPOSITORY))],
-            cwd=REPOSITORY,
-            capture_output=True,
-            text=True,
-            timeout=1800,
-        )
-        if built.returncode != 0:
-            pytest.skip(f"SeaweedFS could not be built (make .tools/bin/weed): {built.stderr[-500:]}")
-    return WEED
+def _weed() -> str:
+    """The weed binary (built by `make .tools/bin/weed`; the tests that need it skip without it)."""
+    return required_tool(str(WEED.relative_to(REPOSITORY)), str(WEED.relative_to(REPOSITORY)))
 
 
 def free_ports(count: int) -> list[int]:

@@ -16,11 +16,12 @@ import numpy as np
 import pytest
 import yaml
 from conftest import fracture_pair, tiff_bytes
+from tools import required_tool
 
 from fractoscope.client import ClientError, FractoscopeClient
 from fractoscope.client.manifest import load_manifest
 from fractoscope.sem.image import read_sem_image
-from fractoscope.server.config import SERVICE_NAMES, build_parser
+from fractoscope.server.config import SERVICE_NAMES, ServerConfig, build_parser
 from fractoscope.server.main import create_server
 from fractoscope.specimen.tileset import content_uris
 from fractoscope.stereo.inputs import MatchingOptions
@@ -29,7 +30,7 @@ from fractoscope.synthetic.examples import write_multiscale_specimen
 
 ROOT = Path(__file__).resolve().parents[2]
 DEPLOY = ROOT / "deploy"
-TOOLS = ROOT / ".tools"  # installed by `make test`
+TOOLS = ROOT / ".tools"  # installed by `make test` (tests/tools.py)
 
 
 def _k8s_documents() -> list[dict]:
@@ -88,10 +89,11 @@ def test_tile_replicas_share_object_storage_and_roll_over_one_at_a_time():
 
 
 def _kubeconform(manifests: str) -> subprocess.CompletedProcess:
+    kubeconform = required_tool(".tools/bin/kubeconform", ".tools/bin/kubeconform")
+    required_tool(".tools/kubernetes-schemas/.written", ".tools/kubernetes-schemas/.written")
     schemas = TOOLS / "kubernetes-schemas"
-    assert (TOOLS / "bin" / "kubeconform").exists() and schemas.exists(), "run `make test`: it builds the validators"
     command = [
-        str(TOOLS / "bin" / "kubeconform"),
+        kubeconform,
         "-strict",
         "-summary",
         "-schema-location",
@@ -103,7 +105,10 @@ def _kubeconform(manifests: str) -> subprocess.CompletedProcess:
 
 def _kustomize_build() -> str:
     built = subprocess.run(
-        [str(TOOLS / "bin" / "kustomize"), "build", str(DEPLOY / "k8s")], capture_output=True, text=True, timeout=60
+        [required_tool(".tools/bin/kustomize", ".tools/bin/kustomize"), "build", str(DEPLOY / "k8s")],
+        capture_output=True,
+        text=True,
+        timeout=60,
     )
     assert built.returncode == 0, built.stderr
     return built.stdout
@@ -116,7 +121,8 @@ def test_kubernetes_manifests_are_valid_against_the_api_schemas():
     result = _kubeconform(manifests)
     assert result.returncode == 0, result.stdout + result.stderr
     assert "Valid: 9, Invalid: 0, Errors: 0, Skipped: 0" in result.stdout
-    assert manifests.count("namespace: fractoscope") >= 7 and "image: fractoscope:0.1.0" in manifests
+    version = (ROOT / "VERSION").read_text().strip()
+    assert manifests.count("namespace: fractoscope") >= 7 and f"image: fractoscope:{version}" in manifests
 
 
 def test_kubeconform_refuses_a_misspelt_field_and_a_wrong_type():
@@ -381,6 +387,7 @@ def test_matching_replicas_share_the_strips_of_a_pair_and_the_stitched_map_is_ex
             process.wait(timeout=60)
 
 
+@pytest.mark.server
 def test_a_replica_that_is_its_own_strip_peer_never_deadlocks():
     """Two height maps at once on a replica whose strip peer is itself: both farm their strips out
     to it, whose strips run on workers of their own that wait on nothing, and both finish."""
@@ -390,12 +397,14 @@ def test_a_replica_that_is_its_own_strip_peer_never_deadlocks():
     files = [tiff_bytes(image) for image in (pair.first, pair.second)]
     port = _free_port()
     server, _ = create_server(
-        f"127.0.0.1:{port}",
-        services=("matching",),
-        workers=2,
-        build_workers=2,
-        strip_peers=f"127.0.0.1:{port}",
-        strip_pixels=50_000,
+        ServerConfig(
+            address=f"127.0.0.1:{port}",
+            services=("matching",),
+            workers=2,
+            build_workers=2,
+            strip_peers=f"127.0.0.1:{port}",
+            strip_pixels=50_000,
+        )
     )
     server.start()
     try:
@@ -425,7 +434,9 @@ def test_a_strip_peer_that_refuses_strips_fails_the_map_with_a_clear_status():
     peer_port = peer.add_insecure_port("127.0.0.1:0")
     peer.start()
     server, port = create_server(
-        "127.0.0.1:0", services=("matching",), strip_peers=f"127.0.0.1:{peer_port}", strip_pixels=50_000
+        ServerConfig(
+            address="127.0.0.1:0", services=("matching",), strip_peers=f"127.0.0.1:{peer_port}", strip_pixels=50_000
+        )
     )
     server.start()
     pair = fracture_pair(size_px=256, seed=7)
@@ -444,7 +455,7 @@ def test_a_strip_peer_that_refuses_strips_fails_the_map_with_a_clear_status():
 
 def test_a_serving_process_freezes_its_start_up_objects_and_collects_garbage_less_often():
     """settle_garbage_collector, which fracto-server and `make run` call before serving (why: its
-    docstring and the load figures in the README), run in a fresh interpreter."""
+    docstring and the load figures in docs/performance.md), run in a fresh interpreter."""
     probe = (
         "import gc, json, fractoscope.server.main; from fractoscope.runtime.process import "
         "settle_garbage_collector;before = gc.get_threshold(); settle_garbage_collector();print(json.dumps([before, "

@@ -26,7 +26,7 @@ import tifffile
 from probe_servers import READ, READ_METADATA, WRITE, write_map_specimen
 
 from fractoscope.rpc import wire
-from fractoscope.specimen.store import SpecimenStore
+from fractoscope.store.folder import SpecimenStore
 from fractoscope.v1 import tiles_pb2, tiles_pb2_grpc
 
 MB = 1 << 20

@@ -4,19 +4,18 @@ gRPC's own _decode in an ERROR traceback; refused HTTP requests with tokens in t
 
 from __future__ import annotations
 
-import shutil
 import subprocess
 
-import pytest
 import requests
 from probe_servers import READ_TOKEN, WRITE_TOKEN
+from tools import required_tool
 
 PROBE_SECRET = "probe-secret-7c1d"
 
 
 def _grpc_with_authorization(address: str, value: bytes, method: str) -> subprocess.CompletedProcess:
     """A gRPC call of an empty request with `value` as its authorization header, sent as is."""
-    curl = shutil.which("curl") or pytest.fail("curl is needed (make test installs it)")
+    curl = required_tool("curl", "/usr/bin/curl")
     header = b"authorization: " + value
     return subprocess.run(
         [curl, "-s", "-o", "/dev/null", "-w", "%{http_code}", "--http2-prior-knowledge", "-X", "POST",

@@ -19,7 +19,7 @@ from probe_servers import READ, READ_METADATA, WRITE, ServerProcess, write_map_s
 from s3_server import BUCKET, SeaweedFs, environment
 
 from fractoscope.store.objects import S3Objects
-from fractoscope.store.specimens import ObjectSpecimenStore
+from fractoscope.store.s3 import ObjectSpecimenStore
 from fractoscope.v1 import tiles_pb2, tiles_pb2_grpc
 
 # A hang bound, not the target (10 s; `make load` measures it): far above the bounded waits.
@@ -90,6 +90,7 @@ def _answers(replica: ServerProcess, tile: str) -> dict[str, int]:
 options = {"metadata": READ_METADATA, "timeout": HANG_S}
 
 
+@pytest.mark.server
 def test_a_frozen_object_store_gets_503_not_a_hang_and_health_says_degraded(seaweed, replica):
     tileset = requests.get(f"{replica.http}/specimens/frozen/tileset.json", headers=READ, timeout=HANG_S)
     tile = json.loads(tileset.content)["root"]["content"]["uri"]

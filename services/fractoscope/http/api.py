@@ -63,8 +63,9 @@ from fractoscope.rpc.limits import MAX_REQUEST_ID_CHARS
 from fractoscope.runtime.auth import READ, WRITE, Grant, TokenTable
 from fractoscope.runtime.budget import Budget, Cost
 from fractoscope.specimen import exports, quadtree, queries
-from fractoscope.specimen.store import SpecimenStore, validate_id
+from fractoscope.specimen.model import validate_id
 from fractoscope.stereo.geometry import validate_pixel_size_um
+from fractoscope.store.base import StoredSpecimens
 from fractoscope.tiles import admission
 from fractoscope.tiles.messages import (
     profile_response,
@@ -116,7 +117,7 @@ class JsonApi:
 
     def __init__(
         self,
-        store: SpecimenStore,
+        store: StoredSpecimens,
         tokens: TokenTable,
         *,
         grpc_address: str | None,

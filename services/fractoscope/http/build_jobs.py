@@ -35,8 +35,8 @@ from fractoscope.http.responses import ApiError
 from fractoscope.rpc.channel import open_channel
 from fractoscope.rpc.status import ClientError, raised_as_client_errors
 from fractoscope.runtime.budget import Budget, Cost
-from fractoscope.specimen.store import process_identity
 from fractoscope.store.objects import Listed, ObjectMissing, S3Objects, Stored
+from fractoscope.store.scratch import process_identity
 from fractoscope.v1 import tiles_pb2, tiles_pb2_grpc
 
 # How often a running job's progress is written to object storage at most, s.
@@ -64,7 +64,7 @@ class HttpBuildJob:
     specimen: dict | None = None
     error: dict | None = None
     updated_s: float = field(default_factory=time.time)  # when its record was last written
-    process: str | None = None  # the identity of the process that wrote its record (specimen.store)
+    process: str | None = None  # the identity of the process that wrote its record (store.scratch)
 
     def as_dict(self) -> dict:
         return {
@@ -124,7 +124,7 @@ class HttpBuildJob:
 
 
 def _running(identity: str | None) -> bool:
-    """Whether the process of an identity (specimen.store.process_identity) still runs."""
+    """Whether the process of an identity (store.scratch.process_identity) still runs."""
     return identity is not None and process_identity(int(identity.partition(".")[0])) == identity
 
 

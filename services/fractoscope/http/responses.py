@@ -14,7 +14,7 @@ from aiohttp import web
 
 from fractoscope import strict_json
 from fractoscope.errors import FractoscopeError, outcome_of
-from fractoscope.specimen.store import scratch_folder
+from fractoscope.store.scratch import scratch_folder
 
 JSON_TYPE = "application/json"
 
@@ -77,7 +77,7 @@ async def file_response(
     request: web.Request, run, write: Callable[[Path], tuple[Path, str]], *, scratch_root: Path
 ) -> web.StreamResponse:
     """A file written by `write(directory)` (on threads by `await run(function, *args)`, into a
-    scratch folder under `scratch_root`: SpecimenStore.scratch_root, whose leftovers of killed
+    scratch folder under `scratch_root`: a store's scratch_root, whose leftovers of killed
     processes a store's start removes) and streamed out in chunks, so memory stays bounded; the
     folder goes once it is sent."""
     with scratch_folder(scratch_root, "fractoscope-http") as directory:

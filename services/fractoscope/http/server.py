@@ -45,7 +45,7 @@ from fractoscope.runtime.budget import Budget
 from fractoscope.runtime.caches import BoundedCache
 from fractoscope.runtime.process import CredentialFilter
 from fractoscope.specimen.quadtree import TILE_URI
-from fractoscope.specimen.store import SpecimenStore
+from fractoscope.store.base import StoredSpecimens
 
 _ROUTE = re.compile(
     rf"/specimens/(?P<specimen>[A-Za-z0-9_-]{{1,64}})/(?P<path>tileset\.json|{TILE_URI.pattern})", re.ASCII
@@ -93,7 +93,7 @@ class _TileApp:
     Cached bodies are answered on the event loop; producing them (file reads, gzip) and the
     analysis queries run on the default executor so that they never stall it."""
 
-    def __init__(self, store: SpecimenStore, tokens: TokenTable, api: JsonApi):
+    def __init__(self, store: StoredSpecimens, tokens: TokenTable, api: JsonApi):
         self.store = store
         self.cache = body_cache()
         self.tokens = tokens
@@ -405,7 +405,7 @@ _log = logging.getLogger("fractoscope.http")
 class HttpTileServer:
     """The HTTP endpoint, served by aiohttp from an event loop on its own daemon thread."""
 
-    def __init__(self, store: SpecimenStore, host: str, port: int, tokens: TokenTable, api: JsonApi):
+    def __init__(self, store: StoredSpecimens, host: str, port: int, tokens: TokenTable, api: JsonApi):
         server_logger.addFilter(_CREDENTIAL_FILTER)  # once per process: the same filter is not added twice
         self._loop = asyncio.new_event_loop()
         self._api = api
@@ -444,7 +444,7 @@ class HttpTileServer:
 
 
 def start_http_server(
-    store: SpecimenStore,
+    store: StoredSpecimens,
     host: str = "127.0.0.1",
     port: int = 0,
     *,

@@ -30,7 +30,7 @@ from fractoscope.rpc.manifest import manifest_field, parse_manifest
 from fractoscope.runtime import budget
 from fractoscope.runtime.budget import Cost
 from fractoscope.sem.image import read_sem_image
-from fractoscope.specimen.store import validate_id
+from fractoscope.specimen.model import validate_id
 from fractoscope.stereo.inputs import resolve_calibration
 from fractoscope.store.objects import S3Objects
 from fractoscope.tiles.messages import check_child_centres, checked_rois, in_roi

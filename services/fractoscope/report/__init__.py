@@ -27,7 +27,7 @@ from fractoscope.report.document import (
     write_html,
     write_pdf,
 )
-from fractoscope.specimen.store import RoiEntry, Specimen
+from fractoscope.specimen.model import RoiEntry, Specimen
 from fractoscope.surface.areal_parameters import UNITS
 from fractoscope.surface.profile_parameters import UNITS as PROFILE_UNITS
 from fractoscope.surface.scaling import MAX_HURST_STDERR

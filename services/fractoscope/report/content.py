@@ -14,7 +14,7 @@ from fractoscope.formats.calibration import Calibration, software
 from fractoscope.sem.image import read_sem_image
 from fractoscope.specimen import queries
 from fractoscope.specimen.fusion import footprint_um, overlaps
-from fractoscope.specimen.store import RoiEntry, Specimen
+from fractoscope.specimen.model import RoiEntry, Specimen
 from fractoscope.surface import iso_filters, roughness, scaling
 
 MAX_VIEW_PX = 1024  # SEM images are shown downsampled to at most this many pixels across

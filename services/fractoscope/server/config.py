@@ -1,4 +1,5 @@
-"""fracto-server's configuration: flags, each defaulting to its environment variable, read once.
+"""fracto-server's configuration: one ServerConfig, read once from its flags (`from_flags`), each
+flag defaulting to its environment variable.
 
 FRACTO_ADDRESS (listen address), FRACTO_SERVICES, FRACTO_MAX_MESSAGE_MB (largest message either
 way), FRACTO_WORKERS (threads answering queries), FRACTO_BUILD_WORKERS and FRACTO_BUILD_QUEUE
@@ -12,17 +13,19 @@ the strips of large pairs, e.g. the headless Service of the matching Deployment;
 here), FRACTO_STRIP_PIXELS and FRACTO_STRIP_IN_FLIGHT, FRACTO_HTTP_ADDRESS (host:port of the
 plain-HTTP tile endpoint; empty = off). Tokens (FRACTO_TOKENS, see auth) and TLS (FRACTO_TLS_CERT,
 FRACTO_TLS_KEY) likewise, and FRACTO_INSTRUMENTS (the instrument profiles file, see
-sem.instruments). FRACTO_WEB_ROOT (the installed web viewer, read by tiles.http; default
+sem.instruments). FRACTO_WEB_ROOT (the installed web viewer, read by http.server; default
 sys.prefix/share/fractoscope/web), FRACTO_HTTP_IDLE_TIMEOUT_S and FRACTO_HTTP_MAX_CONNECTIONS
 (how long an HTTP connection may go without a whole request, default 15 s, and how many are kept
-open, default 1000 and at most half the file descriptors; tiles.http) and FRACTO_UPLOAD_MAX_AGE_S
-(how long HTTP uploads are kept, read by tiles.uploads; default 24 h) have no flag.
+open, default 1000 and at most half the file descriptors; http.server) and FRACTO_UPLOAD_MAX_AGE_S
+(how long HTTP uploads are kept, read by http.uploads; default 24 h) have no flag.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+from dataclasses import dataclass
+from pathlib import Path
 
 from fractoscope.rpc.limits import DEFAULT_MAX_MESSAGE_MB
 from fractoscope.sem.instruments import ENVIRONMENT_VARIABLE, profiles_path
@@ -31,6 +34,67 @@ from fractoscope.stereo.matching import DEFAULT_STRIP_PIXELS
 SERVICE_NAMES = ("matching", "meshing", "tiles")
 DEFAULT_DATA_DIR = "data"
 DEFAULT_BUILD_QUEUE = 8
+
+
+@dataclass(frozen=True)
+class ServerConfig:
+    """What a server runs with: its listen `address`, its `services`, the largest message either
+    way, the threads answering queries (`workers`), the builds, height maps and meshes run at once
+    (`build_workers`; None: half the CPUs) and waiting (`build_queue`) and the memory one may take
+    (`max_request_mb`; None: its share), where the tile service keeps specimens (`data_dir`, or
+    `store_url` s3://bucket/prefix) and the services it calls (None: this process's own), the TLS
+    certificate and key, the matching's strip peers, strip size and strips in flight, the
+    instrument profiles file, the HTTP endpoint's host:port ('' none), the log level and the
+    seconds in-flight calls get on SIGTERM. The defaults are those of a server made in a process
+    (tests, in-process `fracto`); fracto-server's come from its flags and environment."""
+
+    address: str = "[::]:0"
+    services: tuple[str, ...] = SERVICE_NAMES
+    max_message_mb: int = DEFAULT_MAX_MESSAGE_MB
+    workers: int = 8
+    build_workers: int | None = None
+    build_queue: int = DEFAULT_BUILD_QUEUE
+    max_request_mb: int | None = None
+    data_dir: str | Path = DEFAULT_DATA_DIR
+    store_url: str | None = None
+    matching_address: str | None = None
+    meshing_address: str | None = None
+    tls_cert_path: str | None = None
+    tls_key_path: str | None = None
+    strip_peers: str | None = None
+    strip_pixels: int = DEFAULT_STRIP_PIXELS
+    strip_in_flight: int = 4
+    instruments_path: str | None = None
+    http_address: str = ""
+    log_level: str = "INFO"
+    grace_s: float = 30.0
+
+    @classmethod
+    def from_flags(cls, argv: list[str] | None = None) -> ServerConfig:
+        """fracto-server's configuration from its command line and environment (build_parser)."""
+        args = build_parser().parse_args(argv)
+        return cls(
+            address=args.address,
+            services=tuple(name.strip() for name in args.services.split(",") if name.strip()),
+            max_message_mb=args.max_message_mb,
+            workers=args.workers,
+            build_workers=args.build_workers,
+            build_queue=args.build_queue,
+            max_request_mb=args.max_request_mb,
+            data_dir=args.data,
+            store_url=args.store,
+            matching_address=args.matching_address,
+            meshing_address=args.meshing_address,
+            tls_cert_path=args.tls_cert,
+            tls_key_path=args.tls_key,
+            strip_peers=args.strip_peers,
+            strip_pixels=args.strip_pixels,
+            strip_in_flight=args.strip_in_flight,
+            instruments_path=args.instruments,
+            http_address=args.http_address,
+            log_level=args.log_level,
+            grace_s=args.grace_s,
+        )
 
 
 def default_build_workers() -> int:

@@ -24,7 +24,7 @@ from grpc_reflection.v1alpha import reflection
 from fractoscope.http.server import start_http_server
 from fractoscope.matching.servicer import MatchingServicer
 from fractoscope.meshing.servicer import MeshingServicer
-from fractoscope.rpc.limits import DEFAULT_MAX_MESSAGE_MB, message_size_options
+from fractoscope.rpc.limits import message_size_options
 from fractoscope.runtime.auth import AuthInterceptor, TokenTable, peer_token_problem
 from fractoscope.runtime.budget import Budget
 from fractoscope.runtime.decoding import MalformedRequests
@@ -37,16 +37,10 @@ from fractoscope.runtime.process import (
 )
 from fractoscope.runtime.threads import ThreadPoolRouting
 from fractoscope.sem.instruments import InstrumentProfile, load_profiles, profiles_path
-from fractoscope.server.config import (
-    DEFAULT_BUILD_QUEUE,
-    DEFAULT_DATA_DIR,
-    SERVICE_NAMES,
-    build_parser,
-    default_build_workers,
-)
-from fractoscope.specimen.store import SpecimenStore, StoredSpecimens
-from fractoscope.stereo.matching import DEFAULT_STRIP_PIXELS
-from fractoscope.store.specimens import open_specimen_store
+from fractoscope.server.config import DEFAULT_DATA_DIR, SERVICE_NAMES, ServerConfig, default_build_workers
+from fractoscope.store.base import StoredSpecimens
+from fractoscope.store.folder import SpecimenStore
+from fractoscope.store.s3 import open_specimen_store
 from fractoscope.tiles.servicer import SerializedGetTile, TileServicer
 from fractoscope.v1 import matching_pb2, matching_pb2_grpc, meshing_pb2, meshing_pb2_grpc, tiles_pb2, tiles_pb2_grpc
 
@@ -81,64 +75,55 @@ _SPARE_JOB_CALL_THREADS = 8
 
 
 def create_server(
-    address: str = "[::]:0",
+    config: ServerConfig = ServerConfig(),
     *,
-    services: tuple[str, ...] = SERVICE_NAMES,
-    max_message_mb: int = DEFAULT_MAX_MESSAGE_MB,
-    workers: int = 8,
-    build_workers: int | None = None,
-    build_queue: int = DEFAULT_BUILD_QUEUE,
-    max_request_mb: int | None = None,
-    data_dir: str | Path = DEFAULT_DATA_DIR,
     store: StoredSpecimens | None = None,
-    matching_address: str | None = None,
-    meshing_address: str | None = None,
     tokens: TokenTable | None = None,
-    tls_cert_path: str | None = None,
-    tls_key_path: str | None = None,
-    strip_peers: str | None = None,
-    strip_pixels: int = DEFAULT_STRIP_PIXELS,
-    strip_in_flight: int = 4,
     instruments: Sequence[InstrumentProfile] = (),
     budget: Budget | None = None,
 ) -> tuple[grpc.Server, int]:
-    """A server with the named services, health and reflection, bound to `address`; returns it
-    (not started) with the bound port. `workers` threads answer queries; builds, height maps and
-    meshes run `build_workers` at a time (default: half the CPUs), `build_queue` waiting, strips for
-    peers likewise, each within `max_request_mb` of estimated memory, every request under `budget`
+    """A server of `config`'s services, health and reflection, bound to its address; returns it
+    (not started) with the bound port. Queries are answered on `config.workers` threads; builds,
+    height maps and meshes run `build_workers` at a time, `build_queue` waiting, strips for peers
+    likewise, each within `max_request_mb` of estimated memory, every request under `budget`
     (default: one of this server's; pass the one an HTTP endpoint of this process shares, see
-    runtime.budget). The tile service keeps specimens in `store` (default: under `data_dir`) and
-    calls matching and meshing at their addresses (default: in-process). `tokens`: bearer tokens
-    (auth); a certificate and key: TLS. Matching farms strips (`strip_pixels`) to `strip_peers`,
-    `strip_in_flight` at a time, and applies the `instruments` profiles images' metadata names."""
+    runtime.budget). The tile service keeps specimens in `store` (default: under
+    `config.data_dir`) and calls matching and meshing at their addresses (default: in-process).
+    `tokens`: bearer tokens (auth). Matching applies the `instruments` profiles images' metadata
+    names."""
+    services = config.services
     _check_known(services)
     filter_grpc_logs()  # a token in a call's metadata must not reach the log through gRPC's own lines
-    build_workers = build_workers or default_build_workers()
-    builds = JobRunner("builds", workers=build_workers, queue_limit=build_queue)
-    strips = JobRunner("strips", workers=build_workers, queue_limit=build_queue)
-    store = store or (SpecimenStore(Path(data_dir)) if "tiles" in services else None)
-    budget = budget or process_budget(max_request_mb, build_workers=build_workers, store=store, data_dir=data_dir)
+    build_workers = config.build_workers or default_build_workers()
+    builds = JobRunner("builds", workers=build_workers, queue_limit=config.build_queue)
+    strips = JobRunner("strips", workers=build_workers, queue_limit=config.build_queue)
+    store = store or (SpecimenStore(Path(config.data_dir)) if "tiles" in services else None)
+    budget = budget or process_budget(
+        config.max_request_mb, build_workers=build_workers, store=store, data_dir=config.data_dir
+    )
     servicers = {}
     if "matching" in services:
         servicers["matching"] = MatchingServicer(
             builds=builds,
             strips=strips,
             budget=budget,
-            strip_peers=strip_peers,
-            strip_pixels=strip_pixels,
-            strip_in_flight=strip_in_flight,
+            strip_peers=config.strip_peers,
+            strip_pixels=config.strip_pixels,
+            strip_in_flight=config.strip_in_flight,
             instruments=instruments,
         )
     if "meshing" in services:
         servicers["meshing"] = MeshingServicer(builds=builds, budget=budget)
     if "tiles" in services:
-        servicers["tiles"] = _tile_servicer(store, builds, budget, servicers, matching_address, meshing_address)
+        servicers["tiles"] = _tile_servicer(
+            store, builds, budget, servicers, config.matching_address, config.meshing_address
+        )
     tokens = tokens if tokens is not None and tokens.enabled else None
     _warn_of_peer_credentials(tokens, servicers)
     interceptors = _interceptors(tokens, servicers.get("tiles"), job_runners=(builds, strips), budget=budget)
-    server = _grpc_server(servicers, interceptors, workers=workers, max_message_mb=max_message_mb)
-    port = _bind(server, address, tls_cert_path, tls_key_path)
-    _log_limits(build_workers, build_queue, budget)
+    server = _grpc_server(servicers, interceptors, workers=config.workers, max_message_mb=config.max_message_mb)
+    port = _bind(server, config.address, config.tls_cert_path, config.tls_key_path)
+    _log_limits(build_workers, config.build_queue, budget)
     return server, port
 
 
@@ -274,7 +259,7 @@ def embedded_server(
     *,
     host: str = "127.0.0.1",
     port: int = 0,
-    store: SpecimenStore | None = None,
+    store: StoredSpecimens | None = None,
     services: tuple[str, ...] = SERVICE_NAMES,
 ) -> Iterator[str]:
     """Runs `services` (default: all) in this process on `host:port` (port 0: a free one) for the
@@ -282,7 +267,9 @@ def embedded_server(
     which only the tile service touches), with the user's instrument profiles (`profiles_path`);
     yields the address."""
     server, bound = create_server(
-        f"{host}:{port}", services=services, data_dir=data_dir, store=store, instruments=load_profiles(profiles_path())
+        ServerConfig(address=f"{host}:{port}", services=services, data_dir=data_dir),
+        store=store,
+        instruments=load_profiles(profiles_path()),
     )
     server.start()
     try:
@@ -292,42 +279,25 @@ def embedded_server(
 
 
 def main(argv: list[str] | None = None) -> None:
-    args = build_parser().parse_args(argv)
-    configure_logging(args.log_level)
+    config = ServerConfig.from_flags(argv)
+    configure_logging(config.log_level)
     keep_freed_memory()
     tokens = TokenTable.from_environment()
-    services = tuple(name.strip() for name in args.services.split(",") if name.strip())
-    store = open_specimen_store(args.store, Path(args.data)) if "tiles" in services else None
-    budget = process_budget(args.max_request_mb, build_workers=args.build_workers, store=store, data_dir=args.data)
-    server, port = create_server(
-        args.address,
-        services=services,
-        max_message_mb=args.max_message_mb,
-        workers=args.workers,
-        build_workers=args.build_workers,
-        build_queue=args.build_queue,
-        max_request_mb=args.max_request_mb,
-        store=store,
-        matching_address=args.matching_address,
-        meshing_address=args.meshing_address,
-        tokens=tokens,
-        tls_cert_path=args.tls_cert,
-        tls_key_path=args.tls_key,
-        strip_peers=args.strip_peers,
-        strip_pixels=args.strip_pixels,
-        strip_in_flight=args.strip_in_flight,
-        instruments=load_profiles(Path(args.instruments)),
-        budget=budget,
-    )
+    services = config.services
+    store = open_specimen_store(config.store_url, Path(config.data_dir)) if "tiles" in services else None
+    build_workers = config.build_workers or default_build_workers()
+    budget = process_budget(config.max_request_mb, build_workers=build_workers, store=store, data_dir=config.data_dir)
+    instruments = load_profiles(Path(config.instruments_path)) if config.instruments_path else ()
+    server, port = create_server(config, store=store, tokens=tokens, instruments=instruments, budget=budget)
     settle_garbage_collector()
     server.start()
     _log.info(f"serving {', '.join(services)} on port {port}")
-    http = _http(args, store, tokens, port, budget) if store is not None and args.http_address else None
+    http = _http(config, store, tokens, port, budget) if store is not None and config.http_address else None
     stopped = threading.Event()
 
     def stop(signum, frame):
         _log.info("stopping")
-        server.stop(args.grace_s).wait()
+        server.stop(config.grace_s).wait()
         if http is not None:
             http.shutdown()
         stopped.set()
@@ -343,16 +313,17 @@ def main(argv: list[str] | None = None) -> None:
     os._exit(0)
 
 
-def _http(args, store: StoredSpecimens, tokens: TokenTable, grpc_port: int, budget: Budget):
-    """The HTTP endpoint at --http-address, sending builds to this process's gRPC port, sharing its budget."""
-    host, _, http_port = args.http_address.rpartition(":")
+def _http(config: ServerConfig, store: StoredSpecimens, tokens: TokenTable, grpc_port: int, budget: Budget):
+    """The HTTP endpoint at the config's http_address, sending builds to this process's gRPC port,
+    sharing its budget."""
+    host, _, http_port = config.http_address.rpartition(":")
     http = start_http_server(
         store,
         host or "0.0.0.0",
         int(http_port),
         tokens=tokens,
         grpc_address=f"127.0.0.1:{grpc_port}",
-        max_upload_bytes=args.max_message_mb * 1024 * 1024,
+        max_upload_bytes=config.max_message_mb * 1024 * 1024,
         budget=budget,
     )
     _log.info(f"serving tilesets over HTTP on port {http.server_port}")

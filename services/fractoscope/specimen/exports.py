@@ -15,7 +15,7 @@ from fractoscope.formats._validate import height_grid
 from fractoscope.formats.calibration import Calibration
 from fractoscope.mesh.grid import area_average
 from fractoscope.specimen import queries
-from fractoscope.specimen.store import Specimen
+from fractoscope.specimen.model import Specimen
 
 
 @dataclass(frozen=True)

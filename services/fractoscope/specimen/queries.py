@@ -13,7 +13,7 @@ from fractoscope.errors import InvalidInputError
 from fractoscope.formats.calibration import Calibration
 from fractoscope.mesh.grid import area_average
 from fractoscope.progress import checkpoint
-from fractoscope.specimen.store import RoiEntry, Specimen
+from fractoscope.specimen.model import RoiEntry, Specimen
 from fractoscope.stereo.matching import DEFAULT_WINDOW_PX
 from fractoscope.surface import measurement, profile_parameters, profiles, roughness, scaling
 

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fractoscope.stereo import geometry
+from fractoscope.stereo.inputs import MatchingOptions
 from fractoscope.surface import datum, filtering
 
 
@@ -68,20 +69,16 @@ def measurement(
     *,
     pixel_size_um: float,
     tilt_deg: Sequence[float],
-    tilt_uncertainty_deg: float,
+    tilt_uncertainty_deg: float | None,
     level: str | tuple[float, float, float, float] | None = None,
     strict_level: bool = False,
 ) -> Measurement:
     """The Measurement of heights as matching returns them: `z_um` and its total `sigma_um` (the
     pipeline's, tilt part included; None: unknown, then no sigma is kept), the pair's `tilt_deg`
-    and the `tilt_uncertainty_deg` that sigma was computed with; `level`: None or a datum
-    (surface.datum.level_heights; ValueError as it raises)."""
+    and the `tilt_uncertainty_deg` that sigma was computed with (see `tilt_share`); `level`: None
+    or a datum (surface.datum.level_heights; ValueError as it raises)."""
     z = np.asarray(z_um, np.float32)
-    tilt_rel = (
-        geometry.series_relative_height_error(tilt_deg, tilt_uncertainty_deg=tilt_uncertainty_deg)
-        if len(tilt_deg) >= 2
-        else None
-    )
+    tilt_rel = tilt_share(tilt_deg, tilt_uncertainty_deg=tilt_uncertainty_deg)
     local = None
     if sigma_um is not None:
         local = geometry.matching_sigma_um(z, sigma_um, relative_height_error=tilt_rel or 0.0)
@@ -99,6 +96,18 @@ def measurement(
             strict=strict_level,
         )
     return Measurement(levelled, filtered.filled, local, tilt_rel, found, filtered.report)
+
+
+def tilt_share(tilt_deg: Sequence[float], *, tilt_uncertainty_deg: float | None) -> float | None:
+    """ε_z, the tilt's share of a sigma: the relative height error the tilts' uncertainty makes,
+    which scales all heights together, apart from the matching noise (None with fewer than two
+    tilts). `tilt_uncertainty_deg`: the one the matching's sigma was computed with, as its report
+    states it (None: the matching's default, stereo.inputs.MatchingOptions)."""
+    if len(tilt_deg) < 2:
+        return None
+    if tilt_uncertainty_deg is None:
+        tilt_uncertainty_deg = MatchingOptions().tilt_uncertainty_deg
+    return geometry.series_relative_height_error(tilt_deg, tilt_uncertainty_deg=tilt_uncertainty_deg)
 
 
 def _everywhere(sigma_um: np.ndarray, z_um: np.ndarray) -> np.ndarray:

@@ -10,7 +10,8 @@ from fractoscope.formats import exports as formats
 from fractoscope.rpc import wire
 from fractoscope.runtime.budget import Cost, analysis_bytes, export_bytes
 from fractoscope.specimen import queries
-from fractoscope.specimen.store import Specimen, StoredSpecimens
+from fractoscope.specimen.model import Specimen
+from fractoscope.store.base import StoredSpecimens
 from fractoscope.tiles import messages as rpc_tiles
 from fractoscope.v1 import tiles_pb2
 

@@ -12,18 +12,19 @@ from pathlib import Path
 from fractoscope.errors import InvalidInputError
 from fractoscope.formats.calibration import Calibration
 from fractoscope.matching import messages as rpc_matching
+from fractoscope.reconstruction.build import RoiRequest, given_child_origin_um, ordered_rois
 from fractoscope.rpc import calls, wire
 from fractoscope.rpc.calls import CHUNK_BYTES
 from fractoscope.rpc.limits import MAX_ROIS
 from fractoscope.sem.image import nominal_magnification
 from fractoscope.specimen import exports
-from fractoscope.specimen.build import RoiRequest, given_child_origin_um, ordered_rois
 from fractoscope.specimen.exports import ExportedFile
 from fractoscope.specimen.fusion import footprint_um, overlaps
+from fractoscope.specimen.model import Specimen
 from fractoscope.specimen.quadtree import TileRecord
 from fractoscope.specimen.queries import ChainRequest, SpecimenProfile, checked_region
-from fractoscope.specimen.store import Specimen, SpecimenStore
 from fractoscope.stereo.geometry import validate_pixel_size_um, validate_tilts
+from fractoscope.store.base import StoredSpecimens
 from fractoscope.surface.areal_parameters import UNITS
 from fractoscope.surface.datum import LEVELS
 from fractoscope.surface.roughness import SurfaceAnalysis, SurfaceChain
@@ -355,7 +356,7 @@ def export_options(request: tiles_pb2.ExportRequest) -> dict:
     }
 
 
-def export(request: tiles_pb2.ExportRequest, directory: Path, store: SpecimenStore) -> ExportedFile:
+def export(request: tiles_pb2.ExportRequest, directory: Path, store: StoredSpecimens) -> ExportedFile:
     """The file an ExportRequest asks for, written in `directory`."""
     options = export_options(request)
     pixel_size_um = options.pop("pixel_size_um")

@@ -22,6 +22,7 @@ from fractoscope.formats.exports import EXPORT_FORMATS
 from fractoscope.mesh.pipeline import EncodedTile, MeshReport
 from fractoscope.meshing import messages as rpc_meshing
 from fractoscope.progress import ProgressCallback, silent
+from fractoscope.reconstruction.build import MeasuredHeights, RoiRequest, reconstruct_specimen
 from fractoscope.rpc import calls, wire
 from fractoscope.rpc.channel import open_channel
 from fractoscope.rpc.status import ClientError, abort_on_error, raised_as_client_errors
@@ -30,10 +31,11 @@ from fractoscope.runtime.caches import BoundedCache
 from fractoscope.runtime.jobs import Job, JobRunner
 from fractoscope.specimen import quadtree
 from fractoscope.specimen import queries as specimen_queries
-from fractoscope.specimen.build import MeasuredHeights, RoiRequest, reconstruct_specimen
+from fractoscope.specimen.model import Specimen, validate_id
 from fractoscope.specimen.quadtree import MESH_MARGIN_CELLS, TileSamples
-from fractoscope.specimen.store import Specimen, SpecimenStore, scratch_folder, validate_id
 from fractoscope.stereo.pipeline import HeightMapResult
+from fractoscope.store.base import StoredSpecimens
+from fractoscope.store.scratch import scratch_folder
 from fractoscope.tiles import admission
 from fractoscope.tiles import messages as rpc_tiles
 from fractoscope.v1 import (
@@ -225,7 +227,7 @@ class TileServicer(tiles_pb2_grpc.TileServiceServicer):
 
     def __init__(
         self,
-        store: SpecimenStore,
+        store: StoredSpecimens,
         *,
         builds: JobRunner,
         budget: budget.Budget,
@@ -444,7 +446,7 @@ class TileServicer(tiles_pb2_grpc.TileServiceServicer):
 
     def _stored(self, specimen_id: str, request_id: str, digest: str) -> Specimen | None:
         """The stored specimen that a request with `request_id` and content `digest` built, if any
-        (SpecimenStore.built_by)."""
+        (StoredSpecimens.built_by)."""
         return self.store.built_by(specimen_id, request_id, digest)
 
 

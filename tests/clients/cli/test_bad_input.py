@@ -132,6 +132,7 @@ def test_an_absurd_recorded_pixel_size_names_the_file(capsys, tmp_path):
     )
 
 
+@pytest.mark.slow
 def test_json_output_writes_non_finite_numbers_as_null(capsys, tmp_path):
     path = tmp_path / "big.npz"
     _height_map(path, _noise(scale_um=1e30))  # psd.c_um4 overflows to infinity

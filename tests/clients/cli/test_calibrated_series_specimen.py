@@ -19,7 +19,7 @@ from conftest import ReportNumbers
 
 from fractoscope import synthetic
 from fractoscope.numbers import value_text
-from fractoscope.specimen.store import SpecimenStore
+from fractoscope.store.folder import SpecimenStore
 
 FRACTO = str(Path(sys.executable).with_name("fracto"))
 TRUE_TILT_DEG = (-5.0, 0.0, 5.0)

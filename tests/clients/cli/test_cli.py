@@ -37,6 +37,7 @@ def _run(*args, env_extra=None):
     return subprocess.run([FRACTO, *map(str, args)], capture_output=True, text=True, env=env, timeout=300)
 
 
+@pytest.mark.slow
 def test_height_writes_the_npz_contract(pair_files, tmp_path):
     (left, right), pair = pair_files
     out = tmp_path / "out.npz"
@@ -68,6 +69,7 @@ def test_height_writes_the_npz_contract(pair_files, tmp_path):
     assert np.nanmedian(heights.local_sigma_um) < np.nanmedian(heights.sigma_um)  # the tilt's shared error left out
 
 
+@pytest.mark.slow
 def test_height_names_the_method_and_takes_the_others_on_request(pair_files, tmp_path):
     (left, right), pair = pair_files
     for method, expected in (("window-zncc", "window_zncc"), ("fast", "fast"), (None, "tgv_zncc")):
@@ -80,6 +82,7 @@ def test_height_names_the_method_and_takes_the_others_on_request(pair_files, tmp
     assert done.returncode == 2 and "--method" in done.stderr
 
 
+@pytest.mark.slow
 def test_height_never_claims_a_substrate_the_surface_lacks(pair_files, tmp_path):
     """The rough fracture surface has no flat level and no plane under it: --level substrate
     leaves the heights as measured (never a plane through all of them) and says so in the text
@@ -158,6 +161,7 @@ def test_height_against_a_running_server(pair_files, tmp_path, server_address):
         assert not np.array_equal(default["z_um"], with_neighbours["z_um"], equal_nan=True)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "extra, message",
     [
@@ -189,6 +193,7 @@ def test_a_mistyped_verb_gets_a_suggestion():
     assert done.returncode == 2 and "did you mean height?" in done.stderr
 
 
+@pytest.mark.slow
 def test_unreadable_and_mismatched_images_give_one_line_and_exit_code_2(pair_files, tmp_path):
     (left, right), pair = pair_files
     garbage = tmp_path / "garbage.tif"
@@ -204,6 +209,7 @@ def test_unreadable_and_mismatched_images_give_one_line_and_exit_code_2(pair_fil
         )  # the file, not images[1]
 
 
+@pytest.mark.slow
 def test_missing_file_and_unreachable_server(pair_files, tmp_path):
     (left, _), _ = pair_files
     done = _run("height", left, tmp_path / "absent.tif", "--tilt", "-5", "5", "-o", tmp_path / "x.npz")
@@ -470,6 +476,7 @@ def _sa(z: np.ndarray) -> float:
     return float(np.mean(np.abs(z - z.mean())))
 
 
+@pytest.mark.slow
 def test_roughness_of_an_npz_height_map(tmp_path):
     z, texture = _textured_form("poly2")
     with_size = tmp_path / "map.npz"
@@ -508,6 +515,7 @@ def test_roughness_of_an_npz_height_map(tmp_path):
     assert wrong.returncode == 2 and "--roi" in wrong.stderr
 
 
+@pytest.mark.slow
 def test_roughness_of_an_x3p_file(tmp_path):
     from fractoscope.formats.x3p import write_x3p
 
@@ -584,6 +592,7 @@ def test_list_export_and_report_of_a_stored_specimen(built, tmp_path):
     assert wrong.returncode == 2 and wrong.stderr.count("\n") == 1 and ".x3p" in wrong.stderr
 
 
+@pytest.mark.slow
 def test_export_of_an_npz_height_map(tmp_path):
     z_um = np.linspace(0, 1, 40 * 30, dtype=np.float32).reshape(30, 40)
     np.savez(tmp_path / "map.npz", z_um=z_um, sigma_um=np.full_like(z_um, 0.01))

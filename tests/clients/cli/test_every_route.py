@@ -20,8 +20,9 @@ from test_cli import _run
 
 from fractoscope import synthetic
 from fractoscope.http.server import start_http_server
+from fractoscope.server.config import ServerConfig
 from fractoscope.server.main import create_server
-from fractoscope.specimen.store import SpecimenStore
+from fractoscope.store.folder import SpecimenStore
 from fractoscope.synthetic.particles import particle_scene
 
 PIXEL_SIZE_UM = 0.2
@@ -75,7 +76,7 @@ def _routes(tmp_path: Path, images, calibration: dict) -> dict:
 def _http_roughness(data: Path, specimen_id: str) -> dict:
     """GET /api/specimens/ID/roughness of a server on `data`: what the viewer shows."""
     store = SpecimenStore(data)
-    server, port = create_server("127.0.0.1:0", store=store)
+    server, port = create_server(ServerConfig(address="127.0.0.1:0"), store=store)
     server.start()
     endpoint = start_http_server(store, grpc_address=f"127.0.0.1:{port}")
     try:

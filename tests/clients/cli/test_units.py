@@ -14,8 +14,8 @@ from test_cli import _run
 from fractoscope import synthetic
 from fractoscope.formats.calibration import Calibration
 from fractoscope.formats.height_npz import write_height_npz
-from fractoscope.specimen.build import store_height_map
-from fractoscope.specimen.store import SpecimenStore
+from fractoscope.reconstruction.build import store_height_map
+from fractoscope.store.folder import SpecimenStore
 
 UNITS = ("µm", "%", "1", "deg", "°", "1/µm", "1/µm²", "µm³/µm²", "µm²", "µm/px", "px")
 _NUMBER = r"[-+]?\d+(?:\.\d+)?"
@@ -70,6 +70,7 @@ def grain_map(tmp_path_factory):
     return path, folder / "data"
 
 
+@pytest.mark.slow
 def test_fracto_roughness_prints_units_and_the_uncertainty_s_digits(grain_map):
     path, _ = grain_map
     done = _run("roughness", path)
@@ -84,6 +85,7 @@ def test_fracto_roughness_prints_units_and_the_uncertainty_s_digits(grain_map):
     assert "λs none, λc none" in lines[0]
 
 
+@pytest.mark.slow
 def test_fracto_profile_prints_units_and_the_cut_offs(grain_map, tmp_path):
     _, data = grain_map
     done = _run("profile", "grain", "--data", data, "--from", "1,32", "--to", "63,32", "-o", tmp_path / "p.csv")
@@ -120,6 +122,7 @@ class _Tables(HTMLParser):
             self._cell.append(data)
 
 
+@pytest.mark.slow
 def test_the_report_s_tables_give_units_and_the_uncertainty_s_digits(grain_map, tmp_path):
     path, _ = grain_map
     out = tmp_path / "report.html"

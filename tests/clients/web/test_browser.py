@@ -16,13 +16,15 @@ import numpy as np
 import pytest
 import requests
 from conftest import mesh_component_areas_um2, tile_seams_grey_levels
+from tools import required_tool
 
 from fractoscope.client import FractoscopeClient
 from fractoscope.client.manifest import load_manifest
 from fractoscope.http.server import start_http_server
 from fractoscope.numbers import with_uncertainty
+from fractoscope.server.config import ServerConfig
 from fractoscope.server.main import create_server
-from fractoscope.specimen.store import SpecimenStore
+from fractoscope.store.folder import SpecimenStore
 
 pytestmark = pytest.mark.slow
 ROOT = Path(__file__).resolve().parents[3]
@@ -36,6 +38,7 @@ STUCK_AFTER_S = 300.0
 def _in_chromium(script: str, data: Path, *arguments: str, timeout_s: float = 900) -> dict:
     """Runs SCRIPT (beside this file) with the base URL of an HTTP endpoint serving `data` and `arguments`
     ("{base}" in them is replaced by that URL); its JSON result."""
+    required_tool(os.environ.get("CHROMIUM", "/usr/bin/chromium"), "/usr/bin/chromium")
     http = start_http_server(SpecimenStore(data))
     base = f"http://127.0.0.1:{http.server_port}"
     runner = Path(__file__).resolve().parent / script
@@ -158,7 +161,7 @@ def pollen_data(pollen_series, tmp_path_factory):
 
     root = tmp_path_factory.mktemp("pollen")
     manifest = _write_pollen_manifest(pollen_series, root / "input")
-    server, port = create_server("127.0.0.1:0", data_dir=root / "data")
+    server, port = create_server(ServerConfig(address="127.0.0.1:0", data_dir=root / "data"))
     server.start()
     try:
         with FractoscopeClient(f"127.0.0.1:{port}", timeout_s=1800) as client:
@@ -316,7 +319,7 @@ def test_a_build_submitted_over_http_shows_its_progress_in_the_page(pollen_serie
     shows it under way with a progress bar that never goes back, then built with its thumbnail,
     and the console stays clean."""
     manifest = {"specimen": "submitted", "rois": [{"id": "pot", "left": "pot_02.tif", "right": "pot_04.tif"}]}
-    server, port = create_server("127.0.0.1:0", data_dir=tmp_path / "data")
+    server, port = create_server(ServerConfig(address="127.0.0.1:0", data_dir=tmp_path / "data"))
     server.start()
     http = start_http_server(SpecimenStore(tmp_path / "data"))
     http.send_builds_to(f"127.0.0.1:{port}")

@@ -37,8 +37,9 @@ from fractoscope.http import openapi
 from fractoscope.http.server import start_http_server
 from fractoscope.runtime.auth import TokenTable
 from fractoscope.runtime.budget import Budget
+from fractoscope.server.config import ServerConfig
 from fractoscope.server.main import create_server
-from fractoscope.specimen.store import SpecimenStore
+from fractoscope.store.folder import SpecimenStore
 
 # Per operation and generation mode; FRACTO_FUZZ_EXAMPLES asks for a deeper run.
 FUZZ_EXAMPLES = int(os.environ.get("FRACTO_FUZZ_EXAMPLES", "8"))
@@ -47,7 +48,7 @@ TOKENS = TokenTable.from_text("lims:write-secret:write,viewer:read-secret:read")
 
 def _serve(data: Path, tokens: TokenTable | None = None):
     store = SpecimenStore(data)
-    server, port = create_server("127.0.0.1:0", store=store, tokens=tokens)
+    server, port = create_server(ServerConfig(address="127.0.0.1:0"), store=store, tokens=tokens)
     server.start()
     endpoint = start_http_server(store, tokens=tokens, grpc_address=f"127.0.0.1:{port}")
     return server, endpoint, f"http://127.0.0.1:{endpoint.server_port}"

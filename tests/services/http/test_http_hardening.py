@@ -24,7 +24,7 @@ from fractoscope.http import api, openapi, uploads
 from fractoscope.http.server import start_http_server
 from fractoscope.runtime.auth import TokenTable
 from fractoscope.sem import image as sem_image
-from fractoscope.specimen.store import SpecimenStore
+from fractoscope.store.folder import SpecimenStore
 
 TOKENS = TokenTable.from_text("lims:write-secret:write,viewer:read-secret:read")
 READ, WRITE = {"Authorization": "Bearer read-secret"}, {"Authorization": "Bearer write-secret"}

@@ -31,10 +31,12 @@ from fractoscope.errors import InvalidInputError, NotFoundError
 from fractoscope.formats import exports as export_formats
 from fractoscope.http.responses import file_response, off_loop
 from fractoscope.http.server import start_http_server
+from fractoscope.server.config import ServerConfig
 from fractoscope.server.main import create_server
 from fractoscope.specimen.exports import export_height_map
 from fractoscope.specimen.quadtree import TileKey
-from fractoscope.specimen.store import SpecimenStore, scratch_folder
+from fractoscope.store.folder import SpecimenStore
+from fractoscope.store.scratch import scratch_folder
 from fractoscope.tiles import messages as tile_messages
 from fractoscope.tiles import servicer as tile_servicer
 from fractoscope.v1 import common_pb2, tiles_pb2
@@ -140,10 +142,11 @@ def _finished_job(base: str, upload_id: str, request_id: str) -> dict:
     return job
 
 
+@pytest.mark.server
 @pytest.mark.timeout(300)
 def test_the_http_job_api_refuses_a_reused_request_id_with_other_content(tmp_path):
     store = SpecimenStore(tmp_path / "data")
-    server, port = create_server("127.0.0.1:0", store=store)
+    server, port = create_server(ServerConfig(address="127.0.0.1:0"), store=store)
     server.start()
     endpoint = start_http_server(store, grpc_address=f"127.0.0.1:{port}")
     base = f"http://127.0.0.1:{endpoint.server_port}"
@@ -197,6 +200,7 @@ def test_grpc_exports_and_reports_write_under_the_data_directory_and_leave_nothi
     assert (tmp_path / "map.x3p").stat().st_size > 0 and list((data / "tmp").iterdir()) == []
 
 
+@pytest.mark.server
 def test_http_files_are_written_under_the_given_scratch_root_and_removed_once_sent(tmp_path):
     directories = []
 
@@ -223,7 +227,7 @@ def test_http_files_are_written_under_the_given_scratch_root_and_removed_once_se
 _KILLED_EXPORT = """
 import os, signal, sys
 from pathlib import Path
-from fractoscope.specimen.store import scratch_folder
+from fractoscope.store.scratch import scratch_folder
 
 with scratch_folder(Path(sys.argv[1]), "export") as directory:
     (directory / "part.stl").write_bytes(bytes(1000))
@@ -233,7 +237,7 @@ with scratch_folder(Path(sys.argv[1]), "export") as directory:
 _RUNNING_EXPORT = """
 import sys
 from pathlib import Path
-from fractoscope.specimen.store import scratch_folder
+from fractoscope.store.scratch import scratch_folder
 
 with scratch_folder(Path(sys.argv[1]), "export") as directory:
     print(directory.name, flush=True)

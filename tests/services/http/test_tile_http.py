@@ -10,9 +10,10 @@ import pytest
 from conftest import write_small_specimen
 
 from fractoscope.http.server import MAX_TARGET_BYTES, _Body, accepts_gzip, body_cache, not_modified, start_http_server
-from fractoscope.specimen.store import SpecimenStore
+from fractoscope.store.folder import SpecimenStore
 
 
+@pytest.mark.server
 def test_http_endpoint_answers_head_options_and_refuses_other_methods(tmp_path):
     endpoint = start_http_server(SpecimenStore(tmp_path / "data"))
     try:

@@ -18,8 +18,9 @@ from fractoscope.errors import InvalidInputError, NotFoundError
 from fractoscope.http.server import start_http_server
 from fractoscope.http.uploads import DEFAULT_MAX_UPLOAD_BYTES, Uploads
 from fractoscope.rpc.limits import MAX_REQUEST_ID_CHARS, MAX_ROIS
+from fractoscope.server.config import ServerConfig
 from fractoscope.server.main import create_server
-from fractoscope.specimen.store import SpecimenStore
+from fractoscope.store.folder import SpecimenStore
 from fractoscope.synthetic.examples import write_multiscale_specimen
 from fractoscope.v1 import common_pb2, matching_pb2, tiles_pb2
 
@@ -222,12 +223,13 @@ def test_an_upload_can_be_deleted(server):
     assert error.value.field == "upload_id"
 
 
+@pytest.mark.server
 def test_a_reconstruction_over_grpc_with_more_than_max_rois_is_refused_naming_rois(tmp_path):
     image = matching_pb2.TiltImage(image=common_pb2.ImageFile(content=b"not an image"))
     rois = [tiles_pb2.RoiSpec(id="r0", images=[image, image])] + [
         tiles_pb2.RoiSpec(id=f"r{index}", parent="r0", images=[image, image]) for index in range(1, MAX_ROIS + 1)
     ]
-    server, port = create_server("127.0.0.1:0", data_dir=tmp_path / "data")
+    server, port = create_server(ServerConfig(address="127.0.0.1:0", data_dir=tmp_path / "data"))
     server.start()
     try:
         with FractoscopeClient(f"127.0.0.1:{port}", timeout_s=60) as client, pytest.raises(ClientError) as caught:
@@ -276,9 +278,10 @@ def test_a_tilt_series_is_uploaded_and_what_its_calibration_cannot_take_is_refus
     _refused(base, _series_parts(only_pair, asked), uploads, "manifest.rois[0].matching.calibrate_tilt")
 
 
+@pytest.mark.server
 def test_a_reconstruction_over_grpc_of_one_image_or_a_calibrated_pair_is_refused_naming_the_roi(tmp_path):
     image = matching_pb2.TiltImage(image=common_pb2.ImageFile(content=b"not an image"))
-    server, port = create_server("127.0.0.1:0", data_dir=tmp_path / "data")
+    server, port = create_server(ServerConfig(address="127.0.0.1:0", data_dir=tmp_path / "data"))
     server.start()
     try:
         with FractoscopeClient(f"127.0.0.1:{port}", timeout_s=60) as client:

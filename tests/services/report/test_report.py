@@ -13,10 +13,11 @@ import numpy as np
 import pytest
 from conftest import ReportNumbers
 from PIL import Image
+from tools import required_tool
 
 from fractoscope.http.server import start_http_server
 from fractoscope.report import build_document, report_content, write_report
-from fractoscope.specimen.store import SpecimenStore
+from fractoscope.store.folder import SpecimenStore
 
 NOT_CALIBRATED = "The tilt was not calibrated"
 
@@ -123,12 +124,16 @@ def test_the_pdf_opens_in_poppler_and_says_the_tilt_was_not_calibrated(built, tm
         next(
             line.split()[-1]
             for line in subprocess.run(
-                ["pdfinfo", str(pdf)], capture_output=True, text=True, check=True
+                [required_tool("pdfinfo", "/usr/bin/pdftoppm"), str(pdf)], capture_output=True, text=True, check=True
             ).stdout.splitlines()
             if line.startswith("Pages:")
         )
     )
-    subprocess.run(["pdftoppm", "-r", "40", "-png", str(pdf), str(tmp_path / "page")], check=True, timeout=120)
+    subprocess.run(
+        [required_tool("pdftoppm", "/usr/bin/pdftoppm"), "-r", "40", "-png", str(pdf), str(tmp_path / "page")],
+        check=True,
+        timeout=120,
+    )
     images = sorted(tmp_path.glob("page-*.png"))
     assert pages >= 4 and len(images) == pages
     for path in images:
@@ -193,7 +198,7 @@ def test_lists_in_the_parameters_table_are_shown_as_their_items_are():
 
 def test_the_report_of_a_white_noise_surface_marks_its_hurst_exponent_not_determinable(tmp_path):
     """A report once printed a profile PSD's H = -0.102 ± 0.842 and elsewhere 1.23 without a word."""
-    from fractoscope.specimen.build import store_height_map
+    from fractoscope.reconstruction.build import store_height_map
 
     noise = np.random.default_rng(7).normal(scale=0.2, size=(640, 640))  # the 15 px window: a field of 600 px
     noise[:, :40] = np.nan  # the profiles start where nothing is measured
@@ -222,8 +227,8 @@ def test_the_report_of_a_white_noise_surface_marks_its_hurst_exponent_not_determ
 
 def test_no_legend_entry_names_a_series_without_data(tmp_path):
     """A profile's legend once read "primary, ROI no data" for the stretch nothing was measured on."""
+    from fractoscope.reconstruction.build import store_height_map
     from fractoscope.report import figures
-    from fractoscope.specimen.build import store_height_map
 
     heights = np.random.default_rng(8).normal(scale=0.2, size=(96, 96))
     heights[:, :30] = np.nan

@@ -20,9 +20,10 @@ from test_budget import _serve, _status_kb
 from fractoscope.client import ClientError, FractoscopeClient
 from fractoscope.http.server import start_http_server
 from fractoscope.runtime.auth import TokenTable
+from fractoscope.server.config import ServerConfig
 from fractoscope.server.main import create_server
-from fractoscope.specimen.store import SpecimenStore
 from fractoscope.stereo.disparity import StripTask
+from fractoscope.store.folder import SpecimenStore
 from fractoscope.v1 import matching_pb2, matching_pb2_grpc, tiles_pb2
 
 TOKENS = TokenTable.from_text("lims:write-secret:write,viewer:read-secret:read")
@@ -30,7 +31,7 @@ TOKENS = TokenTable.from_text("lims:write-secret:write,viewer:read-secret:read")
 
 @pytest.fixture()
 def guarded(tmp_path):
-    server, port = create_server("127.0.0.1:0", data_dir=tmp_path / "data", tokens=TOKENS)
+    server, port = create_server(ServerConfig(address="127.0.0.1:0", data_dir=tmp_path / "data"), tokens=TOKENS)
     server.start()
     yield f"127.0.0.1:{port}"
     server.stop(grace=None)
@@ -81,6 +82,7 @@ def test_calls_need_a_token_and_read_tokens_cannot_write(guarded):
     )  # probes stay open
 
 
+@pytest.mark.server
 def test_http_endpoint_honours_the_same_tokens(tmp_path):
     http = start_http_server(SpecimenStore(tmp_path / "data"), tokens=TOKENS)
     base = f"http://127.0.0.1:{http.server_port}"
@@ -120,6 +122,7 @@ def test_tokens_of_any_characters_are_compared_safely():
         assert table.grant(offered) is None
 
 
+@pytest.mark.server
 @pytest.mark.timeout(300)
 def test_refused_calls_are_answered_before_their_message_is_read(tmp_path):
     """A 200 MiB ComputeHeightMap without a token, and one with a read token: each refused, and
@@ -152,13 +155,16 @@ def test_refused_calls_are_answered_before_their_message_is_read(tmp_path):
     assert grown_mb < 50
 
 
+@pytest.mark.server
 @pytest.mark.timeout(300)
 def test_a_server_that_cannot_authenticate_to_its_peers_warns_at_start_and_fails_builds_clearly(
     tmp_path, monkeypatch, caplog
 ):
     """The tile service on its own, calling matching and meshing on a guarded server: without
     FRACTO_TOKEN a warning at start and UNAUTHENTICATED builds that say why; with it, builds."""
-    peers, peer_port = create_server("127.0.0.1:0", services=("matching", "meshing"), tokens=TOKENS)
+    peers, peer_port = create_server(
+        ServerConfig(address="127.0.0.1:0", services=("matching", "meshing")), tokens=TOKENS
+    )
     peers.start()
     peer = f"127.0.0.1:{peer_port}"
     pair = fracture_pair(size_px=128, seed=9)
@@ -169,12 +175,14 @@ def test_a_server_that_cannot_authenticate_to_its_peers_warns_at_start_and_fails
     try:
         with caplog.at_level(logging.WARNING, logger="fractoscope.server"):
             tiles, port = create_server(
-                "127.0.0.1:0",
-                services=("tiles",),
-                data_dir=tmp_path / "data",
+                ServerConfig(
+                    address="127.0.0.1:0",
+                    services=("tiles",),
+                    data_dir=tmp_path / "data",
+                    matching_address=peer,
+                    meshing_address=peer,
+                ),
                 tokens=TOKENS,
-                matching_address=peer,
-                meshing_address=peer,
             )
         assert "FRACTO_TOKEN is not" in caplog.text and peer in caplog.text
         tiles.start()
@@ -192,6 +200,7 @@ def test_a_server_that_cannot_authenticate_to_its_peers_warns_at_start_and_fails
         peers.stop(grace=None)
 
 
+@pytest.mark.server
 @pytest.mark.skipif(shutil.which("openssl") is None, reason="openssl is needed to make a test certificate")
 def test_tls(tmp_path):
     key, cert = tmp_path / "key.pem", tmp_path / "cert.pem"
@@ -218,7 +227,7 @@ def test_tls(tmp_path):
         capture_output=True,
     )
     server, port = create_server(
-        "localhost:0", data_dir=tmp_path / "data", tls_cert_path=str(cert), tls_key_path=str(key)
+        ServerConfig(address="localhost:0", data_dir=tmp_path / "data", tls_cert_path=str(cert), tls_key_path=str(key))
     )
     server.start()
     try:

@@ -14,6 +14,7 @@ from conftest import fracture_pair, tiff_bytes
 
 from fractoscope.client import ClientError, FractoscopeClient
 from fractoscope.runtime import budget
+from fractoscope.server.config import ServerConfig
 from fractoscope.server.main import create_server
 from fractoscope.v1 import tiles_pb2
 
@@ -60,6 +61,7 @@ def _serve(tmp_path, *flags: str, env: dict | None = None) -> tuple[subprocess.P
 @pytest.mark.parametrize(
     "size_px, strip_pixels", [(1024, 300_000), pytest.param(2048, 2_000_000, marks=pytest.mark.slow)]
 )
+@pytest.mark.server
 def test_the_estimate_covers_the_measured_peak_of_a_height_map(tmp_path, size_px, strip_pixels):
     """ComputeHeightMap on a server process: its peak memory above what the server held before
     (VmHWM after, VmRSS before) is within the estimate, and the estimate is not wildly above it."""
@@ -81,8 +83,9 @@ def test_the_estimate_covers_the_measured_peak_of_a_height_map(tmp_path, size_px
     assert measured <= estimate <= 2.5 * measured
 
 
+@pytest.mark.server
 def test_a_request_over_the_memory_budget_is_refused_before_any_work_naming_its_size(tmp_path):
-    server, port = create_server("127.0.0.1:0", data_dir=tmp_path / "data", max_request_mb=300)
+    server, port = create_server(ServerConfig(address="127.0.0.1:0", data_dir=tmp_path / "data", max_request_mb=300))
     server.start()
     noise = np.random.default_rng(0).integers(0, 256, (1024, 1024), dtype=np.uint8)  # refused before it is decoded
     files = [tiff_bytes(noise), tiff_bytes(noise)]

@@ -16,7 +16,7 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 from fractoscope.client import ClientError, FractoscopeClient
 from fractoscope.errors import CancelledError, ResourceExhaustedError
 from fractoscope.runtime.jobs import JobRunner
-from fractoscope.server.config import DEFAULT_BUILD_QUEUE, default_build_workers
+from fractoscope.server.config import DEFAULT_BUILD_QUEUE, ServerConfig, default_build_workers
 from fractoscope.server.main import create_server
 from fractoscope.v1 import common_pb2, matching_pb2_grpc, tiles_pb2, tiles_pb2_grpc
 
@@ -193,6 +193,7 @@ class _HealthProbe:
         self._channel.close()
 
 
+@pytest.mark.server
 @pytest.mark.timeout(600)
 def test_sixteen_concurrent_builds_complete_or_are_refused_while_health_answers_every_check(tmp_path):
     """The server once deadlocked itself here: builds held every RPC thread while they called
@@ -200,7 +201,7 @@ def test_sixteen_concurrent_builds_complete_or_are_refused_while_health_answers_
     completes or is refused for a full queue; health answers every check throughout. How fast
     it answers is a load figure (printed here; `benchmarks.serving` measures its p99): the
     checks' deadline only tells an answer from none, as the deadlock gave."""
-    server, port = create_server("127.0.0.1:0", data_dir=tmp_path / "data")
+    server, port = create_server(ServerConfig(address="127.0.0.1:0", data_dir=tmp_path / "data"))
     server.start()
     address = f"127.0.0.1:{port}"
     spec = _specimen_roi(256, seed=3)
@@ -237,11 +238,14 @@ def test_sixteen_concurrent_builds_complete_or_are_refused_while_health_answers_
     )
 
 
+@pytest.mark.server
 @pytest.mark.timeout(300)
 def test_a_cancelled_build_frees_its_worker_and_stores_nothing(tmp_path):
     """One build worker: a build whose client cancels it after its first progress report stops
     (nothing stored) and the next build gets the worker."""
-    server, port = create_server("127.0.0.1:0", data_dir=tmp_path / "data", build_workers=1, build_queue=1)
+    server, port = create_server(
+        ServerConfig(address="127.0.0.1:0", data_dir=tmp_path / "data", build_workers=1, build_queue=1)
+    )
     server.start()
     stub_channel = grpc.insecure_channel(f"127.0.0.1:{port}")
     try:
@@ -259,11 +263,14 @@ def test_a_cancelled_build_frees_its_worker_and_stores_nothing(tmp_path):
         server.stop(grace=None)
 
 
+@pytest.mark.server
 @pytest.mark.timeout(300)
 def test_concurrent_repeats_of_a_request_id_join_one_build(tmp_path):
     """Six calls at once with one request id on a server that queues one build at most: were
     they six builds, the queue would refuse most of them."""
-    server, port = create_server("127.0.0.1:0", data_dir=tmp_path / "data", build_workers=1, build_queue=1)
+    server, port = create_server(
+        ServerConfig(address="127.0.0.1:0", data_dir=tmp_path / "data", build_workers=1, build_queue=1)
+    )
     server.start()
     spec = _specimen_roi(256, seed=6)
     try:
@@ -311,6 +318,7 @@ class _StalledMatching(matching_pb2_grpc.MatchingServiceServicer):
         yield from ()
 
 
+@pytest.mark.server
 @pytest.mark.timeout(120)
 def test_a_remote_matching_call_gets_the_callers_deadline_and_is_cancelled_with_the_build(tmp_path):
     """The tile service on its own, its matching remote: the call it makes for a build carries
@@ -322,11 +330,13 @@ def test_a_remote_matching_call_gets_the_callers_deadline_and_is_cancelled_with_
     peer_port = peer.add_insecure_port("127.0.0.1:0")
     peer.start()
     tiles, port = create_server(
-        "127.0.0.1:0",
-        services=("tiles",),
-        data_dir=tmp_path / "data",
-        matching_address=f"127.0.0.1:{peer_port}",
-        meshing_address=f"127.0.0.1:{peer_port}",
+        ServerConfig(
+            address="127.0.0.1:0",
+            services=("tiles",),
+            data_dir=tmp_path / "data",
+            matching_address=f"127.0.0.1:{peer_port}",
+            meshing_address=f"127.0.0.1:{peer_port}",
+        )
     )
     tiles.start()
     channel = grpc.insecure_channel(f"127.0.0.1:{port}")

@@ -5,9 +5,10 @@ import pytest
 
 from fractoscope.errors import InvalidInputError
 from fractoscope.specimen.fusion import PlacedRoi
+from fractoscope.specimen.model import RoiEntry, write_description, write_roi_arrays
 from fractoscope.specimen.quadtree import OPTICAL, QuadtreeLayout, TileKey, TileRecord
 from fractoscope.specimen.queries import height_statistics, roughness_of
-from fractoscope.specimen.store import RoiEntry, SpecimenStore, write_description, write_roi_arrays
+from fractoscope.store.folder import SpecimenStore
 
 
 @pytest.fixture()

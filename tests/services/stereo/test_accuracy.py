@@ -95,7 +95,7 @@ def _within(result, pair):
 # The dimples' Sa error scatters with the resampling of the second image: seeds 1-4 at ±5° read
 # −1.37, −1.08, −1.22, −1.78 % while the alignment applied the features' rotation and scale, and
 # −1.56, −1.25, −1.10, −1.53 % since it removes only what stands out of its sigma (none here).
-# See "Accuracy" in the README.
+# See docs/accuracy.md.
 BEYOND_TARGETS = {
     ("dimples", "tgv_zncc"): (
         dimple_pair,
@@ -152,7 +152,7 @@ def test_dimples_meet_the_targets_when_the_two_views_differ_only_by_parallax(til
     noise and with the secondary-electron shading fixed to the surface (the same in both views),
     a 7 px window measures them within the targets (measured: 1.32 % and 1.43 % RMS, 99.9 % and
     99.7 % valid). With the shading changing with the tilt, as in a microscope, no window from
-    7 to 15 px does better than 3.4 % (see "Accuracy" in the README)."""
+    7 to 15 px does better than 3.4 % (see docs/accuracy.md)."""
     pair = dimple_pair(tilt_deg=tilt_deg, noise_fraction=0.0, shading_tilt_deg=float(np.mean(tilt_deg)))
     options = MatchingOptions(window_px=7, method="window_zncc")
     valid_fraction, rms_of_range, sa_relative = _errors(_reconstruct(pair, tilt_deg, options=options), pair)

@@ -91,6 +91,7 @@ PIXEL_SIZE_UM = synthetic.REFERENCE_PIXEL_SIZE_UM
 UM_PER_DISPARITY_PX = PIXEL_SIZE_UM / (2 * np.sin(np.radians(TILTS_DEG[1])))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("shape", [(4000, 501), (501, 4000), (3072, 4096)], ids=["tall", "wide", "4096x3072"])
 def test_a_pure_translation_of_any_shape_tilts_nothing(shape):
     """A flat texture shifted by (3.3, -1.7) px, exactly: the heights keep no ramp, nothing is
@@ -105,6 +106,7 @@ def test_a_pure_translation_of_any_shape_tilts_nothing(shape):
     assert report["shift_across_px"] == pytest.approx(-1.7, abs=0.1)
 
 
+@pytest.mark.slow
 def test_a_rendered_tall_frame_keeps_no_ramp():
     """A self-affine surface at ±5°, 4000 × 501 px, the second view only shifted: the heights'
     error keeps no ramp (measured 0.005-0.011 px for seeds 1-3, by the default method too)."""

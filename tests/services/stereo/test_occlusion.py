@@ -21,6 +21,7 @@ def _votes(kind: str, tilt_deg, size_px: int, seed: int) -> np.ndarray:
     return occlusion.wall_votes(first, second, matched.disparity_px)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("tilt_deg", [(-5.0, 5.0), (5.0, -5.0)])
 def test_rounded_particles_tell_the_relief_from_its_mirror_image_for_either_tilt_step(tilt_deg):
     votes = _votes("particles", tilt_deg, 512, seed=2)
@@ -32,6 +33,7 @@ def test_rounded_particles_tell_the_relief_from_its_mirror_image_for_either_tilt
     assert reversed_.decided and reversed_.inverted and reversed_.strength < -0.8
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("kind", "tilt_deg"), [("sharp_steps", (0.0, 5.0)), ("sharp_steps", (5.0, -5.0)), ("self_affine", (-5.0, 5.0))]
 )

@@ -1,4 +1,4 @@
-"""Which tilt direction makes a peak a peak (README, "Sign convention"): in the images as given,
+"""Which tilt direction makes a peak a peak (docs/measurement.md, "Sign convention"): in the images as given,
 with the tilt axis at 90 degrees, a point that stands higher appears further right in the view at
 the larger tilt. The real pollen grain comes out standing on its substrate under this convention
 (tests/stereo/test_real_series.py); here a synthetic dome seen at 0/5/10 degrees, the

@@ -160,6 +160,7 @@ def test_tilt_axis_is_estimated_from_the_parallax_and_a_wrong_one_is_flagged(
     assert bool(result.report["warnings"]) == warned
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("third", ["the first again", "noise"])
 def test_a_view_that_is_not_the_area_tilted_as_stated_is_refused_by_name(third):
     """Calibration mends tilts a few percent off; a third view that repeats the first (zero
@@ -226,6 +227,7 @@ def test_unknown_magnification_uncertainty_keeps_sigma_and_warns(monkeypatch):
     assert known.mean() > 0.9 and np.isfinite(result.sigma_um[known]).all()
 
 
+@pytest.mark.slow
 def test_a_series_whose_views_disagree_with_their_tilts_is_flagged_without_calibration():
     """-5/0/+5° views with the first repeated as the third: the heights came out at a fifth of
     the relief with no word; the views' misses now draw a warning, and a consistent series none."""

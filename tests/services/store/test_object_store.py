@@ -21,7 +21,7 @@ from fractoscope.http.server import start_http_server
 from fractoscope.specimen.quadtree import TileKey
 from fractoscope.store.leases import Lease, LeaseLost, held
 from fractoscope.store.objects import ObjectMissing, PreconditionFailed, S3Objects
-from fractoscope.store.specimens import ObjectSpecimenStore
+from fractoscope.store.s3 import ObjectSpecimenStore
 
 ROOT_TILE = TileKey(0, 0, 0)
 
@@ -78,7 +78,7 @@ import os, signal, sys
 sys.path.insert(0, sys.argv[1])
 from conftest import write_small_specimen
 from fractoscope.store.objects import S3Objects
-from fractoscope.store.specimens import ObjectSpecimenStore
+from fractoscope.store.s3 import ObjectSpecimenStore
 
 bucket, prefix, scratch = sys.argv[2:5]
 store = lambda: ObjectSpecimenStore(S3Objects(bucket, prefix), scratch, pointer_ttl_s=0.0)
@@ -186,6 +186,7 @@ def test_a_job_whose_replica_stopped_is_reported_failed(s3_objects):
         own.close()
 
 
+@pytest.mark.server
 def test_an_object_store_restart_is_answered_503_then_served_again_with_nothing_lost(tmp_path):
     """A replica whose object store stops answers what it has not cached with 503 and a retry
     hint (a timeout at most, never a hang or a 500), serves what it cached, and once the store is

@@ -19,26 +19,6 @@ def self_affine(shape: tuple[int, int], *, hurst: float, seed: int, rms_um: floa
     return synthetic.self_affine_surface(shape, hurst=hurst, rms_um=rms_um, seed=seed, **options)
 
 
-def isotropic_self_affine(
-    shape: tuple[int, int], *, hurst: float, seed: int, min_wavelength_px: float = 2.0
-) -> np.ndarray:
-    """Like self_affine, but statistically isotropic down to the longest wavelengths, for scaling
-    tests. irfft2 keeps only the Hermitian half of a half-plane spectrum's zero (and Nyquist) column,
-    so there the modes that vary along columns alone lose half their power, and column profiles of
-    self_affine miss up to a tenth of their longest waves and read H about 0.04 low; here those two
-    columns are given sqrt(2) more amplitude."""
-    rng = np.random.default_rng(seed)
-    q = np.hypot(np.fft.fftfreq(shape[0])[:, None], np.fft.rfftfreq(shape[1])[None, :])
-    q[0, 0] = 1.0
-    amplitude = q ** -(1.0 + hurst) * np.exp(-((q * min_wavelength_px) ** 2))
-    amplitude[0, 0] = 0.0
-    amplitude[:, 0] *= np.sqrt(2.0)
-    if shape[1] % 2 == 0:
-        amplitude[:, -1] *= np.sqrt(2.0)
-    heights = np.fft.irfft2(amplitude * (rng.standard_normal(q.shape) + 1j * rng.standard_normal(q.shape)), s=shape)
-    return heights / heights.std()
-
-
 def fractional_brownian_sheet(shape: tuple[int, int], *, hurst_x: float, hurst_y: float, seed: int) -> np.ndarray:
     """An anisotropic Gaussian field whose rows are self-affine with hurst_x and whose columns with
     hurst_y: separable spectrum |kx|^-(1 + 2 Hx) |ky|^-(1 + 2 Hy) (a fractional Brownian sheet)."""

@@ -49,6 +49,7 @@ def _forms() -> dict[str, np.ndarray]:
     }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("form", ["plane", "poly2", "poly4", "poly6", "sphere", "cylinder"])
 def test_known_form_plus_roughness_gives_the_roughness_sa_back(roughness, form):
     fit = form_removal.remove_form(_forms()[form] + roughness, pixel_size_um=PIXEL_UM, form=form)
@@ -56,6 +57,7 @@ def test_known_form_plus_roughness_gives_the_roughness_sa_back(roughness, form):
     assert np.allclose(fit.residual_um + fit.form_um, _forms()[form] + roughness)
 
 
+@pytest.mark.slow
 def test_sphere_and_cylinder_geometry_is_recovered(roughness):
     fit = functools.partial(form_removal.remove_form, pixel_size_um=PIXEL_UM, max_fit_points=65_536)
     sphere = fit(_forms()["sphere"] + roughness, form="sphere")

@@ -74,6 +74,7 @@ def test_levelling_on_a_region_keeps_a_step_outside_it():
     assert levelled.parameters["Sz"] == pytest.approx(3.0, rel=1e-6)
 
 
+@pytest.mark.slow
 def test_the_chain_reports_its_cutoffs_and_uncertainties(rough_surface):
     chain = roughness.surface_chain(form="poly2", lambda_s_um=0.6, lambda_c_um=12.0, direction_deg=30.0, window_px=3)
     analysis = roughness.analyse(
@@ -104,6 +105,7 @@ def test_bad_settings_name_their_field(options, field):
     assert raised.value.field == field
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("cutoffs", "field"), [({"lambda_s_um": 1e300}, "s_filter_um"), ({"lambda_c_um": 1e9}, "l_filter_um")]
 )

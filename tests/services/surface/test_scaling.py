@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from scipy import ndimage
-from surface_truth import MATCHING_WINDOW_PX, as_matched, fractional_brownian_sheet, isotropic_self_affine
+from surface_truth import MATCHING_WINDOW_PX, as_matched, fractional_brownian_sheet, self_affine
 
 from fractoscope.surface import scaling
 
@@ -24,6 +24,7 @@ def _errors(z: np.ndarray, hurst: float, window_px: float, method: str) -> list[
     return [(fit.hurst - hurst, fit.hurst_stderr) for fit in fits]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("hurst", HURSTS)
 def test_hurst_exponent_of_clean_self_affine_surfaces(hurst):
     """2048² maps, a 4 px window: lags 1.6-20 µm (16-205 px). Over twelve maps both methods are
@@ -32,7 +33,12 @@ def test_hurst_exponent_of_clean_self_affine_surfaces(hurst):
     for method in METHODS:
         errors = []
         for seed in (1, 2):
-            errors += _errors(isotropic_self_affine((2048, 2048), hurst=hurst, seed=seed), hurst, 4, method)
+            errors += _errors(
+                self_affine((2048, 2048), hurst=hurst, seed=seed, min_wavelength_px=2.0, isotropic=True),
+                hurst,
+                4,
+                method,
+            )
         error, stderr = np.array(errors).T
         assert abs(error.mean()) < 0.05, (method, error)
         assert np.all(np.abs(error) < 3 * stderr + 0.01), (method, error, stderr)
@@ -48,7 +54,9 @@ def test_hurst_exponent_through_a_matcher(hurst):
     for method in METHODS:
         errors = []
         for seed in (1, 2):
-            matched = as_matched(isotropic_self_affine((4096, 4096), hurst=hurst, seed=seed), seed=seed)
+            matched = as_matched(
+                self_affine((4096, 4096), hurst=hurst, seed=seed, min_wavelength_px=2.0, isotropic=True), seed=seed
+            )
             errors += _errors(matched, hurst, MATCHING_WINDOW_PX, method)
         error, stderr = np.array(errors).T
         assert abs(error.mean()) < 0.05, (method, error)
@@ -56,7 +64,7 @@ def test_hurst_exponent_through_a_matcher(hurst):
 
 
 def test_reported_fit_range_is_four_windows_to_a_tenth_of_the_field():
-    z = isotropic_self_affine((1024, 1536), hurst=0.7, seed=3)
+    z = self_affine((1024, 1536), hurst=0.7, seed=3, min_wavelength_px=2.0, isotropic=True)
     hhc = scaling.hurst_exponent(z, pixel_size_um=PIXEL_UM, window_px=10, method="hhc")
     assert (hhc.fit_min_um, hhc.fit_max_um) == pytest.approx((4.0, 10.24), rel=0.03)
     assert hhc.scale_um[hhc.in_fit].min() == hhc.fit_min_um and np.all(np.diff(hhc.scale_um) > 0)
@@ -68,6 +76,7 @@ def test_reported_fit_range_is_four_windows_to_a_tenth_of_the_field():
         scaling.trustworthy_range_um((256, 256), pixel_size_um=PIXEL_UM, window_px=10)
 
 
+@pytest.mark.slow
 def test_exponents_along_and_across_a_direction():
     """A fractional Brownian sheet: self-affine with H = 0.8 along x and 0.5 along y. All its profiles
     share the sheet's few longest waves, so one map scatters by up to 0.1 (more than the jackknife,
@@ -93,7 +102,7 @@ def test_exponents_along_and_across_a_direction():
 
 
 def test_holes_are_skipped():
-    z = isotropic_self_affine((1024, 1024), hurst=0.7, seed=5)
+    z = self_affine((1024, 1024), hurst=0.7, seed=5, min_wavelength_px=2.0, isotropic=True)
     holes = z.copy()
     rng = np.random.default_rng(1)
     for row, col in rng.integers(0, 1000, size=(100, 2)):
@@ -108,7 +117,10 @@ def test_radial_psd_is_the_surface_spectrum():
     hurst = 0.7
     slopes = []
     for seed in (0, 1, 2):  # one map's slope over a decade scatters by about 0.1
-        q, c = scaling.radial_psd(isotropic_self_affine((1024, 1024), hurst=hurst, seed=seed), pixel_size_um=PIXEL_UM)
+        q, c = scaling.radial_psd(
+            self_affine((1024, 1024), hurst=hurst, seed=seed, min_wavelength_px=2.0, isotropic=True),
+            pixel_size_um=PIXEL_UM,
+        )
         middle = (q > 1 / (100 * PIXEL_UM)) & (q < 1 / (10 * PIXEL_UM))
         slopes.append(np.polyfit(np.log(q[middle]), np.log(c[middle]), 1)[0])
     assert np.mean(slopes) == pytest.approx(-(2 + 2 * hurst), abs=0.1)
@@ -123,7 +135,7 @@ def test_radial_psd_is_the_surface_spectrum():
 
 
 def test_bad_arguments_are_named():
-    z = isotropic_self_affine((256, 256), hurst=0.7, seed=1)
+    z = self_affine((256, 256), hurst=0.7, seed=1, min_wavelength_px=2.0, isotropic=True)
     with pytest.raises(ValueError, match="method"):
         scaling.hurst_exponent(z, pixel_size_um=PIXEL_UM, window_px=2, method="dfa")
     with pytest.raises(ValueError, match="fit_range_um"):
@@ -157,6 +169,6 @@ def test_white_noise_has_no_determinable_hurst_exponent_by_either_method():
 
 
 def test_a_self_affine_surface_has_a_determinable_hurst_exponent():
-    z = isotropic_self_affine((256, 256), hurst=0.7, seed=3)
+    z = self_affine((256, 256), hurst=0.7, seed=3, min_wavelength_px=2.0, isotropic=True)
     fit = scaling.hurst_exponent(z, pixel_size_um=1.0, window_px=1.0)
     assert fit.not_determinable == "" and 0.5 < fit.hurst < 0.9

@@ -51,12 +51,14 @@ def propagated(surface, sigma):
     )
 
 
+@pytest.mark.slow
 def test_noise_part_of_the_height_and_slope_families_matches_monte_carlo(monte_carlo, propagated):
     # 200 paired draws estimate a standard deviation to about 5 %.
     for name in ("Sa", "Sq", "Ssk", "Sku", "Sp", "Sv", "Sz", "Sdq", "Sdr"):
         assert propagated.u_noise[name] == pytest.approx(monte_carlo[name], rel=0.15), name
 
 
+@pytest.mark.slow
 def test_noise_part_of_the_material_ratio_family_is_within_its_documented_factor(monte_carlo, propagated):
     assert propagated.u_noise["Sk"] == pytest.approx(monte_carlo["Sk"], rel=0.15)
     for name in ("Spk", "Svk", "Vmp", "Vmc", "Vvc", "Vvv"):

@@ -14,7 +14,7 @@ from surfalize import Surface
 
 from fractoscope.client import ClientError
 from fractoscope.formats.x3p import read_x3p
-from fractoscope.specimen.store import SpecimenStore
+from fractoscope.store.folder import SpecimenStore
 
 
 @pytest.fixture(scope="module")

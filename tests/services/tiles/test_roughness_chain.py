@@ -15,10 +15,12 @@ import pytest
 from fractoscope import synthetic
 from fractoscope.client import ClientError, FractoscopeClient
 from fractoscope.http.server import start_http_server
+from fractoscope.server.config import ServerConfig
 from fractoscope.server.main import create_server
 from fractoscope.specimen.fusion import PlacedRoi
+from fractoscope.specimen.model import RoiEntry, write_description, write_roi_arrays
 from fractoscope.specimen.quadtree import OPTICAL, QuadtreeLayout, TileKey, TileRecord
-from fractoscope.specimen.store import RoiEntry, SpecimenStore, write_description, write_roi_arrays
+from fractoscope.store.folder import SpecimenStore
 from fractoscope.v1 import tiles_pb2
 
 PIXEL_UM = 0.25
@@ -71,7 +73,7 @@ def served(tmp_path_factory):
             layout=QuadtreeLayout((0.0, 0.0), SIZE_PX * PIXEL_UM),
             tiles={root: TileRecord(root, roi.id, 100.0, OPTICAL, 0.0, 0.0, 1.0)},
         )
-    server, port = create_server("127.0.0.1:0", data_dir=data)
+    server, port = create_server(ServerConfig(address="127.0.0.1:0", data_dir=data))
     server.start()
     http = start_http_server(SpecimenStore(data))
     with FractoscopeClient(f"127.0.0.1:{port}", timeout_s=300) as client:

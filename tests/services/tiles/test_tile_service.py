@@ -20,9 +20,10 @@ from fractoscope.client import ClientError, FractoscopeClient
 from fractoscope.client.manifest import load_manifest
 from fractoscope.http.server import start_http_server
 from fractoscope.rpc import wire
+from fractoscope.server.config import ServerConfig
 from fractoscope.server.main import create_server
-from fractoscope.specimen.store import SpecimenStore
 from fractoscope.specimen.tileset import content_uris
+from fractoscope.store.folder import SpecimenStore
 from fractoscope.synthetic.examples import MULTISCALE_MAGNIFICATIONS
 from fractoscope.v1 import common_pb2, tiles_pb2
 
@@ -226,7 +227,7 @@ def test_repeated_request_id_returns_the_stored_specimen(built):
 
 def test_a_restarted_server_finds_the_specimen(built):
     _, _, data, summary = built
-    server, port = create_server("127.0.0.1:0", data_dir=data)
+    server, port = create_server(ServerConfig(address="127.0.0.1:0", data_dir=data))
     server.start()
     try:
         with FractoscopeClient(f"127.0.0.1:{port}") as client:
@@ -245,7 +246,7 @@ def test_a_rebuilt_specimen_is_never_served_from_the_caches_of_the_old_build(bui
     copy = tmp_path / "data"
     shutil.copytree(data, copy)
     uri = content_uris(json.loads((copy / "specimens" / "synthetic" / "tileset.json").read_text()))[0]
-    server, port = create_server("127.0.0.1:0", data_dir=copy)
+    server, port = create_server(ServerConfig(address="127.0.0.1:0", data_dir=copy))
     server.start()
     http = start_http_server(SpecimenStore(copy))
     url = f"http://127.0.0.1:{http.server_port}/specimens/synthetic/{uri}"

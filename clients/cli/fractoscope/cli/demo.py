@@ -44,7 +44,7 @@ def command_demo(args) -> int:
     from fractoscope.http.server import start_http_server
     from fractoscope.runtime.process import keep_freed_memory
     from fractoscope.server.main import embedded_server
-    from fractoscope.specimen.store import SpecimenStore
+    from fractoscope.store.folder import SpecimenStore
 
     console = Console()
     data = Path(args.data)

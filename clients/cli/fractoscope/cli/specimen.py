@@ -262,7 +262,16 @@ def command_roughness(args) -> int:
     if Path(args.source).suffix.lower() in (".npz", ".x3p"):
         if args.roi or args.region:
             raise UsageError("--roi and --region are for specimens; a file is analysed whole")
-        values = roughness_of_file(existing_file(args.source), chain, pixel_size_um=pixel_size_um)
+        from fractoscope.reconstruction.height_files import read_height_file, roughness_of_file
+        from fractoscope.specimen.queries import ChainRequest
+        from fractoscope.tiles.messages import roughness_response
+
+        height_file = read_height_file(existing_file(args.source))
+        request = ChainRequest(**chain)
+        pixel_um = _pixel_size_um(Path(args.source), height_file, pixel_size_um)
+        values = wire.response_to_roughness(
+            roughness_response(roughness_of_file(height_file, request, pixel_size_um=pixel_um), request)
+        )
     else:
         with connected(args.server, args.data) as client:
             values = client.roughness(args.source, roi=args.roi, region_um=args.region, **chain)
@@ -312,101 +321,9 @@ def print_roughness(values: dict) -> None:
         print(f"Hurst: {values['hurst_note']}")
 
 
-def roughness_of_file(path: Path, chain: dict, *, pixel_size_um: float | None) -> dict:
-    """The chain on an npz height map of `fracto height` (formats.height_npz: its local sigma and
-    calibration where it records them) or an X3P file, as GetRoughness would answer it."""
-    from fractoscope.formats.height_npz import read_height_npz
-    from fractoscope.formats.x3p import read_x3p
-    from fractoscope.specimen.queries import ChainRequest, roughness_of_map
-    from fractoscope.stereo.matching import DEFAULT_WINDOW_PX
-    from fractoscope.tiles.messages import roughness_response
-
-    sigma_um, tilt_rel, origin_um, filled = None, None, (0.0, 0.0), None
-    if path.suffix.lower() == ".x3p":
-        surface = read_x3p(path)
-        if not np.isclose(surface.step_x_um, surface.step_y_um, rtol=1e-6):
-            raise UsageError(f"{path}: pixels of {surface.step_x_um:g} x {surface.step_y_um:g} µm are not square")
-        z_um, file_pixel_um, origin_um, window_px = surface.z_um, surface.step_x_um, surface.origin_um, 1.0
-    else:
-        stored = read_height_npz(path)
-        z_um, file_pixel_um, window_px = stored.z_um.astype(np.float64), stored.pixel_size_um, DEFAULT_WINDOW_PX
-        (sigma_um, tilt_rel), filled = _matching_noise(stored), stored.filled
-    pixel_um = pixel_size_um if pixel_size_um is not None else recorded_pixel_size_um(path, file_pixel_um)
-    request = ChainRequest(**chain)
-    analysis = roughness_of_map(
-        z_um,
-        pixel_size_um=pixel_um,
-        origin_um=origin_um,
-        sigma_um=sigma_um,
-        filled=filled,
-        tilt_rel_uncertainty=tilt_rel,
-        chain=request,
-        default_window_px=window_px,
-    )
-    return wire.response_to_roughness(roughness_response(analysis, request))
-
-
-def _matching_noise(stored) -> tuple[np.ndarray | None, float | None]:
-    """The matching noise of a height map file (formats.height_npz.HeightMapFile), µm, on its grid,
-    and the relative height error its tilts' uncertainty makes (None: not recorded): the chain
-    propagates the tilt part, which scales all heights together, apart from the noise."""
-    from fractoscope.stereo import geometry
-    from fractoscope.stereo.inputs import MatchingOptions
-
-    sigma_um = stored.local_sigma_um if stored.local_sigma_um is not None else stored.sigma_um
-    tilt_rel = None
-    if stored.calibration is not None and stored.local_sigma_um is not None:
-        tilt_uncertainty = stored.record.get("report", {}).get(
-            "tilt_uncertainty_deg", MatchingOptions().tilt_uncertainty_deg
-        )
-        tilt_rel = geometry.series_relative_height_error(
-            stored.calibration.tilt_deg, tilt_uncertainty_deg=tilt_uncertainty
-        )
-    return sigma_um, tilt_rel
-
-
-def report_of_file(path: Path, outputs: list[Path], *, pixel_size_um: float | None) -> None:
-    """The measurement report of an npz height map of `fracto height` (its calibration, matching
-    report and noise where it records them), written to each of `outputs` (.html, .pdf): the map
-    is stored as a specimen of one ROI in a temporary data folder and reported as specimens are."""
-    import re
-    import shutil
-    import tempfile
-
-    from fractoscope.formats.height_npz import read_height_npz
-    from fractoscope.report import write_report
-    from fractoscope.specimen.build import store_height_map
-    from fractoscope.specimen.store import SpecimenStore
-
-    stored = read_height_npz(path)
-    sigma_um, tilt_rel = _matching_noise(stored)
-    name = re.sub(r"[^A-Za-z0-9_-]", "-", path.stem)[:64] or "height-map"
-    with tempfile.TemporaryDirectory(prefix="fracto-report-") as folder:
-        specimen = store_height_map(
-            SpecimenStore(Path(folder)),
-            name,
-            stored.z_um,
-            pixel_size_um=pixel_size_um
-            if pixel_size_um is not None
-            else recorded_pixel_size_um(path, stored.pixel_size_um),
-            # The calibration as recorded, where the file keeps no matching report that states it.
-            report={
-                **(stored.calibration.to_report() if stored.calibration else {}),
-                **stored.record.get("report", {}),
-            },
-            sigma_um=sigma_um,
-            filled=stored.filled,
-            tilt_rel_uncertainty=tilt_rel,
-            datum=stored.record.get("datum"),
-        )
-        for output in outputs:
-            written = write_report(
-                specimen,
-                Path(folder),
-                file_format=output.suffix.lower().removeprefix("."),
-                subject=f"height map file {path.name}",
-            )
-            shutil.move(written, output)
+def _pixel_size_um(path: Path, height_file, given_um: float | None) -> float:
+    """--pixel-size-um if given, else the one the height map file records (checked alike)."""
+    return given_um if given_um is not None else recorded_pixel_size_um(path, height_file.recorded_pixel_size_um)
 
 
 def command_zoom(args) -> int:
@@ -460,7 +377,11 @@ def command_report(args) -> int:
     if source.suffix.lower() == ".npz":
         if args.roi or args.region:
             raise UsageError("--roi and --region are for specimens; a height map is reported whole")
-        report_of_file(existing_file(args.source), outputs, pixel_size_um=given_pixel_size_um(args.pixel_size_um))
+        from fractoscope.reconstruction.height_files import read_height_file, report_of_file
+
+        height_file = read_height_file(existing_file(args.source))
+        pixel_um = _pixel_size_um(source, height_file, given_pixel_size_um(args.pixel_size_um))
+        report_of_file(height_file, outputs, name=source.name, pixel_size_um=pixel_um)
     elif source.is_file() or source.suffix:
         raise UsageError(f"{args.source}: give a specimen id or an .npz height map of fracto height")
     else:

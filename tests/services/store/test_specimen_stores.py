@@ -15,13 +15,13 @@ from conftest import write_small_specimen
 
 from fractoscope.errors import InvalidInputError, NotFoundError
 from fractoscope.specimen.quadtree import OPTICAL, QuadtreeLayout, TileKey
-from fractoscope.specimen.store import SpecimenStore
-from fractoscope.store.specimens import ObjectSpecimenStore
+from fractoscope.store.folder import SpecimenStore
+from fractoscope.store.s3 import ObjectSpecimenStore
 
 ROOT_TILE = TileKey(0, 0, 0)
 
 
-@pytest.fixture(params=["folder", "s3"])
+@pytest.fixture(params=["folder", pytest.param("s3", marks=pytest.mark.server)])
 def store(request, tmp_path):
     """Each backend, empty; the object store looks at its pointers on every load."""
     if request.param == "folder":
@@ -125,7 +125,7 @@ _KILLING_WRITER = """
 import os, shutil, signal, sys
 sys.path.insert(0, sys.argv[1])
 from conftest import write_small_specimen
-from fractoscope.specimen.store import SpecimenStore
+from fractoscope.store.folder import SpecimenStore
 
 def counted(original, state):
     def step(*args, **kwargs):
@@ -151,6 +151,7 @@ for kill_at in range(1, 100):
 """
 
 
+@pytest.mark.slow
 def test_a_writer_killed_at_any_step_leaves_the_old_or_the_new_build_intact(tmp_path):
     done = subprocess.run(
         [sys.executable, "-c", _KILLING_WRITER, str(Path(__file__).parents[2]), str(tmp_path)],

@@ -18,19 +18,18 @@ from fractoscope.mesh.outline import Unmeasured
 from fractoscope.progress import ProgressCallback, silent
 from fractoscope.specimen import registration
 from fractoscope.specimen.fusion import FusedSurface, PlacedRoi
-from fractoscope.specimen.quadtree import QuadtreeLayout, TileKey, TileRecord, TileSamples, build_tiles
-from fractoscope.specimen.store import (
+from fractoscope.specimen.model import (
     RoiEntry,
     Specimen,
-    SpecimenStore,
     validate_id,
     write_description,
     write_roi_arrays,
     write_roi_views,
 )
+from fractoscope.specimen.quadtree import QuadtreeLayout, TileKey, TileRecord, TileSamples, build_tiles
 from fractoscope.specimen.tileset import tileset_json
 from fractoscope.stereo import geometry
-from fractoscope.stereo.inputs import MatchingOptions
+from fractoscope.store.base import StoredSpecimens
 from fractoscope.surface import measurement
 
 
@@ -100,7 +99,7 @@ def reconstruct_specimen(
     *,
     measure: Measure,
     mesh_tile: TileMesher,
-    store: SpecimenStore,
+    store: StoredSpecimens,
     request_id: str = "",
     request_digest: str = "",
     progress: ProgressCallback | None = None,
@@ -146,7 +145,7 @@ def reconstruct_specimen(
 
 
 def store_height_map(
-    store: SpecimenStore,
+    store: StoredSpecimens,
     specimen_id: str,
     z_um: np.ndarray,
     *,
@@ -287,7 +286,7 @@ def _measurement(heights: MeasuredHeights, level: str | None) -> measurement.Mea
         heights.sigma_um,
         pixel_size_um=heights.pixel_size_um,
         tilt_deg=report.get("tilt_deg") or [],
-        tilt_uncertainty_deg=report.get("tilt_uncertainty_deg", MatchingOptions().tilt_uncertainty_deg),
+        tilt_uncertainty_deg=report.get("tilt_uncertainty_deg"),
         level=level,
     )
 

@@ -5,8 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from fractoscope.specimen.build import MeasuredHeights, RoiRequest, reconstruct_specimen
-from fractoscope.specimen.store import SpecimenStore
+from fractoscope.reconstruction.build import MeasuredHeights, RoiRequest, reconstruct_specimen
+from fractoscope.store.folder import SpecimenStore
 from fractoscope.tiles.messages import specimen_message
 
 PIXEL_SIZE_UM = 0.1

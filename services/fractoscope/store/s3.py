@@ -25,16 +25,12 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from fractoscope.errors import NotFoundError
-from fractoscope.specimen.store import (
-    Specimen,
-    SpecimenStore,
-    StoredSpecimens,
-    remove_abandoned_scratch,
-    scratch_folder,
-    validate_id,
-)
+from fractoscope.specimen.model import Specimen, validate_id
+from fractoscope.store.base import StoredSpecimens
+from fractoscope.store.folder import SpecimenStore
 from fractoscope.store.leases import DEFAULT_LEASE_TTL_S, Lease, held
 from fractoscope.store.objects import ObjectMissing, PreconditionFailed, S3Objects, open_objects
+from fractoscope.store.scratch import remove_abandoned_scratch, scratch_folder
 
 DEFAULT_GRACE_S = 3600.0
 DEFAULT_POINTER_TTL_S = 1.0
