@@ -64,7 +64,7 @@ def test_every_cited_repository_path_exists(document):
 
 def test_the_check_finds_a_stale_path(tmp_path):
     stale = tmp_path / "stale.md"
-    stale.write_text("See `services/{decoding,jobs}.py`, `tiles/api.py` and `specimen/store.py`.")
+    stale.write_text("See `services/{decoding,jobs}.py`, `http/api.py` and `specimen/store.py`.")
     assert sorted(path for path in _cited_paths(stale) if not _exists(path)) == [
         "services/decoding.py",
         "services/jobs.py",
