@@ -5,10 +5,13 @@ split across threads (prange) and reduced in float64."""
 
 from __future__ import annotations
 
+from typing import Any
+
 import numba
 import numpy as np
 
-JIT_OPTIONS = {"cache": True, "nogil": True, "fastmath": False}
+# numba.njit's options, passed as **JIT_OPTIONS: typed Any, as njit's overloads type each apart.
+JIT_OPTIONS: dict[str, Any] = {"cache": True, "nogil": True, "fastmath": False}
 _JIT = JIT_OPTIONS
 
 
